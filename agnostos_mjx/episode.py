@@ -1,0 +1,301 @@
+"""Batched episodes: reset B worlds, execute one key action for all of them,
+check success at every physics step.  Task-agnostic: everything task-specific
+comes through the Task's sampler, conditions and observables.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx import control
+from agnostos_mjx.control import PandaKinematics, Status
+from agnostos_mjx.math3d import quat_conj, quat_mul, quat_rotate
+from agnostos_mjx.observables import Observation
+from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
+from agnostos_mjx.tasks.base import KeyActions, Task
+from agnostos_mjx.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
+
+log = logging.getLogger(__name__)
+SETTLE_STEPS = 10  # RLBench runs 10 physics steps after placing the scene
+GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
+# Attach volume between the fingers in the tip frame (RLBench's attach proximity
+# sensor: 0.02 x 0.10 m face, 0.045 m deep along the approach axis).
+ATTACH_CENTER = np.array([0.0, 0.0, -0.018])
+ATTACH_HALF = np.array([0.01, 0.05, 0.0275])
+
+
+class Outcome(enum.IntEnum):
+    RUNNING = 0
+    SUCCESS = 1
+    MAX_STEPS = 2
+    OUT_OF_WORKSPACE = 3
+    UNREACHABLE = 4
+    INVALID_ACTION = 5
+    FAILURE_CONDITION = 6
+    NO_ACTION = 7  # the policy had nothing valid to execute (e.g. bad LLM output)
+    POLICY_ERROR = 8  # the policy failed (e.g. an LLM request that kept failing)
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+_STATUS_OUTCOME = {
+    Status.OUT_OF_WORKSPACE: Outcome.OUT_OF_WORKSPACE,
+    Status.UNREACHABLE: Outcome.UNREACHABLE,
+    Status.INVALID_ACTION: Outcome.INVALID_ACTION,
+}
+
+
+@dataclass
+class EnvState:
+    """Host-side bookkeeping for a batch of episodes."""
+
+    physics: PhysicsState
+    obs: Observation  # latest observation per world, data (B, nsensordata)
+    carry: tuple  # (success carry, failure carry) of the condition trees
+    variation: np.ndarray
+    gripper: np.ndarray  # commanded finger position per world
+    outcome: np.ndarray  # Outcome per world
+    key_actions: np.ndarray  # key actions executed so far
+    sim_steps: np.ndarray
+    geom_rgba: np.ndarray
+    initial_obs: Observation = field(repr=False, default=None)
+
+    @property
+    def done(self) -> np.ndarray:
+        return self.outcome != Outcome.RUNNING
+
+    @property
+    def attached(self) -> np.ndarray:
+        return np.asarray(self.obs.attached)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """Per-step sensordata of the last key action (arm then gripper phase)."""
+
+    sensordata: np.ndarray  # (B, T, nsensordata)
+    attached: np.ndarray  # (B, T, ngraspable)
+    valid: np.ndarray  # (B, T): False after a world finished
+
+
+class Episodes:
+    """Runs batches of episodes of one task on one backend."""
+
+    def __init__(self, task: Task, backend: str = "auto"):
+        self.task = task
+        self.scene: SceneModel = build_scene(task)
+        self.backend_name = resolve_backend(backend)
+        self.backend = make_backend(self.backend_name, self.scene.model)
+        self.kin = PandaKinematics.from_model(self.scene.model)
+        self.dt = float(self.scene.model.opt.timestep)
+        self.nu = self.scene.model.nu
+        self._arm_q = self.scene.layout.slice("arm_q")
+        self._jit_sample = jax.jit(jax.vmap(self._sample_one))
+        self._jit_init_cond = jax.jit(jax.vmap(self._init_conditions))
+        self._jit_conditions = jax.jit(jax.vmap(self._conditions))
+        # Control runs where the physics runs: jitted on device next to MJX,
+        # plain numpy next to native MuJoCo (see control.py).
+        if self.backend_name == "native":
+            self._plan = lambda q, p, r: control.plan_arm(self.kin, q, p, r)
+        else:
+            self._plan = jax.jit(lambda q, p, r: control.plan_arm(self.kin, q, p, r))
+        self._jit_expert = jax.jit(jax.vmap(task.expert))
+        self._jit_attach = jax.jit(jax.vmap(self._attach_test))
+
+    # ---- pure pieces (vmapped above) -------------------------------------------------
+    def _sample_one(self, key, variation):
+        return apply_placement(self.scene, self.task.sample(key, variation))
+
+    def _obs(self, data, attached):
+        return Observation(data, self.scene.layout, attached)
+
+    def _init_conditions(self, data, attached, variation):
+        obs = self._obs(data, attached)
+        return (self.task.success(variation).init(obs), self.task.failure(variation).init(obs))
+
+    def _conditions(self, carry, data, attached, valid, variation):
+        """Scan the condition trees over one world's steps: (carry, success
+        step index or -1, failure step index or -1)."""
+        success, failure = self.task.success(variation), self.task.failure(variation)
+
+        def body(c, inputs):
+            d, a, v = inputs
+            obs = self._obs(d, a)
+            sc, s = success.step(c[0], obs)
+            fc, f = failure.step(c[1], obs)
+            keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(v, n, o), new, old)  # noqa: E731
+            return (keep(sc, c[0]), keep(fc, c[1])), (s & v, f & v)
+
+        carry, (s, f) = jax.lax.scan(body, carry, (data, attached, valid))
+        first = lambda m: jnp.where(jnp.any(m), jnp.argmax(m), -1)  # noqa: E731
+        return carry, first(s), first(f)
+
+    def _attach_test(self, data, attached):
+        """Which graspables lie in the attach volume (RLBench's grasp on close)."""
+        obs = self._obs(data, attached)
+        tip_p, tip_q = obs["tip.pos"], obs["tip.quat"]
+        hits = []
+        for body, radius in zip(self.task.graspables, self.task.graspable_radius):
+            local = quat_rotate(quat_conj(tip_q), obs.pos(body) - tip_p) - ATTACH_CENTER
+            gap = jnp.linalg.norm(jnp.maximum(jnp.abs(local) - ATTACH_HALF, 0.0))
+            hits.append(gap <= radius)
+        return jnp.stack(hits) if hits else jnp.zeros((0,), bool)
+
+    # ---- host-side orchestration ------------------------------------------------------
+    def reset(self, keys: jax.Array, variations) -> EnvState:
+        """Sample B initial scenes and settle them (RLBench's 10 steps)."""
+        variations = np.asarray(variations, np.int32)
+        if np.any((variations < 0) | (variations >= self.task.num_variations)):
+            raise ValueError(
+                f"{self.task.name} has variations 0..{self.task.num_variations - 1}, "
+                f"got {sorted(set(variations.tolist()))}"
+            )
+        qpos, mocap_pos, mocap_quat, rgba = map(np.asarray, self._jit_sample(keys, variations))
+        b = len(variations)
+        m = self.scene.model
+        ctrl = np.zeros((b, self.nu))
+        ctrl[:, :7] = qpos[:, self.scene.arm_qpos]
+        ctrl[:, 7] = FINGER_OPEN
+        state = PhysicsState(
+            qpos=qpos.astype(np.float64), qvel=np.zeros((b, m.nv)), act=np.zeros((b, m.na)),
+            ctrl=ctrl, mocap_pos=mocap_pos.astype(np.float64),
+            mocap_quat=mocap_quat.astype(np.float64),
+            eq_active=np.tile(m.eq_active0.astype(bool), (b, 1)),
+            eq_data=np.tile(m.eq_data, (b, 1, 1)), time=np.zeros(b),
+        )
+        state, sens = self.backend.run(state, np.repeat(ctrl[:, None], SETTLE_STEPS, axis=1))
+        attached = np.zeros((b, len(self.task.graspables)), bool)
+        obs = self._obs(np.asarray(sens[:, -1]), attached)
+        carry = self._jit_init_cond(obs.data, attached, variations)
+        return EnvState(
+            physics=state.numpy(), obs=obs, carry=carry, variation=variations,
+            gripper=np.full(b, FINGER_OPEN), outcome=np.zeros(b, np.int32),
+            key_actions=np.zeros(b, np.int32), sim_steps=np.zeros(b, np.int32),
+            geom_rgba=rgba, initial_obs=obs,
+        )
+
+    def expert_actions(self, env: EnvState) -> KeyActions:
+        """The task's scripted expert, computed from the observation at reset."""
+        return jax.tree.map(np.asarray, self._jit_expert(env.initial_obs, env.variation))
+
+    def _run_phase(self, env: EnvState, ctrl: np.ndarray, active: np.ndarray):
+        """Run one phase; update conditions, outcomes and the latest observation."""
+        state, sens = self.backend.run(env.physics, ctrl)
+        sens = np.asarray(sens)
+        t = sens.shape[1]
+        attached = np.repeat(env.attached[:, None], t, axis=1)
+        valid = np.repeat(active[:, None], t, axis=1)
+        carry, s_idx, f_idx = map(
+            lambda x: jax.tree.map(np.asarray, x),
+            self._jit_conditions(env.carry, sens, attached, valid, env.variation),
+        )
+        s_idx, f_idx = np.asarray(s_idx), np.asarray(f_idx)
+        succeeded = active & (s_idx >= 0)
+        # A failure condition ends the episode unless success came first.
+        failed = active & (f_idx >= 0) & ~(succeeded & (s_idx <= np.where(f_idx < 0, t, f_idx)))
+        end = np.where(succeeded, s_idx, np.where(failed, f_idx, t - 1))
+        last = sens[np.arange(len(end)), end]
+        data = np.where(active[:, None], last, np.asarray(env.obs.data))
+        env.physics = state.numpy()
+        env.carry = carry
+        env.obs = self._obs(data, env.attached)
+        env.sim_steps = env.sim_steps + np.where(active, end + 1, 0).astype(np.int32)
+        env.outcome = np.where(succeeded, Outcome.SUCCESS,
+                               np.where(failed, Outcome.FAILURE_CONDITION, env.outcome))
+        return StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]))
+
+    def step(self, env: EnvState, actions: KeyActions) -> tuple[EnvState, list[StepResult]]:
+        """Execute one key action (arm, then gripper) in every running world.
+
+        `actions` holds one action per world (pos (B,3), quat (B,4), gripper
+        (B,), valid (B,)); a world whose action is not valid ends with
+        Outcome.NO_ACTION."""
+        active = ~env.done
+        valid = np.asarray(actions.valid, bool)
+        env.outcome = np.where(active & ~valid, Outcome.NO_ACTION, env.outcome)
+        active = active & valid
+        results: list[StepResult] = []
+        if not active.any():
+            return env, results
+
+        q0 = np.asarray(env.obs.data[:, self._arm_q], np.float64)
+        path, duration, status = map(np.asarray, self._plan(
+            q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype)))
+        bad = active & (status != Status.OK)
+        for code, outcome in _STATUS_OUTCOME.items():
+            env.outcome = np.where(bad & (status == code), outcome, env.outcome)
+        active = active & ~bad
+        env.key_actions = env.key_actions + active
+        if active.any():
+            # Arm phase: move, then hold so the arm comes to rest.
+            seconds = float(duration[active].max()) + control.SETTLE_TIME
+            nstep = control.bucket_steps(seconds, self.dt)
+            path = np.where(active[:, None, None], path, q0[:, None])
+            arm = control.arm_targets(path, np.maximum(duration, 1e-3), nstep, self.dt)
+            ctrl = np.concatenate([arm, np.broadcast_to(env.gripper[:, None, None], (*arm.shape[:2], 1))], -1)
+            results.append(self._run_phase(env, ctrl, active))
+
+        # Gripper phase, only for worlds whose gripper command changes.
+        target = np.asarray(control.finger_target(np.asarray(actions.gripper)))
+        active = active & ~env.done
+        moving = active & (np.abs(target - env.gripper) > 1e-4)
+        if moving.any():
+            opening = moving & (target > env.gripper)
+            self._set_attached(env, env.attached & ~opening[:, None])
+            nstep = control.bucket_steps(control.GRIPPER_TIME, self.dt)
+            arm_hold = np.asarray(env.physics.ctrl)[:, :7]
+            goal = np.where(moving, target, env.gripper)
+            grip = control.gripper_targets(env.gripper, goal, nstep, self.dt)
+            ctrl = np.concatenate([np.repeat(arm_hold[:, None], nstep, 1), grip[..., None]], -1)
+            results.append(self._run_phase(env, ctrl, moving))
+            closing = moving & ~opening & ~env.done
+            env.gripper = np.where(moving, target, env.gripper)
+            if closing.any() and self.task.graspables:
+                hits = np.asarray(self._jit_attach(env.obs.data, env.attached))
+                self._set_attached(env, env.attached | (hits & closing[:, None]))
+
+        over = (env.outcome == Outcome.RUNNING) & (env.key_actions >= self.task.max_key_actions)
+        env.outcome = np.where(over, Outcome.MAX_STEPS, env.outcome)
+        return env, results
+
+    def _set_attached(self, env: EnvState, attached: np.ndarray) -> None:
+        """Activate/deactivate grasp welds, freezing the current relative pose."""
+        if attached.shape[1] == 0 or np.array_equal(attached, env.attached):
+            return
+        m = self.scene.model
+        newly = attached & ~env.attached
+        eq_active = np.array(env.physics.eq_active, bool)
+        eq_data = np.array(env.physics.eq_data)
+        data = mujoco.MjData(m)
+        for w in np.nonzero(newly.any(1))[0]:
+            data.qpos[:] = env.physics.qpos[w]
+            data.mocap_pos[:] = env.physics.mocap_pos[w]
+            data.mocap_quat[:] = env.physics.mocap_quat[w]
+            mujoco.mj_kinematics(m, data)
+            hp, hq = data.xpos[self.scene.hand_body], data.xquat[self.scene.hand_body]
+            for g in np.nonzero(newly[w])[0]:
+                b = self.scene.graspable_bodies[g]
+                rel_p = quat_rotate(quat_conj(hq), data.xpos[b] - hp)
+                rel_q = quat_mul(quat_conj(hq), data.xquat[b])
+                eq = self.scene.weld_ids[g]
+                eq_data[w, eq, :3] = 0.0
+                eq_data[w, eq, 3:6] = np.asarray(rel_p)
+                eq_data[w, eq, 6:10] = np.asarray(rel_q)
+                eq_data[w, eq, 10] = 1.0
+        for g, eq in enumerate(self.scene.weld_ids):
+            eq_active[:, eq] = attached[:, g]
+        env.physics = env.physics.replace(eq_active=eq_active, eq_data=eq_data)
+        env.obs = self._obs(env.obs.data, attached)
+
+    def gripper_open(self, env: EnvState) -> np.ndarray:
+        """RLBench's gripper_open flag from the finger opening."""
+        return (np.asarray(env.obs["finger_q"])[:, 0] / FINGER_OPEN) > GRIPPER_OPEN_THRESHOLD

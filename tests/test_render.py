@@ -1,0 +1,119 @@
+"""CpuRenderer on a tiny scene: shapes, per-world state, colour overrides, camera errors.
+
+WarpRenderer needs a CUDA GPU and is only checked for import safety here.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from agnostos_mjx import render
+
+XML = """
+<mujoco>
+  <visual><global offwidth="32" offheight="32"/></visual>
+  <worldbody>
+    <light pos="0 -0.5 2" dir="0 0.2 -1"/>
+    <camera name="front" pos="0 -1 0.5" xyaxes="1 0 0 0 0.4 1"/>
+    <camera name="top" pos="0 0 1.5"/>
+    <geom name="table" type="box" pos="0 0 -0.02" size="0.6 0.6 0.02" rgba="0.6 0.6 0.6 1"/>
+    <body name="cube" pos="0 0 0.1">
+      <freejoint/>
+      <geom name="red" type="box" size="0.08 0.08 0.08" rgba="1 0 0 1"/>
+    </body>
+    <body name="target" mocap="true" pos="0.3 0 0.1">
+      <geom name="blue" type="box" size="0.08 0.08 0.08" rgba="0 0 1 1"
+            contype="0" conaffinity="0"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+SIZE = 64
+
+
+@pytest.fixture(scope="module")
+def model() -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(XML)
+
+
+@pytest.fixture(scope="module")
+def renderer(model: mujoco.MjModel):
+    try:
+        r = render.CpuRenderer(model, width=SIZE, height=SIZE)
+    except RuntimeError as err:
+        pytest.skip(f"no headless GL backend: {err}")
+    with r:
+        yield r
+
+
+def _states(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World 0: red cube centred, blue mocap aside. World 1: red cube far away, blue centred."""
+    qpos = np.tile(model.qpos0, (2, 1))
+    qpos[1, 0] = 5.0
+    mocap_pos = np.array([[[0.3, 0.0, 0.1]], [[0.0, 0.0, 0.1]]])
+    mocap_quat = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1, 1))
+    return qpos, mocap_pos, mocap_quat
+
+
+def _centre(img: np.ndarray) -> np.ndarray:
+    """Mean RGB of the central patch (where both cameras look at the origin)."""
+    c = SIZE // 2
+    return img[c - 4 : c + 4, c - 4 : c + 4].reshape(-1, 3).mean(axis=0)
+
+
+def test_shapes_and_per_world_state(renderer: render.CpuRenderer, model: mujoco.MjModel) -> None:
+    imgs = renderer.render(*_states(model), camera="front")
+    assert imgs.shape == (2, SIZE, SIZE, 3) and imgs.dtype == np.uint8
+    assert np.abs(imgs[0].astype(int) - imgs[1].astype(int)).mean() > 1.0
+    r, g, b = _centre(imgs[0])
+    assert r > 100 and r > 3 * g and r > 3 * b  # red cube in view
+    r, g, b = _centre(imgs[1])
+    assert b > 100 and b > 3 * r and b > 3 * g  # cube gone, mocap box moved in
+
+
+def test_other_camera_differs(renderer: render.CpuRenderer, model: mujoco.MjModel) -> None:
+    front = renderer.render(*_states(model), camera="front")
+    top = renderer.render(*_states(model), camera="top")
+    assert not np.array_equal(front, top)
+    r, g, b = _centre(top[0])
+    assert r > 3 * g and r > 3 * b
+
+
+def test_geom_rgba_override(renderer: render.CpuRenderer, model: mujoco.MjModel) -> None:
+    rgba0 = model.geom_rgba.copy()
+    rgba = np.tile(model.geom_rgba, (2, 1, 1))
+    rgba[0, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "red")] = [0, 1, 0, 1]
+    imgs = renderer.render(*_states(model), camera="front", geom_rgba=rgba)
+    r, g, b = _centre(imgs[0])
+    assert g > 100 and g > 3 * r and g > 3 * b
+    np.testing.assert_array_equal(model.geom_rgba, rgba0)  # caller's model untouched
+    again = renderer.render(*_states(model), camera="front")  # override not sticky
+    assert _centre(again[0])[0] > 100
+
+
+def test_mocap_defaults_and_bad_shapes(renderer: render.CpuRenderer, model: mujoco.MjModel) -> None:
+    qpos, _, _ = _states(model)
+    imgs = renderer.render(qpos[:1], None, None, camera="front")
+    assert imgs.shape == (1, SIZE, SIZE, 3)
+    with pytest.raises(ValueError, match="qpos"):
+        renderer.render(qpos[:, :3], None, None, camera="front")
+
+
+def test_unknown_camera(renderer: render.CpuRenderer, model: mujoco.MjModel) -> None:
+    with pytest.raises(ValueError, match=r"front.*top"):
+        renderer.render(*_states(model), camera="nope")
+
+
+def test_close_and_factory(model: mujoco.MjModel, renderer: render.CpuRenderer) -> None:
+    r = render.make_renderer(model, nworld=2, backend="cpu", width=SIZE, height=SIZE)
+    assert isinstance(r, render.CpuRenderer)
+    with r:
+        assert r.render(*_states(model), camera="top").shape == (2, SIZE, SIZE, 3)
+    with pytest.raises(RuntimeError, match="closed"):
+        r.render(*_states(model), camera="top")
+    r.close()  # idempotent
+    assert model.vis.global_.offwidth == 32  # buffer enlarged on the private copy only
+    assert render.gl_backend() in ("egl", "osmesa", "glx", "glfw", "")
+    assert hasattr(render, "WarpRenderer")  # defined without importing warp
