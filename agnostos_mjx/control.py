@@ -161,7 +161,7 @@ def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
     return q, xp.linalg.norm(target_pos - pos, axis=-1), quat_angle(target_quat, quat)
 
 
-def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 60):
+def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100):
     """Batched IK (..., 7) with restarts from the warm start, home and two
     wrist-flipped homes.  Returns (q, ok, pos_err, rot_err) of the solution
     nearest the warm start among those within tolerance."""

@@ -144,22 +144,42 @@ class Episodes:
         obs = self._obs(data, attached)
         tip_p, tip_q = obs["tip.pos"], obs["tip.quat"]
         hits = []
-        for body, radius in zip(self.task.graspables, self.task.graspable_radius):
-            local = quat_rotate(quat_conj(tip_q), obs.pos(body) - tip_p) - ATTACH_CENTER
+        for frame, radius in zip(self.task.grasp_frames, self.task.graspable_radius):
+            local = quat_rotate(quat_conj(tip_q), obs.pos(frame) - tip_p) - ATTACH_CENTER
             gap = jnp.linalg.norm(jnp.maximum(jnp.abs(local) - ATTACH_HALF, 0.0))
             hits.append(gap <= radius)
         return jnp.stack(hits) if hits else jnp.zeros((0,), bool)
 
     # ---- host-side orchestration ------------------------------------------------------
-    def reset(self, keys: jax.Array, variations) -> EnvState:
-        """Sample B initial scenes and settle them (RLBench's 10 steps)."""
+    def reset(self, keys: jax.Array, variations, placement_tries: int = 20) -> EnvState:
+        """Sample B initial scenes and settle them (RLBench's 10 steps).
+
+        As RLBench does, a scene whose expert waypoints the arm cannot reach is
+        re-sampled (from keys folded with the attempt number, so results stay
+        deterministic per key).  RLBench retries 5 times; our workspace extent
+        is inferred and reaches further than the arm for some layouts, so we
+        allow more tries."""
         variations = np.asarray(variations, np.int32)
         if np.any((variations < 0) | (variations >= self.task.num_variations)):
             raise ValueError(
                 f"{self.task.name} has variations 0..{self.task.num_variations - 1}, "
                 f"got {sorted(set(variations.tolist()))}"
             )
-        qpos, mocap_pos, mocap_quat, rgba = map(np.asarray, self._jit_sample(keys, variations))
+        keys = jnp.asarray(keys)
+        sampled = list(map(np.asarray, self._jit_sample(keys, variations)))
+        for attempt in range(1, placement_tries + 1):
+            env = self._settle(sampled, variations)
+            bad = ~self.expert_reachable(env)
+            if not bad.any() or attempt == placement_tries:
+                break
+            retry = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, attempt)
+            fresh = list(map(np.asarray, self._jit_sample(retry, variations)))
+            sampled = [np.where(bad.reshape(-1, *([1] * (a.ndim - 1))), f, a)
+                       for a, f in zip(sampled, fresh)]
+        return env
+
+    def _settle(self, sampled, variations) -> EnvState:
+        qpos, mocap_pos, mocap_quat, rgba = sampled
         b = len(variations)
         m = self.scene.model
         ctrl = np.zeros((b, self.nu))
@@ -182,6 +202,23 @@ class Episodes:
             key_actions=np.zeros(b, np.int32), sim_steps=np.zeros(b, np.int32),
             geom_rgba=rgba, initial_obs=obs,
         )
+
+    def expert_reachable(self, env: EnvState) -> np.ndarray:
+        """Whether every expert key action of each world is inside the action
+        bounds and solvable by IK (warm-started along the sequence)."""
+        actions = self.expert_actions(env)
+        q = np.asarray(env.obs.data[:, self._arm_q], np.float64)
+        ok = np.ones(len(q), bool)
+        lo, hi = control.ACTION_BOUNDS
+        for k in range(actions.pos.shape[1]):
+            pos = actions.pos[:, k].astype(np.float64)
+            quat = actions.quat[:, k].astype(np.float64)
+            q_k, ok_k, _, _ = control.solve_ik(self.kin, q, pos, quat)
+            inside = np.all((pos >= lo) & (pos <= hi), -1)
+            valid = actions.valid[:, k]
+            ok &= ~valid | (ok_k & inside)
+            q = np.where(valid[:, None], q_k, q)
+        return ok
 
     def expert_actions(self, env: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""

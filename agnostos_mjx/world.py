@@ -98,15 +98,16 @@ def _add_sensors(spec: mujoco.MjSpec, task: Task) -> Layout:
         entries.append((name, offset, len(joints)))
         offset += len(joints)
 
-    S, O = mujoco.mjtSensor, mujoco.mjtObj
+    S, O = mujoco.mjtSensor, mujoco.mjtObj  # noqa: E741
     add_group("arm_q", S.mjSENS_JOINTPOS, ARM_JOINTS)
     add_group("arm_qd", S.mjSENS_JOINTVEL, ARM_JOINTS)
     add("finger_q", S.mjSENS_JOINTPOS, O.mjOBJ_JOINT, "finger_left", 1)
     add("tip.pos", S.mjSENS_FRAMEPOS, O.mjOBJ_SITE, "tip", 3)
     add("tip.quat", S.mjSENS_FRAMEQUAT, O.mjOBJ_SITE, "tip", 4)
     for frame in task.observed_frames:
-        obj = O.mjOBJ_SITE if spec.site(frame) is not None else O.mjOBJ_BODY
-        if obj == O.mjOBJ_BODY and spec.body(frame) is None:
+        # Bodies are observed through their frame (XBODY), not their inertial frame.
+        obj = O.mjOBJ_SITE if spec.site(frame) is not None else O.mjOBJ_XBODY
+        if obj == O.mjOBJ_XBODY and spec.body(frame) is None:
             raise ValueError(f"task {task.name}: observed frame {frame!r} is neither site nor body")
         add(f"{frame}.pos", S.mjSENS_FRAMEPOS, obj, frame, 3)
         add(f"{frame}.quat", S.mjSENS_FRAMEQUAT, obj, frame, 4)

@@ -159,9 +159,13 @@ class Task:
     frames: ClassVar[tuple[str, ...]] = ()
     # Task joints whose position is observed.
     joints: ClassVar[tuple[str, ...]] = ()
-    # Bodies (with free joints) that the gripper can attach, RLBench style.
+    # Bodies the gripper attaches when it closes on them (RLBench's kinematic
+    # grasp): free objects, or articulated parts such as drawers, which then
+    # stay on their joints.
     graspables: ClassVar[tuple[str, ...]] = ()
-    # Bounding radius of each graspable, used by the attach test.
+    # Frame tested against the attach volume, per graspable (default: the body).
+    grasp_points: ClassVar[tuple[str, ...]] = ()
+    # Bounding radius around each grasp point, used by the attach test.
     graspable_radius: ClassVar[tuple[float, ...]] = ()
     max_key_actions: ClassVar[int] = MAX_KEY_ACTIONS
     notes: ClassVar[str] = ""
@@ -188,7 +192,12 @@ class Task:
     @property
     def observed_frames(self) -> tuple[str, ...]:
         frames = list(self.objects.values()) + list(self.frames) + list(self.graspables)
+        frames += list(self.grasp_points)
         return tuple(dict.fromkeys(frames))
+
+    @property
+    def grasp_frames(self) -> tuple[str, ...]:
+        return self.grasp_points or self.graspables
 
     def __repr__(self) -> str:
         return f"<Task {self.name} ({self.split.value}, {self.num_variations} variations)>"

@@ -1,0 +1,51 @@
+"""The oracle: replays the task's scripted expert, one key action per step.
+
+It is the benchmark's upper bound and the check that every task is solvable
+with the runtime's control stack (X-ICM's demos come from the same expert)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from agnostos_mjx.tasks.base import KeyActions
+
+if TYPE_CHECKING:
+    from agnostos_mjx.episode import Episodes, EnvState
+
+
+class OraclePolicy:
+    """Plans every world's expert key actions at reset and pops one per step,
+    skipping padding (invalid) entries; when a world's plan is used up its
+    action is invalid, which ends it with Outcome.NO_ACTION."""
+
+    name = "oracle"
+
+    def __init__(self) -> None:
+        self._plan: KeyActions | None = None
+        self._cursor = np.zeros(0, np.int64)
+
+    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str]) -> None:
+        self._plan = episodes.expert_actions(env)  # arrays (B, K, ...)
+        self._cursor = np.zeros(len(instructions), np.int64)
+
+    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
+        if self._plan is None:
+            raise RuntimeError("OraclePolicy.act called before reset")
+        plan = self._plan
+        valid_plan = np.asarray(plan.valid, bool)
+        b, k = valid_plan.shape
+        # Next valid entry at or after the cursor; k when none is left.
+        ahead = valid_plan & (np.arange(k)[None] >= self._cursor[:, None])
+        idx = np.where(ahead.any(1), np.argmax(ahead, 1), k)
+        valid = idx < k
+        take = np.minimum(idx, k - 1)
+        rows = np.arange(b)
+        self._cursor = idx + 1
+        return KeyActions(
+            pos=np.asarray(plan.pos)[rows, take],
+            quat=np.asarray(plan.quat)[rows, take],
+            gripper=np.asarray(plan.gripper)[rows, take],
+            valid=valid,
+        )
