@@ -104,7 +104,7 @@ class Episodes:
         self._jit_conditions = jax.jit(jax.vmap(self._conditions))
         # Control runs where the physics runs: jitted on device next to MJX,
         # plain numpy next to native MuJoCo (see control.py).
-        if self.backend_name == "native":
+        if self.backend_name == "native" or jax.default_backend() == "cpu":
             self._plan = lambda q, p, r: control.plan_arm(self.kin, q, p, r)
         else:
             self._plan = jax.jit(lambda q, p, r: control.plan_arm(self.kin, q, p, r))

@@ -61,6 +61,15 @@ GROUPS: tuple[tuple[str, frozenset[str]], ...] = (
 )
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows defaults, except the uninformative None / False."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
 class UsageError(Exception):
     """A bad command line or output directory: reported in one line, exit code 2."""
 
@@ -88,7 +97,8 @@ def _int_list(text: str) -> list[int]:
     try:
         values = [int(p) for p in text.split(",") if p.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}") from None
     if not values:
         raise argparse.ArgumentTypeError("expected at least one integer")
     return list(dict.fromkeys(values))
@@ -128,18 +138,18 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m agnostos_mjx.eval",
         description="Evaluate a policy on AGNOSTOS tasks (X-ICM protocol) and write "
                     "episodes.jsonl, results.json, results.csv and results.md.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     p.add_argument("--policy", default="oracle",
                    help="registered policy name (oracle) or 'module:attr' / 'file.py:attr' "
                         "naming a Policy class, factory or instance")
-    p.add_argument("--policy-arg", action="append", type=_policy_arg, default=[],
+    p.add_argument("--policy-arg", action="append", type=_policy_arg, default=None,
                    metavar="KEY=VALUE",
                    help="keyword argument for the policy factory (VALUE parsed as JSON if it "
                         "can be); repeatable")
     p.add_argument("--tasks", default="unseen",
                    help="comma-separated task names and/or split names (seen, unseen, "
                         "unseen_level1, unseen_level2, all)")
-    p.add_argument("--seeds", type=_int_list, default=[0, 1, 2],
+    p.add_argument("--seeds", type=_int_list, default="0,1,2",
                    help="comma-separated evaluation seeds")
     p.add_argument("--episodes", type=_positive_int, default=25, help="episodes per task and seed")
     p.add_argument("--batch", type=_positive_int, default=75,
@@ -151,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="protocol: unseen tasks use variation 0, seen tasks sample one per "
                         "episode; all: sample for every task; zero: always 0; N: always N")
     p.add_argument("--out", default=None,
-                   help="output directory (default results/<policy>-<timestamp>)")
+                   help="output directory; default results/<policy>-<timestamp>")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out: skip episodes already in episodes.jsonl")
     p.add_argument("--fail-fast", action="store_true",
@@ -163,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
     a = build_parser().parse_args(argv)
-    return EvalConfig(policy=a.policy, policy_args=dict(a.policy_arg), tasks=a.tasks,
+    return EvalConfig(policy=a.policy, policy_args=dict(a.policy_arg or []), tasks=a.tasks,
                       seeds=a.seeds, episodes=a.episodes, batch=a.batch, backend=a.backend,
                       variations=a.variations, out=a.out, resume=a.resume,
                       fail_fast=a.fail_fast, quiet=a.quiet)

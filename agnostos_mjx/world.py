@@ -16,7 +16,10 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.observables import Layout
-from agnostos_mjx.tasks.base import Placement, Task
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from agnostos_mjx.tasks.base import Placement, Task
 
 ARM_JOINTS = tuple(f"joint{i}" for i in range(1, 8))
 # Home configuration: the one nearest RLBench's recorded start joints

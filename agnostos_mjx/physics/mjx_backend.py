@@ -33,14 +33,21 @@ class MjxBackend:
     def _runner(self, batch: int, nstep: int):
         mx = self.mx
         impl = self.impl
+        # make_data wants the MjModel for warp and accepts the mjx.Model for jax.
+        source = self.model if impl == "warp" else mx
         kwargs = {}
         if impl == "warp":
             kwargs = dict(naconmax=batch * self.contacts_per_world, njmax=self.constraints_per_world)
-        model_axes = jax.tree.map(lambda _: None, mx).tree_replace({"eq_data": 0})
+        # Batch the model's weld data only when the task has grasp welds beyond
+        # the finger coupling; an unbatched model keeps the fast path.
+        batched_eq = self.model.neq > 1
+        model_axes = jax.tree.map(lambda _: None, mx)
+        if batched_eq:
+            model_axes = model_axes.tree_replace({"eq_data": 0})
 
         def to_data(state: PhysicsState):
             def one(qpos, qvel, act, ctrl, mpos, mquat, eq_active, time):
-                d = mjx.make_data(mx, impl=impl, **kwargs)
+                d = mjx.make_data(source, impl=impl, **kwargs)
                 return d.replace(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, mocap_pos=mpos,
                                  mocap_quat=mquat, eq_active=eq_active, time=time)
 
@@ -55,7 +62,7 @@ class MjxBackend:
 
         @jax.jit
         def run(state: PhysicsState, ctrl: jnp.ndarray):
-            m = mx.tree_replace({"eq_data": state.eq_data})
+            m = mx.tree_replace({"eq_data": state.eq_data}) if batched_eq else mx
             d = to_data(state)
 
             def body(d, u):

@@ -36,7 +36,7 @@ import numpy as np
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
-    from agnostos_mjx.episode import Episodes, EnvState
+    from agnostos_mjx.episode import EnvState, Episodes
 
 
 @runtime_checkable

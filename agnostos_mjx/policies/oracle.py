@@ -12,7 +12,7 @@ import numpy as np
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import Episodes, EnvState
+    from agnostos_mjx.episode import EnvState, Episodes
 
 
 class OraclePolicy:

@@ -1,0 +1,217 @@
+"""Throughput benchmark: ``python -m agnostos_mjx.bench``.
+
+Two numbers per task, backend and batch size:
+
+* physics steps/s: physics steps x worlds / wall time of `backend.run` alone
+  (a `--steps`-long run holding the settled start pose, timed after one
+  warm-up call of the same shape, repeated for at least `--min-time` s);
+* episodes/s: whole oracle episodes (reset, expert, control, condition
+  checks, physics) per wall second, timed after one warm-up batch.
+
+When native MuJoCo ran in the same process, each backend's steps/s is also
+given as a ratio to native's at the same task and batch.  This is a
+benchmark, not a test: nothing asserts on the numbers.
+
+Examples::
+
+    python -m agnostos_mjx.bench --quick                  # CPU smoke run, seconds
+    python -m agnostos_mjx.bench --backends native,warp --batches 1,75,1024 --out bench.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("agnostos_mjx.bench")
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from agnostos_mjx.eval import HelpFormatter
+
+    p = argparse.ArgumentParser(
+        prog="python -m agnostos_mjx.bench",
+        description="Physics steps/s and oracle episodes/s per task, backend and batch size.",
+        formatter_class=HelpFormatter)
+    p.add_argument("--tasks", default="all",
+                   help="comma-separated task names and/or split names (as in eval)")
+    p.add_argument("--backends", default=None,
+                   help="comma-separated backends among native, jax, warp "
+                        "(default: native, plus warp when a CUDA GPU is usable)")
+    p.add_argument("--batches", type=_int_list, default="1,75,1024",
+                   help="comma-separated numbers of worlds simulated at once")
+    p.add_argument("--steps", type=int, default=200,
+                   help="physics steps per timed backend.run call")
+    p.add_argument("--min-time", type=float, default=1.0,
+                   help="repeat the timed physics call until this many seconds have passed")
+    p.add_argument("--no-episodes", action="store_true",
+                   help="measure physics steps/s only, skip the full oracle episodes")
+    p.add_argument("--quick", action="store_true",
+                   help="CPU-friendly smoke run: native backend, batches 1,8, the first task "
+                        "only, 50 steps, no repetition")
+    p.add_argument("--out", default=None,
+                   help="write the rows, config and versions to this JSON file")
+    return p
+
+
+def _block(x: Any) -> Any:
+    import jax
+
+    return jax.block_until_ready(x)
+
+
+def bench_physics(runner, batch: int, steps: int, min_time: float) -> dict[str, float]:
+    """steps/s of `runner.backend.run` alone, after a warm-up call of the same shape."""
+    from agnostos_mjx.eval import episode_keys
+
+    keys = episode_keys(np.zeros(batch), np.arange(batch))
+    env = runner.reset(keys, np.zeros(batch, np.int32))
+    ctrl = np.repeat(np.asarray(env.physics.ctrl)[:, None], steps, axis=1)
+    t0 = time.perf_counter()
+    _block(runner.backend.run(env.physics, ctrl))
+    warmup = time.perf_counter() - t0
+    calls, wall = 0, 0.0
+    while calls == 0 or wall < min_time:
+        t0 = time.perf_counter()
+        _block(runner.backend.run(env.physics, ctrl))
+        wall += time.perf_counter() - t0
+        calls += 1
+    return {"steps_per_s": batch * steps * calls / wall, "physics_wall_s": wall / calls,
+            "physics_calls": calls, "warmup_s": warmup}
+
+
+def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float]:
+    """One batch of oracle episodes: (wall seconds, success fraction)."""
+    from agnostos_mjx.episode import Outcome
+    from agnostos_mjx.eval import episode_keys
+    from agnostos_mjx.policies.oracle import OraclePolicy
+
+    t0 = time.perf_counter()
+    keys = episode_keys(np.full(batch, seed), np.arange(batch))
+    env = runner.reset(keys, np.arange(batch) % runner.task.num_variations)
+    policy = OraclePolicy()
+    policy.reset(runner, env, [""] * batch)
+    for _ in range(runner.task.max_key_actions):
+        if env.done.all():
+            break
+        env, _ = runner.step(env, policy.act(runner, env))
+    return time.perf_counter() - t0, float(np.mean(env.outcome == Outcome.SUCCESS))
+
+
+def bench_episodes(runner, batch: int) -> dict[str, float]:
+    """Oracle episodes/s at `batch`, after a warm-up batch (compiles every shape)."""
+    warmup, _ = _oracle_batch(runner, batch, seed=1)
+    wall, success = _oracle_batch(runner, batch, seed=0)
+    return {"episodes_per_s": batch / wall, "episode_batch_wall_s": wall,
+            "oracle_success": success, "episode_warmup_s": warmup}
+
+
+def _fmt(value: float | None, digits: int = 0) -> str:
+    if value is None:
+        return "-"
+    return f"{value:,.{digits}f}"
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = ["| task | backend | batch | physics steps/s | vs native | episodes/s | "
+             "oracle success % |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ratio = r.get("vs_native")
+        lines.append(
+            f"| {r['task']} | {r['backend']} | {r['batch']} | {_fmt(r.get('steps_per_s'))} | "
+            f"{'-' if ratio is None else f'{ratio:.2f}x'} | {_fmt(r.get('episodes_per_s'), 2)} | "
+            f"{_fmt(None if r.get('oracle_success') is None else 100 * r['oracle_success'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s",
+                            datefmt="%H:%M:%S")
+    logging.getLogger("agnostos_mjx").setLevel(logging.INFO)
+
+    # tasks before episode: importing episode first trips a world <-> tasks import cycle
+    from agnostos_mjx.tasks import parse_tasks
+
+    # isort: split
+    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.eval import atomic_write, versions
+    from agnostos_mjx.physics import BACKENDS, warp_available
+
+    try:
+        tasks = parse_tasks(args.tasks)
+    except KeyError as e:
+        print(f"error: {e.args[0]}", file=sys.stderr)
+        return 2
+    steps = args.steps
+    if args.quick:
+        backends, batches, tasks, steps, min_time = ["native"], [1, 8], tasks[:1], 50, 0.0
+    else:
+        backends = ([b.strip() for b in args.backends.split(",") if b.strip()] if args.backends
+                    else ["native"] + (["warp"] if warp_available() else []))
+        batches, min_time = args.batches, args.min_time
+    bad = [b for b in backends if b not in BACKENDS or b == "auto"]
+    if bad:
+        print(f"error: unknown backend(s) {', '.join(bad)}; choose among native, jax, warp",
+              file=sys.stderr)
+        return 2
+    print(f"agnostos_mjx.bench: tasks {', '.join(t.name for t in tasks)}; backends "
+          f"{', '.join(backends)}; batches {', '.join(map(str, batches))}; {steps} steps",
+          flush=True)
+
+    rows: list[dict] = []
+    for task in tasks:
+        for backend in backends:
+            if backend == "warp" and not warp_available():
+                log.warning("skipping warp: no CUDA GPU or mujoco-warp here")
+                continue
+            runner = Episodes(task, backend)
+            for batch in batches:
+                row: dict[str, Any] = {"task": task.name, "backend": runner.backend_name,
+                                       "batch": batch, "steps": steps}
+                log.info("%s / %s / batch %d: physics", task.name, backend, batch)
+                row |= bench_physics(runner, batch, steps, min_time)
+                if not args.no_episodes:
+                    log.info("%s / %s / batch %d: oracle episodes", task.name, backend, batch)
+                    row |= bench_episodes(runner, batch)
+                rows.append(row)
+    native = {(r["task"], r["batch"]): r["steps_per_s"] for r in rows if r["backend"] == "native"}
+    for r in rows:
+        base = native.get((r["task"], r["batch"]))
+        r["vs_native"] = r["steps_per_s"] / base if base else None
+
+    table = format_table(rows)
+    print(table, end="", flush=True)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        payload = {"config": vars(args) | {"backends": backends, "batches": batches,
+                                           "steps": steps},
+                   "versions": versions(), "rows": rows, "table": table}
+        atomic_write(out, json.dumps(payload, indent=1) + "\n")
+        log.info("wrote %s", out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
