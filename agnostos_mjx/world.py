@@ -11,12 +11,12 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
 from agnostos_mjx.observables import Layout
-from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from agnostos_mjx.tasks.base import Placement, Task
@@ -131,6 +131,15 @@ def build_scene(task: Task) -> SceneModel:
                           name2=body, objtype=mujoco.mjtObj.mjOBJ_BODY, active=False,
                           solref=[0.005, 1.0])
     layout = _add_sensors(spec, task)
+    # Geoms fixed to the world or to a mocap body never touch each other in C
+    # MuJoCo, but MJX-jax would collide them (a sunk button base with the
+    # table): exclude such body pairs explicitly so all backends agree.
+    probe = spec.compile()
+    weld = probe.body_weldid
+    static = [probe.body(b).name for b in range(1, probe.nbody)
+              if weld[b] == 0 or probe.body_mocapid[weld[b]] >= 0]
+    for name in static:
+        spec.add_exclude(bodyname1="world", bodyname2=name)
     model = spec.compile()
 
     qpos_address = {}

@@ -44,6 +44,14 @@ class MjxBackend:
         model_axes = jax.tree.map(lambda _: None, mx)
         if batched_eq:
             model_axes = model_axes.tree_replace({"eq_data": 0})
+        # MJX-jax places the children of mocap bodies from the compiled body
+        # poses, so the per-world mocap pose goes into body_pos/body_quat too
+        # (mocap bodies are children of the world, so this is exact).
+        mocap_bodies = np.nonzero(self.model.body_mocapid >= 0)[0]
+        mocap_rows = self.model.body_mocapid[mocap_bodies]
+        fix_mocap = impl == "jax" and len(mocap_bodies) > 0
+        if fix_mocap:
+            model_axes = model_axes.tree_replace({"body_pos": 0, "body_quat": 0})
 
         def to_data(state: PhysicsState):
             def one(qpos, qvel, act, ctrl, mpos, mquat, eq_active, time):
@@ -63,6 +71,13 @@ class MjxBackend:
         @jax.jit
         def run(state: PhysicsState, ctrl: jnp.ndarray):
             m = mx.tree_replace({"eq_data": state.eq_data}) if batched_eq else mx
+            if fix_mocap:
+                b = state.qpos.shape[0]
+                pos = jnp.broadcast_to(mx.body_pos, (b, *mx.body_pos.shape))
+                quat = jnp.broadcast_to(mx.body_quat, (b, *mx.body_quat.shape))
+                pos = pos.at[:, mocap_bodies].set(state.mocap_pos[:, mocap_rows])
+                quat = quat.at[:, mocap_bodies].set(state.mocap_quat[:, mocap_rows])
+                m = m.tree_replace({"body_pos": pos, "body_quat": quat})
             d = to_data(state)
 
             def body(d, u):
