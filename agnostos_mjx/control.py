@@ -122,11 +122,14 @@ class PandaKinematics:
         return xp.concatenate([xp.swapaxes(lin, -1, -2), xp.swapaxes(axes, -1, -2)], axis=-2)
 
 
-def _fori(xp, n: int, body, init):
-    """A fixed-count loop: a Python loop for numpy, lax.fori_loop under JAX."""
+def _fori(xp, n: int, body, init, converged=None):
+    """A fixed-count loop: lax.fori_loop under JAX; a Python loop for numpy,
+    which may stop early once `converged(state)` holds (checked every 5 steps)."""
     if xp is np:
         for i in range(n):
             init = body(i, init)
+            if converged is not None and i % 5 == 4 and converged(init):
+                break
         return init
     return jax.lax.fori_loop(0, n, body, init)
 
@@ -156,7 +159,12 @@ def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
         dq = dq * xp.minimum(1.0, 0.4 / (norm + 1e-9))
         return xp.clip(q + dq, lower, upper)
 
-    q = _fori(xp, iters, body, q0)
+    def converged(q):
+        pos, quat = kin.tip_pose(q)
+        return bool(np.all(np.linalg.norm(target_pos - pos, axis=-1) < 0.1 * IK_POS_TOL)
+                    and np.all(quat_angle(target_quat, quat) < 0.1 * IK_ROT_TOL))
+
+    q = _fori(xp, iters, body, q0, converged)
     pos, quat = kin.tip_pose(q)
     return q, xp.linalg.norm(target_pos - pos, axis=-1), quat_angle(target_quat, quat)
 

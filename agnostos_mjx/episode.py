@@ -78,6 +78,18 @@ class EnvState:
         return np.asarray(self.obs.attached)
 
 
+def xicm_actions(ints) -> KeyActions:
+    """X-ICM's 7-integer key actions (B, 7) -> KeyActions; groups outside the
+    valid ranges become invalid actions (the episode then ends as no_action)."""
+    from agnostos_mjx.textualise import decode_action, validate_action_ints
+
+    ints = np.asarray(ints)
+    valid = np.asarray(validate_action_ints(ints), bool)
+    safe = np.where(valid[:, None], ints, np.array([57, 49, 87, 0, 39, 0, 1]))
+    pos, quat, grip = map(np.asarray, decode_action(safe))
+    return KeyActions(pos, quat, grip, valid)
+
+
 @dataclass(frozen=True)
 class StepResult:
     """Per-step sensordata of the last key action (arm then gripper phase)."""
@@ -110,6 +122,7 @@ class Episodes:
             self._plan = jax.jit(lambda q, p, r: control.plan_arm(self.kin, q, p, r))
         self._jit_expert = jax.jit(jax.vmap(task.expert))
         self._jit_attach = jax.jit(jax.vmap(self._attach_test))
+        self._renderer = None
 
     # ---- pure pieces (vmapped above) -------------------------------------------------
     def _sample_one(self, key, variation):
@@ -170,7 +183,11 @@ class Episodes:
         for attempt in range(1, placement_tries + 1):
             env = self._settle(sampled, variations)
             bad = ~self.expert_reachable(env)
-            if not bad.any() or attempt == placement_tries:
+            if not bad.any():
+                break
+            if attempt == placement_tries:
+                log.warning("%s: %d of %d scenes kept although the expert cannot reach them "
+                            "after %d placements", self.task.name, bad.sum(), len(bad), attempt)
                 break
             retry = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, attempt)
             fresh = list(map(np.asarray, self._jit_sample(retry, variations)))
@@ -332,6 +349,21 @@ class Episodes:
             eq_active[:, eq] = attached[:, g]
         env.physics = env.physics.replace(eq_active=eq_active, eq_data=eq_data)
         env.obs = self._obs(env.obs.data, attached)
+
+    def render(self, env: EnvState, camera: str = "front", width: int = 128,
+               height: int = 128) -> np.ndarray:
+        """RGB frames (B, H, W, 3) of one camera for every world, with each
+        world's variation colours (CPU renderer; MJX-warp batch rendering
+        comes with the demonstration bank)."""
+        from agnostos_mjx.render import CpuRenderer
+
+        if self._renderer is None or (self._renderer.width, self._renderer.height) != (width, height):
+            if self._renderer is not None:
+                self._renderer.close()
+            self._renderer = CpuRenderer(self.scene.model, width, height)
+        p = env.physics
+        return self._renderer.render(np.asarray(p.qpos), np.asarray(p.mocap_pos),
+                                     np.asarray(p.mocap_quat), camera, env.geom_rgba)
 
     def gripper_open(self, env: EnvState) -> np.ndarray:
         """RLBench's gripper_open flag from the finger opening."""
