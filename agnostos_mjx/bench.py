@@ -35,12 +35,10 @@ log = logging.getLogger("agnostos_mjx.bench")
 
 
 def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(p) for p in text.split(",") if p.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1:
+    from agnostos_mjx.eval import _int_list as int_list
+
+    values = int_list(text)
+    if min(values) < 1:
         raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
     return values
 

@@ -220,6 +220,16 @@ class Episodes:
             geom_rgba=rgba, initial_obs=obs,
         )
 
+    def run_expert(self, env: EnvState) -> EnvState:
+        """Execute the scripted expert until every world is done or out of actions."""
+        actions = self.expert_actions(env)
+        for k in range(actions.pos.shape[1]):
+            step = jax.tree.map(lambda x, k=k: x[:, k], actions)
+            if not step.valid.any() or env.done.all():
+                break
+            env, _ = self.step(env, step)
+        return env
+
     def expert_reachable(self, env: EnvState) -> np.ndarray:
         """Whether every expert key action of each world is inside the action
         bounds and solvable by IK (warm-started along the sequence)."""

@@ -258,12 +258,7 @@ def test_task_success_false_at_reset_true_after_expert(name):
         _, met = cond.step(cond.init(obs0), obs0)
         assert not bool(met), f"{name} v{v}: success already holds at reset"
 
-    actions = episodes.expert_actions(env)
-    for k in range(actions.pos.shape[1]):
-        step = jax.tree.map(lambda x, k=k: x[:, k], actions)
-        if not step.valid.any():
-            break
-        env, _ = episodes.step(env, step)
+    env = episodes.run_expert(env)
     labels = [Outcome(o).label for o in env.outcome]
     assert (env.outcome == Outcome.SUCCESS).all(), f"{name} {variations.tolist()}: {labels}"
     assert (env.key_actions >= 1).all() and (env.sim_steps > 0).all()

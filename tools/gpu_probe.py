@@ -10,7 +10,6 @@ import jax
 import numpy as np
 
 from agnostos_mjx.episode import Episodes, Outcome
-from agnostos_mjx.physics import make_backend
 from agnostos_mjx.tasks import get_task
 
 out = {"devices": [str(d) for d in jax.devices()]}
@@ -40,13 +39,12 @@ for name in os.environ.get("ORACLE_TASKS", "lamp_on,close_microwave,open_drawer,
         b = 75
         keys = jax.vmap(lambda s, e: jax.random.fold_in(jax.random.PRNGKey(s), e))(
             np.repeat(np.arange(3), 25), np.tile(np.arange(25), 3))
-        var = np.asarray(jax.vmap(lambda k: jax.random.randint(
-            jax.random.fold_in(k, 1), (), 0, ep.task.num_variations))(keys))
+        nvar = ep.task.num_variations
+        var = np.asarray(jax.vmap(lambda k, n=nvar: jax.random.randint(
+            jax.random.fold_in(k, 1), (), 0, n))(keys))
         t = time.time()
         env = ep.reset(keys, var)
-        acts = ep.expert_actions(env)
-        for k in range(acts.pos.shape[1]):
-            env, _ = ep.step(env, jax.tree.map(lambda x: x[:, k], acts))
+        env = ep.run_expert(env)
         rate = float(np.mean(env.outcome == Outcome.SUCCESS))
         out[f"oracle_{name}_{backend}"] = rate
         print(name, backend, f"success {rate:.3f}", f"{time.time() - t:.1f}s", flush=True)
