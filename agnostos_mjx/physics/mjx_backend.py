@@ -53,14 +53,16 @@ class MjxBackend:
         if fix_mocap:
             model_axes = model_axes.tree_replace({"body_pos": 0, "body_quat": 0})
 
-        def to_data(state: PhysicsState):
-            def one(qpos, qvel, act, ctrl, mpos, mquat, eq_active, time):
-                d = mjx.make_data(source, impl=impl, **kwargs)
-                return d.replace(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, mocap_pos=mpos,
-                                 mocap_quat=mquat, eq_active=eq_active, time=time)
+        # A template batch of Data, made once per batch size and passed in,
+        # so each rollout only overwrites the state fields.
+        template = jax.jit(jax.vmap(lambda _: mjx.make_data(source, impl=impl, **kwargs)))(
+            jnp.arange(batch))
 
-            return jax.vmap(one)(state.qpos, state.qvel, state.act, state.ctrl, state.mocap_pos,
-                                 state.mocap_quat, state.eq_active, state.time)
+        def to_data(template, state: PhysicsState):
+            return template.replace(qpos=state.qpos, qvel=state.qvel, act=state.act,
+                                    ctrl=state.ctrl, mocap_pos=state.mocap_pos,
+                                    mocap_quat=state.mocap_quat, eq_active=state.eq_active,
+                                    time=state.time)
 
         def step(m, d, u):
             d = mjx.step(m, d.replace(ctrl=u))
@@ -69,7 +71,7 @@ class MjxBackend:
         batched_step = jax.vmap(step, in_axes=(model_axes, 0, 0))
 
         @jax.jit
-        def run(state: PhysicsState, ctrl: jnp.ndarray):
+        def run(template, state: PhysicsState, ctrl: jnp.ndarray):
             m = mx.tree_replace({"eq_data": state.eq_data}) if batched_eq else mx
             if fix_mocap:
                 b = state.qpos.shape[0]
@@ -78,7 +80,7 @@ class MjxBackend:
                 pos = pos.at[:, mocap_bodies].set(state.mocap_pos[:, mocap_rows])
                 quat = quat.at[:, mocap_bodies].set(state.mocap_quat[:, mocap_rows])
                 m = m.tree_replace({"body_pos": pos, "body_quat": quat})
-            d = to_data(state)
+            d = to_data(template, state)
 
             def body(d, u):
                 d = batched_step(m, d, u)
@@ -90,7 +92,7 @@ class MjxBackend:
                                 eq_active=d.eq_active, time=d.time)
             return new, jnp.swapaxes(sens, 0, 1)
 
-        return run
+        return functools.partial(run, template)
 
     def run(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
         state = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if x.dtype != bool else jnp.asarray(x), state)
