@@ -116,10 +116,15 @@ class PandaKinematics:
 
     def jacobian(self, q):
         """Geometric Jacobian (..., 6, 7): linear rows then angular rows."""
-        xp = array_module(q)
         pos, _, origins, axes = self.forward(q)
-        lin = xp.cross(axes, pos[..., None, :] - origins)
-        return xp.concatenate([xp.swapaxes(lin, -1, -2), xp.swapaxes(axes, -1, -2)], axis=-2)
+        return _jacobian(pos, origins, axes)
+
+
+def _jacobian(pos, origins, axes):
+    """Geometric Jacobian of revolute joints from their world origins and axes."""
+    xp = array_module(pos, origins, axes)
+    lin = xp.cross(axes, pos[..., None, :] - origins)
+    return xp.concatenate([xp.swapaxes(lin, -1, -2), xp.swapaxes(axes, -1, -2)], axis=-2)
 
 
 def _fori(xp, n: int, body, init, converged=None):
@@ -145,9 +150,7 @@ def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
     def body(_, q):
         pos, quat, origins, axes = kin.forward(q)
         err = xp.concatenate([target_pos - pos, quat_error(target_quat, quat)], -1) * weight
-        lin = xp.cross(axes, pos[..., None, :] - origins)
-        jac = xp.concatenate([xp.swapaxes(lin, -1, -2), xp.swapaxes(axes, -1, -2)], -2)
-        jac = jac * weight[:, None]
+        jac = _jacobian(pos, origins, axes) * weight[:, None]
         jt = xp.swapaxes(jac, -1, -2)
         # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2 (weak pull to mid-range)
         lam2 = 1e-4 + 0.01 * xp.sum(err**2, -1)

@@ -28,7 +28,6 @@ ARM_JOINTS = tuple(f"joint{i}" for i in range(1, 8))
 # the recorded joints alone miss it by 2 cm and 4 degrees.
 HOME_QPOS = (-0.003, 0.1413, -0.0019, -0.8802, 0.0015, 1.2637, 0.7812)
 FINGER_OPEN = 0.04
-WELD_DATA_SIZE = 11  # anchor(3) relpose pos(3) relpose quat(4) torquescale(1)
 
 # Collision classes (contype, conaffinity): robot collision geoms are (1, 0),
 # the table (4, 3); task objects collide with the robot, each other and the table.
@@ -125,8 +124,7 @@ def build_scene(task: Task) -> SceneModel:
     spec = mujoco.MjSpec.from_file(str(scenes_dir() / "world.xml"))
     builder = SceneBuilder(spec)
     task.build(builder)
-    for body, radius in zip(task.graspables, task.graspable_radius):
-        del radius
+    for body in task.graspables:
         spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, name=f"grasp_{body}", name1="hand",
                           name2=body, objtype=mujoco.mjtObj.mjOBJ_BODY, active=False,
                           solref=[0.005, 1.0])
