@@ -29,9 +29,11 @@ class MjxBackend:
         options = {}
         if impl == "warp":
             # Warp's default graph mode replays a CUDA graph only for matching
-            # buffer addresses; per-step controls change them every step and
-            # forced a recapture per step (83k vs 2.0M env-steps/s at batch
-            # 1024 on an H200).  The staged mode copies into fixed buffers.
+            # buffer addresses; per-step controls change them every step, which
+            # forced a recapture per step (83k env-steps/s at batch 1024 on an
+            # H200) and, measured with tools/warp_variants.py, returned stale
+            # sensor data at batch 1024.  The staged mode copies into fixed
+            # buffers: 500k env-steps/s at batch 1024 with correct data.
             from mujoco.mjx.warp import types as warp_types
 
             options["graph_mode"] = getattr(warp_types.GraphMode, graph_mode)
@@ -75,8 +77,7 @@ class MjxBackend:
                                     time=state.time)
 
         def step(m, d, u):
-            d = mjx.step(m, d.replace(ctrl=u))
-            return d
+            return mjx.step(m, d.replace(ctrl=u))
 
         model_batched = batched_eq or fix_mocap
         if model_batched:
