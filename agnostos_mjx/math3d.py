@@ -123,3 +123,29 @@ def slerp(a: Array, b: Array, t: Array) -> Array:
 def transform_point(pos: Array, quat: Array, local: Array) -> Array:
     """World position of a point given in a frame (pos, quat)."""
     return pos + quat_rotate(quat, local)
+
+
+def mat_to_quat(m: Array) -> Array:
+    """Rotation matrix (..., 3, 3) -> unit quaternion (w, x, y, z); branch-free
+    (Shepperd's four cases, selected by the largest diagonal term)."""
+    xp = array_module(m)
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
+
+    def root(x):
+        return 2.0 * xp.sqrt(xp.maximum(x, 1e-12))
+
+    s0, s1, s2, s3 = root(1 + trace), root(1 + m00 - m11 - m22), root(1 + m11 - m00 - m22), \
+        root(1 + m22 - m00 - m11)
+    cases = [
+        xp.stack([0.25 * s0, (m21 - m12) / s0, (m02 - m20) / s0, (m10 - m01) / s0], -1),
+        xp.stack([(m21 - m12) / s1, 0.25 * s1, (m01 + m10) / s1, (m02 + m20) / s1], -1),
+        xp.stack([(m02 - m20) / s2, (m01 + m10) / s2, 0.25 * s2, (m12 + m21) / s2], -1),
+        xp.stack([(m10 - m01) / s3, (m02 + m20) / s3, (m12 + m21) / s3, 0.25 * s3], -1),
+    ]
+    choice = xp.argmax(xp.stack([trace, m00, m11, m22], -1), axis=-1)[..., None]
+    q = xp.where(choice == 0, cases[0], xp.where(choice == 1, cases[1],
+                                                  xp.where(choice == 2, cases[2], cases[3])))
+    return quat_normalize(q)
