@@ -240,12 +240,13 @@ def test_descriptions_non_empty_for_every_variation(name):
     ("push_buttons", 49, "push the maroon button, then push the blue button"),
     ("close_microwave", 0, "close microwave"),
     ("lamp_on", 0, "turn on the light"),
+    ("lamp_off", 0, "turn off the light"),
 ])
 def test_first_description(name, variation, first):
     assert get_task(name).descriptions(variation)[0] == first
 
 
-@pytest.mark.parametrize("name", ["open_drawer", "push_buttons", "close_microwave", "lamp_on"])
+@pytest.mark.parametrize("name", list_tasks())
 def test_task_success_false_at_reset_true_after_expert(name):
     task = get_task(name)
     episodes = Episodes(task, "native")

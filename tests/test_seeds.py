@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.episode import Episodes, Outcome
-from agnostos_mjx.tasks import get_task
+from agnostos_mjx.tasks import get_task, list_tasks
 
-TASKS = ["open_drawer", "push_buttons", "close_microwave", "lamp_on"]
+TASKS = list_tasks()
 
 
 @functools.cache

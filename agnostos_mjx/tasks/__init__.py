@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from agnostos_mjx.tasks.base import Split, Task
 from agnostos_mjx.tasks.close_microwave import CloseMicrowave
+from agnostos_mjx.tasks.lamp_off import LampOff
 from agnostos_mjx.tasks.lamp_on import LampOn
 from agnostos_mjx.tasks.open_drawer import OpenDrawer
 from agnostos_mjx.tasks.push_buttons import PushButtons
 
-_TASKS: dict[str, Task] = {t.name: t for t in (OpenDrawer(), PushButtons(), CloseMicrowave(),
-                                                LampOn())}
+_TASKS: dict[str, Task] = {
+    t.name: t for t in (OpenDrawer(), PushButtons(), CloseMicrowave(), LampOn(), LampOff())
+}
 
 
 def get_task(name: str) -> Task:
