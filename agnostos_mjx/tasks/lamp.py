@@ -1,4 +1,4 @@
-"""The table lamp with a floor push-button switch, shared by lamp_on and lamp_off."""
+"""The table lamp with a floor push-button switch: the shared base of lamp_on and lamp_off."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import mujoco
 
 from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.math3d import euler_xyz_quat
-from agnostos_mjx.tasks.base import Placement, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
 from agnostos_mjx.tasks.builders import disc, panel, push_button, rod
 
 DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
@@ -16,7 +16,7 @@ DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.153, 0.247), (0.015, 0.064)
 
 
-def build_lamp(scene, bulb_rgb) -> None:
+def _build_lamp(scene, bulb_rgb) -> None:
     root = scene.mocap("lamp_root")
     base = root.add_body(name="lamp_base", pos=[0.058, -0.073, 0.0])
     disc(base, 0.047, 0.01, (0, 0, 0.01), (0.85, 0.85, 1.0))
@@ -36,22 +36,34 @@ def build_lamp(scene, bulb_rgb) -> None:
                 wrap_height=0.006, rest=0.0, plate_rgba=(0.0, 1.0, 0.0))
 
 
-def sample_lamp(key) -> Placement:
-    pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
-    return Placement(bodies={"lamp_root": (pos, quat)})
+class LampTask(Task):
+    """A lamp with a floor switch: press the switch more than 3 mm
+    (RLBench's JointCondition).  Subclasses set the name, language and the
+    bulb's starting colour."""
 
+    split = Split.LEVEL1
+    objects = {"button": "push_button_target", "button topPlate": "target_button_plate",
+               "lamp": "lamp_base"}
+    joints = ("target_button_joint",)
+    bulb_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    language: tuple[str, ...] = ()
 
-LAMP_OBJECTS = {"button": "push_button_target", "button topPlate": "target_button_plate",
-                "lamp": "lamp_base"}
+    def descriptions(self, variation: int) -> list[str]:
+        return list(self.language)
 
+    def build(self, scene) -> None:
+        _build_lamp(scene, self.bulb_rgb)
 
-def press_switch():
-    return JointMoved(("target_button_joint",), 0.003)
+    def sample(self, key, variation) -> Placement:
+        pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
+        return Placement(bodies={"lamp_root": (pos, quat)})
 
+    def success(self, variation):
+        return JointMoved(("target_button_joint",), 0.003)
 
-def switch_expert(obs):
-    """Hover 0.083 m above the switch with fingers closed to 0.1, then press."""
-    return key_actions([
-        (in_frame(obs, "push_button_target", (0, 0, 0.091)), DOWN, 0.1),
-        (in_frame(obs, "push_button_target", (0, 0, 0.016)), DOWN, 0.1),
-    ])
+    def expert(self, obs, variation):
+        """Hover 0.083 m above the switch with fingers closed to 0.1, then press."""
+        return key_actions([
+            (in_frame(obs, "push_button_target", (0, 0, 0.091)), DOWN, 0.1),
+            (in_frame(obs, "push_button_target", (0, 0, 0.016)), DOWN, 0.1),
+        ])
