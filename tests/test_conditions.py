@@ -263,3 +263,14 @@ def test_task_success_false_at_reset_true_after_expert(name):
     labels = [Outcome(o).label for o in env.outcome]
     assert (env.outcome == Outcome.SUCCESS).all(), f"{name} {variations.tolist()}: {labels}"
     assert (env.key_actions >= 1).all() and (env.sim_steps > 0).all()
+
+
+def test_registry_lists_the_benchmark_and_flags_missing_tasks():
+    from agnostos_mjx.tasks import BENCHMARK, Split, is_implemented
+
+    assert [len(BENCHMARK[s]) for s in Split] == [18, 13, 10]
+    missing = [n for names in BENCHMARK.values() for n in names if not is_implemented(n)]
+    for name in missing[:1]:
+        with pytest.raises(KeyError, match="not implemented"):
+            get_task(name)
+    assert all(get_task(n).name == n for n in list_tasks())

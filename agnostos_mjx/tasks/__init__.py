@@ -1,34 +1,66 @@
-"""Task registry: every task by name and split."""
+"""Task registry: the AGNOSTOS benchmark's 41 tasks, by name and split.
+
+The benchmark lists are fixed here (in the order of X-ICM's `gather_score.py`);
+each task lives in its own module `agnostos_mjx.tasks.<name>` that defines
+`TASK`, imported on first use.  A listed task whose module does not exist yet
+is reported as not implemented, never silently skipped.
+"""
 
 from __future__ import annotations
 
-from agnostos_mjx.tasks.base import Split, Task
-from agnostos_mjx.tasks.close_microwave import CloseMicrowave
-from agnostos_mjx.tasks.lamp_off import LampOff
-from agnostos_mjx.tasks.lamp_on import LampOn
-from agnostos_mjx.tasks.open_drawer import OpenDrawer
-from agnostos_mjx.tasks.push_buttons import PushButtons
+import functools
+import importlib
+import importlib.util
 
-_TASKS: dict[str, Task] = {
-    t.name: t for t in (OpenDrawer(), PushButtons(), CloseMicrowave(), LampOn(), LampOff())
+from agnostos_mjx.tasks.base import Split, Task
+
+SEEN = (
+    "open_drawer", "slide_block_to_color_target", "sweep_to_dustpan_of_size", "meat_off_grill",
+    "turn_tap", "put_item_in_drawer", "close_jar", "reach_and_drag", "stack_blocks",
+    "light_bulb_in", "put_money_in_safe", "place_wine_at_rack_location",
+    "put_groceries_in_cupboard", "place_shape_in_shape_sorter", "push_buttons",
+    "insert_onto_square_peg", "stack_cups", "place_cups",
+)
+UNSEEN_LEVEL1 = (
+    "put_toilet_roll_on_stand", "put_knife_on_chopping_board", "close_fridge",
+    "close_microwave", "close_laptop_lid", "phone_on_base", "toilet_seat_down", "lamp_off",
+    "lamp_on", "put_books_on_bookshelf", "put_umbrella_in_umbrella_stand", "open_grill",
+    "put_rubbish_in_bin",
+)
+UNSEEN_LEVEL2 = (
+    "take_usb_out_of_computer", "take_lid_off_saucepan", "take_plate_off_colored_dish_rack",
+    "basketball_in_hoop", "scoop_with_spatula", "straighten_rope", "turn_oven_on",
+    "beat_the_buzz", "water_plants", "unplug_charger",
+)
+BENCHMARK: dict[Split, tuple[str, ...]] = {
+    Split.SEEN: SEEN, Split.LEVEL1: UNSEEN_LEVEL1, Split.LEVEL2: UNSEEN_LEVEL2,
 }
 
 
+def is_implemented(name: str) -> bool:
+    return importlib.util.find_spec(f"agnostos_mjx.tasks.{name}") is not None
+
+
+@functools.cache
 def get_task(name: str) -> Task:
     """The task called `name`; an unknown name lists the valid ones."""
-    try:
-        return _TASKS[name]
-    except KeyError:
-        valid = ", ".join(sorted(_TASKS))
-        raise KeyError(f"unknown task {name!r}; valid task names: {valid}") from None
+    split = next((s for s, names in BENCHMARK.items() if name in names), None)
+    if split is None:
+        valid = ", ".join(sorted(n for names in BENCHMARK.values() for n in names))
+        raise KeyError(f"unknown task {name!r}; valid task names: {valid}")
+    if not is_implemented(name):
+        raise KeyError(f"task {name!r} ({split.value}) is part of the benchmark but not "
+                       f"implemented yet; implemented: {', '.join(list_tasks())}")
+    task = importlib.import_module(f"agnostos_mjx.tasks.{name}").TASK
+    if task.name != name or task.split != split:
+        raise RuntimeError(f"module agnostos_mjx.tasks.{name} declares {task!r}")
+    return task
 
 
 def list_tasks(split: Split | str | None = None) -> list[str]:
-    """Names of the registered tasks, optionally of one split."""
-    if split is None:
-        return list(_TASKS)
-    split = Split(split)
-    return [n for n, t in _TASKS.items() if t.split == split]
+    """Names of the implemented tasks in benchmark order, optionally of one split."""
+    splits = list(BENCHMARK) if split is None else [Split(split)]
+    return [n for s in splits for n in BENCHMARK[s] if is_implemented(n)]
 
 
 def parse_tasks(spec: str) -> list[Task]:
@@ -46,4 +78,5 @@ def parse_tasks(spec: str) -> list[Task]:
     return [get_task(n) for n in dict.fromkeys(names)]
 
 
-__all__ = ["Split", "Task", "get_task", "list_tasks", "parse_tasks"]
+__all__ = ["BENCHMARK", "Split", "Task", "get_task", "is_implemented", "list_tasks",
+           "parse_tasks"]

@@ -66,3 +66,6 @@ class CloseMicrowave(Task):
             (in_frame(obs, "microwave_root", (-0.082, -0.122, 0.228)), quat, 1.0),
             (in_frame(obs, "microwave_root", (0.124, 0.169, 0.26)), quat, 1.0),
         ])
+
+
+TASK = CloseMicrowave()

@@ -13,3 +13,6 @@ class LampOff(LampTask):
                 "close the gripper and press on the button until the light turns off")
     notes = ("The bulb starts white. RLBench means to turn it black on success but its check "
              "never holds (a bug); the colour change is visual only and not rendered here.")
+
+
+TASK = LampOff()

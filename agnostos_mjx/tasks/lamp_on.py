@@ -13,3 +13,6 @@ class LampOn(LampTask):
                 "close the gripper and press on the button until the light turns on")
     notes = ("The bulb starts black; RLBench turns it white once the switch is pressed. The "
              "colour change is visual only and not rendered here yet.")
+
+
+TASK = LampOn()

@@ -71,3 +71,6 @@ class OpenDrawer(Task):
             (handle, quat, 0.0),  # at the handle, close the gripper
             (handle + 0.237 * out, quat, 0.0),  # pull straight out
         ])
+
+
+TASK = OpenDrawer()

@@ -93,3 +93,6 @@ class PushButtons(Task):
                       (in_frame(obs, frame, (0, 0, PRESS)), DOWN, 0.1)]
             valid += [k < n, k < n]
         return key_actions(steps, valid=jnp.stack(valid))
+
+
+TASK = PushButtons()
