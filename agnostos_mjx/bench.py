@@ -44,7 +44,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agnostos_mjx.eval import HelpFormatter
+    from agnostos_mjx.cli import HelpFormatter
 
     p = argparse.ArgumentParser(
         prog="python -m agnostos_mjx.bench",
@@ -152,8 +152,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from agnostos_mjx.tasks import parse_tasks
 
     # isort: split
+    from agnostos_mjx.cli import atomic_write, versions
     from agnostos_mjx.episode import Episodes
-    from agnostos_mjx.eval import atomic_write, versions
     from agnostos_mjx.physics import BACKENDS, warp_available
 
     try:
