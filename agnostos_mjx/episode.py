@@ -68,10 +68,15 @@ class EnvState:
     sim_steps: np.ndarray
     geom_rgba: np.ndarray
     initial_obs: Observation = field(repr=False, default=None)
+    # Evaluation ends an episode at its first success (X-ICM stops mid-path);
+    # demonstrations run the expert to its end, as RLBench records them.
+    stop_at_success: bool = True
 
     @property
     def done(self) -> np.ndarray:
-        return self.outcome != Outcome.RUNNING
+        if self.stop_at_success:
+            return self.outcome != Outcome.RUNNING
+        return (self.outcome != Outcome.RUNNING) & (self.outcome != Outcome.SUCCESS)
 
     @property
     def attached(self) -> np.ndarray:
@@ -164,7 +169,8 @@ class Episodes:
         return jnp.stack(hits) if hits else jnp.zeros((0,), bool)
 
     # ---- host-side orchestration ------------------------------------------------------
-    def reset(self, keys: jax.Array, variations, placement_tries: int = 20) -> EnvState:
+    def reset(self, keys: jax.Array, variations, placement_tries: int = 20,
+              stop_at_success: bool = True) -> EnvState:
         """Sample B initial scenes and settle them (RLBench's 10 steps).
 
         As RLBench does, a scene whose expert waypoints the arm cannot reach is
@@ -193,6 +199,7 @@ class Episodes:
             fresh = list(map(np.asarray, self._jit_sample(retry, variations)))
             sampled = [np.where(bad.reshape(-1, *([1] * (a.ndim - 1))), f, a)
                        for a, f in zip(sampled, fresh)]
+        env.stop_at_success = stop_at_success
         return env
 
     def _settle(self, sampled, variations) -> EnvState:
@@ -220,14 +227,17 @@ class Episodes:
             geom_rgba=rgba, initial_obs=obs,
         )
 
-    def run_expert(self, env: EnvState) -> EnvState:
-        """Execute the scripted expert until every world is done or out of actions."""
+    def run_expert(self, env: EnvState, record: list[StepResult] | None = None) -> EnvState:
+        """Execute the scripted expert until every world is done or out of actions;
+        `record`, if given, collects the per-step sensordata of every phase."""
         actions = self.expert_actions(env)
         for k in range(actions.pos.shape[1]):
             step = jax.tree.map(lambda x, k=k: x[:, k], actions)
             if not step.valid.any() or env.done.all():
                 break
-            env, _ = self.step(env, step)
+            env, results = self.step(env, step)
+            if record is not None:
+                record.extend(results)
         return env
 
     def expert_reachable(self, env: EnvState) -> np.ndarray:
@@ -266,7 +276,8 @@ class Episodes:
         succeeded = active & (s_idx >= 0)
         # A failure condition ends the episode unless success came first.
         failed = active & (f_idx >= 0) & ~(succeeded & (s_idx <= np.where(f_idx < 0, t, f_idx)))
-        end = np.where(succeeded, s_idx, np.where(failed, f_idx, t - 1))
+        stop = succeeded & env.stop_at_success
+        end = np.where(stop, s_idx, np.where(failed, f_idx, t - 1))
         last = sens[np.arange(len(end)), end]
         data = np.where(active[:, None], last, np.asarray(env.obs.data))
         env.physics = state.numpy()
@@ -285,7 +296,8 @@ class Episodes:
         Outcome.NO_ACTION."""
         active = ~env.done
         valid = np.asarray(actions.valid, bool)
-        env.outcome = np.where(active & ~valid, Outcome.NO_ACTION, env.outcome)
+        running = env.outcome == Outcome.RUNNING
+        env.outcome = np.where(active & ~valid & running, Outcome.NO_ACTION, env.outcome)
         active = active & valid
         results: list[StepResult] = []
         if not active.any():

@@ -78,4 +78,35 @@ def discover_keyframes(
     return keyframes
 
 
-__all__ = ["STOPPED_BUFFER_FRAMES", "discover_keyframes"]
+def merge_repeated_keyframes(
+    keyframes: list[int] | np.ndarray,
+    positions: np.ndarray,
+    quats: np.ndarray,
+    gripper_open: np.ndarray,
+    max_distance: float = 0.01,
+    max_angle_deg: float = 5.0,
+) -> list[int]:
+    """Merge runs of consecutive keyframes at the same pose (keeping the last).
+
+    Our controller holds the arm still after each waypoint until the servos
+    settle; RLBench starts the next path at once.  On a hold the PerAct rule
+    finds a "stop" every 5 frames, so one waypoint would become several
+    identical key actions (wasting the LLM's 256-token budget).  Keyframes
+    within `max_distance` metres and `max_angle_deg` of the next one with the
+    same gripper flag are dropped.  Arrays are per frame (positions (T, 3),
+    quats (T, 4) wxyz, gripper_open (T,)).
+    """
+    keys = [int(k) for k in keyframes]
+    out: list[int] = []
+    for k, nxt in zip(keys, keys[1:] + [None]):
+        if nxt is not None and gripper_open[k] == gripper_open[nxt]:
+            near = np.linalg.norm(positions[k] - positions[nxt]) <= max_distance
+            dot = abs(float(np.dot(quats[k], quats[nxt])))
+            angle = np.degrees(2 * np.arccos(min(1.0, dot)))
+            if near and angle <= max_angle_deg:
+                continue
+        out.append(k)
+    return out
+
+
+__all__ = ["STOPPED_BUFFER_FRAMES", "discover_keyframes", "merge_repeated_keyframes"]

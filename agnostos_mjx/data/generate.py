@@ -1,0 +1,366 @@
+"""Generate the seen-task demonstration bank: ``python -m agnostos_mjx.data.generate``.
+
+The experts run in batches; only successful episodes are kept, a failed
+one is re-sampled (a new scene from the next attempt key) and counted.  Demo
+`i` of a task uses variation ``i % num_variations`` (so demos spread evenly
+over the variations) and the scene key
+``fold_in(fold_in(fold_in(PRNGKey(seed), crc32(task)), i), attempt)``, so a
+bank is reproducible from its seed and independent of batching.
+
+Recording follows RLBench: an observation every 0.05 s (every 10th physics
+step); key actions are the PerAct keyframes of that recording (gripper
+changes and arm stops), in continuous form and as X-ICM's 7 integers.
+
+Interrupting is safe: each batch rewrites the task's archive and then the
+manifest atomically, and a rerun with the same --out continues where the
+last one stopped (settings must match; a mismatch is an error, not a mix).
+
+Examples::
+
+    python -m agnostos_mjx.data.generate --out data/seen_bank             # 18 seen x 200
+    python -m agnostos_mjx.data.generate --out /tmp/bank --tasks open_drawer --demos 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+import zlib
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from datetime import datetime
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from agnostos_mjx.cli import HelpFormatter, progress_bar, setup_logging, versions
+from agnostos_mjx.data.bank import (
+    FORMAT_VERSION,
+    MANIFEST,
+    MAX_KEYS,
+    TRAJ_FIELDS,
+    BankError,
+    read_manifest,
+    read_shard,
+    write_manifest,
+    write_shard,
+)
+from agnostos_mjx.keyframes import discover_keyframes, merge_repeated_keyframes
+from agnostos_mjx.textualise import encode_action
+
+log = logging.getLogger("agnostos_mjx.data")
+
+FRAME_DT = 0.05  # RLBench records one observation per 50 ms simulation step
+# Settings that must agree between a bank and a run that extends it.
+COMPATIBLE = ("seed", "image_size", "cameras", "frame_dt", "max_attempts")
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    out: Path
+    tasks: tuple[str, ...]
+    demos: int = 200
+    seed: int = 0
+    backend: str = "auto"
+    batch: int = 100
+    image_size: int = 128
+    cameras: tuple[str, ...] = ("front",)
+    max_attempts: int = 10
+    frame_dt: float = FRAME_DT
+    quiet: bool = False
+
+
+def demo_keys(seed: int, task: str, indices: np.ndarray, attempts: np.ndarray) -> jax.Array:
+    base = jax.random.fold_in(jax.random.PRNGKey(seed), zlib.crc32(task.encode()) & 0x7FFFFFFF)
+    fold = lambda i, a: jax.random.fold_in(jax.random.fold_in(base, i), a)  # noqa: E731
+    return jax.vmap(fold)(np.asarray(indices, np.uint32), np.asarray(attempts, np.uint32))
+
+
+def _recorded_frames(episodes, initial: np.ndarray, record, world: int, stride: int) -> np.ndarray:
+    """One world's sensordata at RLBench's observation rate (first and last frame kept)."""
+    rows = [initial[world][None]] + [r.sensordata[world][r.valid[world]] for r in record]
+    full = np.concatenate(rows)
+    keep = np.arange(0, len(full), stride)
+    if keep[-1] != len(full) - 1:
+        keep = np.append(keep, len(full) - 1)
+    return full[keep]
+
+
+def _padded(a: np.ndarray, value=0) -> np.ndarray:
+    """Pad the leading axis to MAX_KEYS."""
+    return np.concatenate([a, np.full((MAX_KEYS - len(a), *a.shape[1:]), value, a.dtype)])
+
+
+def _demo_arrays(episodes, env, record, frames: dict, indices, attempts, ok, stride):
+    """Arrays (see bank.py) of the successful worlds of one batch."""
+    from agnostos_mjx.world import FINGER_OPEN
+
+    task, layout = episodes.task, episodes.scene.layout
+    names = list(task.objects)
+    out: dict[str, list] = {k: [] for k in (
+        "index", "attempt", "variation", "sim_steps", "n_keys", "instruction", "descriptions",
+        "objects", "keyframes", "key_pos", "key_quat", "key_open", "key_ints", "traj")}
+    for c in frames:
+        out[f"rgb_{c}_first"], out[f"rgb_{c}_last"] = [], []
+    initial = np.asarray(env.initial_obs.data)
+    for w in np.nonzero(ok)[0]:
+        traj = _recorded_frames(episodes, initial, record, w, stride)
+        tip_p, tip_q = traj[:, layout.slice("tip.pos")], traj[:, layout.slice("tip.quat")]
+        open_flag = (traj[:, layout.slice("finger_q")][:, 0] / FINGER_OPEN) > 0.95
+        keys = discover_keyframes(open_flag.astype(np.float32), traj[:, layout.slice("arm_qd")])
+        keys = np.asarray(merge_repeated_keyframes(keys, tip_p, tip_q, open_flag), np.int64)
+        if not 1 <= len(keys) <= MAX_KEYS:
+            raise RuntimeError(f"{task.name}: {len(keys)} keyframes in one demo")
+        ints = np.asarray(encode_action(tip_p[keys], tip_q[keys], open_flag[keys]), np.int32)
+        v = int(env.variation[w])
+        out["index"].append(indices[w])
+        out["attempt"].append(attempts[w])
+        out["variation"].append(v)
+        out["sim_steps"].append(int(env.sim_steps[w]))
+        out["n_keys"].append(len(keys))
+        descriptions = task.descriptions(v)
+        out["instruction"].append(descriptions[0])
+        out["descriptions"].append(json.dumps(descriptions))
+        out["objects"].append(np.stack([np.asarray(env.initial_obs.pos(task.objects[n]))[w]
+                                        for n in names]) if names else np.zeros((0, 3)))
+        out["keyframes"].append(_padded(keys, -1))
+        out["key_pos"].append(_padded(tip_p[keys].astype(np.float32)))
+        out["key_quat"].append(_padded(tip_q[keys].astype(np.float32)))
+        out["key_open"].append(_padded(open_flag[keys].astype(np.float32)))
+        out["key_ints"].append(_padded(ints))
+        out["traj"].append(np.concatenate([tip_p, tip_q, open_flag[:, None]], 1).astype(np.float32))
+        for c, (first, last) in frames.items():
+            out[f"rgb_{c}_first"].append(first[w])
+            out[f"rgb_{c}_last"].append(last[w])
+    return out
+
+
+def _merge(old: dict[str, np.ndarray] | None, new: dict[str, list], meta: dict,
+           object_names: list[str]) -> dict[str, np.ndarray]:
+    """Old archive + new demos -> archive arrays, ordered by demo index."""
+    trajs = list(new.pop("traj"))
+    if old is not None:
+        off = old["traj_offsets"]
+        trajs = [old["traj"][off[i]:off[i + 1]] for i in range(len(off) - 1)] + trajs
+    merged: dict[str, np.ndarray] = {}
+    for k, rows in new.items():
+        arr = np.asarray(rows) if rows else None
+        if old is not None:
+            arr = old[k] if arr is None else np.concatenate([old[k], arr])
+        merged[k] = arr
+    order = np.argsort(merged["index"], kind="stable")
+    merged = {k: v[order] for k, v in merged.items()}
+    trajs = [trajs[i] for i in order]
+    merged["traj"] = np.concatenate(trajs) if trajs else np.zeros((0, 8), np.float32)
+    merged["traj_offsets"] = np.concatenate([[0], np.cumsum([len(t) for t in trajs])]).astype(np.int64)
+    merged["object_names"] = np.asarray(object_names, dtype=str)
+    merged["meta"] = np.asarray(json.dumps(meta))
+    return merged
+
+
+def _pad_batch(n: int, batch: int) -> int:
+    """Worlds to simulate for n pending demos: a power of two up to `batch`, so
+    retries reuse a few compiled shapes."""
+    return min(batch, 1 << max(n - 1, 0).bit_length())
+
+
+def _open_bank(cfg: GenerateConfig) -> dict:
+    """The existing manifest (checked for compatible settings) or a fresh one."""
+    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()
+              if k in COMPATIBLE}
+    if (cfg.out / MANIFEST).exists():
+        manifest = read_manifest(cfg.out)
+        clash = {k: (manifest["config"].get(k), config[k]) for k in COMPATIBLE
+                 if manifest["config"].get(k) != config[k]}
+        if clash:
+            details = ", ".join(f"{k}: bank {a!r} vs requested {b!r}" for k, (a, b) in clash.items())
+            raise BankError(f"{cfg.out} was generated with other settings ({details}); use the "
+                            "same settings to extend it or a new --out")
+        return manifest
+    import agnostos_mjx
+
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    return {"format_version": FORMAT_VERSION, "package_version": agnostos_mjx.__version__,
+            "created": datetime.now().isoformat(timespec="seconds"), "versions": versions(),
+            "config": config, "tasks": {}}
+
+
+def _load_existing(cfg: GenerateConfig, entry: dict | None) -> dict[str, np.ndarray] | None:
+    """The task's archive as the manifest describes it.  An archive newer than
+    the manifest (interrupted between the two writes) is accepted if it reads."""
+    if entry is None or not (cfg.out / entry["file"]).exists():
+        return None
+    try:
+        return read_shard(cfg.out / entry["file"], entry["sha256"])
+    except BankError:
+        log.warning("%s does not match the manifest's checksum; checking it as an archive",
+                    entry["file"])
+        return read_shard(cfg.out / entry["file"])
+
+
+def generate_task(cfg: GenerateConfig, task, manifest: dict, bar=None) -> dict:
+    """Generate (or finish) one task's demos; returns its manifest entry."""
+    from agnostos_mjx.episode import Episodes, Outcome
+
+    entry = manifest["tasks"].get(task.name)
+    old = _load_existing(cfg, entry)
+    have = 0 if old is None else len(old["index"])
+    entry = dict(entry or {"file": f"{task.name}.npz", "failed_attempts": 0, "given_up": 0,
+                           "next_index": 0, "seconds": 0.0})
+    if have >= cfg.demos:
+        entry["demos"] = have
+        return entry
+    episodes = Episodes(task, cfg.backend)
+    from agnostos_mjx.render import camera_names
+
+    known = camera_names(episodes.scene.model)
+    if unknown := [c for c in cfg.cameras if c not in known]:
+        raise ValueError(f"unknown camera(s) {unknown}; the scene has {', '.join(known)}")
+    stride = max(1, round(cfg.frame_dt / episodes.dt))
+    meta = {"task": task.name, "split": task.split.value, "format_version": FORMAT_VERSION,
+            "cameras": list(cfg.cameras), "image_size": cfg.image_size,
+            "frame_dt": stride * episodes.dt, "traj_fields": list(TRAJ_FIELDS)}
+    t0 = time.perf_counter()
+    next_index = entry["next_index"]
+    while have < cfg.demos:
+        n = min(cfg.batch, cfg.demos - have)
+        indices = np.arange(next_index, next_index + n)
+        attempts = np.zeros(n, np.int64)
+        pending = np.ones(n, bool)
+        new: dict[str, list] | None = None
+        while pending.any():
+            todo = np.nonzero(pending)[0]
+            size = _pad_batch(len(todo), cfg.batch)
+            rows = np.resize(todo, size)  # pad by repeating pending worlds
+            keys = demo_keys(cfg.seed, task.name, indices[rows], attempts[rows])
+            variations = indices[rows] % task.num_variations
+            env0 = episodes.reset(keys, variations, stop_at_success=False)
+            first = {c: episodes.render(env0, c, cfg.image_size, cfg.image_size)
+                     for c in cfg.cameras}
+            record: list = []
+            env = episodes.run_expert(env0, record)
+            ok = env.outcome == Outcome.SUCCESS
+            ok[len(todo):] = False  # padding worlds are duplicates
+            last = {c: episodes.render(env, c, cfg.image_size, cfg.image_size)
+                    for c in cfg.cameras}
+            frames = {c: (first[c], last[c]) for c in cfg.cameras}
+            arrays = _demo_arrays(episodes, env, record, frames, indices[rows],
+                                  attempts[rows], ok, stride)
+            new = arrays if new is None else {k: new[k] + arrays[k] for k in new}
+            failed = ~ok[:len(todo)]
+            entry["failed_attempts"] += int(failed.sum())
+            pending[todo[ok[:len(todo)]]] = False
+            attempts[todo[failed]] += 1
+            exhausted = pending & (attempts >= cfg.max_attempts)
+            if exhausted.any():
+                log.warning("%s: demos %s failed %d attempts; skipped", task.name,
+                            indices[exhausted].tolist(), cfg.max_attempts)
+                entry["given_up"] += int(exhausted.sum())
+                pending &= ~exhausted
+        merged = _merge(old, new, meta, list(task.objects))
+        entry["sha256"] = write_shard(cfg.out / entry["file"], merged)
+        added = len(merged["index"]) - have
+        old, have = merged, len(merged["index"])
+        next_index += n
+        entry.update(demos=have, next_index=int(next_index),
+                     seconds=round(entry["seconds"] + time.perf_counter() - t0, 2))
+        t0 = time.perf_counter()
+        manifest["tasks"][task.name] = entry
+        write_manifest(cfg.out, manifest)
+        if bar is not None:
+            bar.update(bar.done + added)
+    return entry
+
+
+def generate(cfg: GenerateConfig) -> dict:
+    """Generate every requested task; returns a report (also written to report.json)."""
+    from agnostos_mjx.tasks import get_task
+
+    tasks = [get_task(t) for t in cfg.tasks]
+    manifest = _open_bank(cfg)
+    total = cfg.demos * len(tasks)
+    done_before = sum(min(manifest["tasks"].get(t.name, {}).get("demos", 0), cfg.demos)
+                      for t in tasks)
+    t0 = time.perf_counter()
+    with progress_bar(total, enabled=not cfg.quiet, unit="demos") as bar:
+        bar.update(done_before, force=True)
+        for task in tasks:
+            entry = generate_task(cfg, task, manifest, bar)
+            manifest["tasks"][task.name] = entry
+            write_manifest(cfg.out, manifest)
+            bar.update(sum(min(manifest["tasks"].get(t.name, {}).get("demos", 0), cfg.demos)
+                           for t in tasks))
+    wall = time.perf_counter() - t0
+    report = {"out": str(cfg.out), "wall_seconds": round(wall, 2),
+              "demos": sum(manifest["tasks"][t.name]["demos"] for t in tasks),
+              "backend": cfg.backend, "tasks": {t.name: manifest["tasks"][t.name] for t in tasks}}
+    report["markdown"] = format_report(report)
+    from agnostos_mjx.cli import atomic_write
+
+    atomic_write(cfg.out / "report.json", json.dumps(report, indent=1) + "\n")
+    atomic_write(cfg.out / "report.md", report["markdown"])
+    return report
+
+
+def format_report(report: dict) -> str:
+    lines = ["| task | demos | failed attempts | given up | seconds |", "|---|---|---|---|---|"]
+    for name, e in report["tasks"].items():
+        lines.append(f"| {name} | {e['demos']} | {e['failed_attempts']} | {e['given_up']} | "
+                     f"{e['seconds']:.1f} |")
+    lines.append(f"\n{report['demos']} demos in this bank for these tasks; this run took "
+                 f"{report['wall_seconds']:.1f} s wall ({report['backend']} backend).")
+    return "\n".join(lines) + "\n"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m agnostos_mjx.data.generate", formatter_class=HelpFormatter,
+        description="Generate expert demonstrations of seen tasks into a resumable bank "
+                    "(one .npz per task + manifest.json).")
+    p.add_argument("--out", type=Path, required=True,
+                   help="bank directory; an existing bank is extended/resumed")
+    p.add_argument("--tasks", default="seen",
+                   help="comma-separated task names and/or split names (seen, unseen, all)")
+    p.add_argument("--demos", type=int, default=200, help="successful demos per task")
+    p.add_argument("--seed", type=int, default=0, help="bank seed (scenes derive from it)")
+    p.add_argument("--backend", default="auto", choices=("auto", "native", "jax", "warp"),
+                   help="physics backend (auto: warp on a CUDA GPU, else native MuJoCo)")
+    p.add_argument("--batch", type=int, default=100, help="worlds simulated at once")
+    p.add_argument("--image-size", type=int, default=128, help="square RGB frame size")
+    p.add_argument("--cameras", default="front",
+                   help="comma-separated cameras to store first/last frames of "
+                        "(front, left_shoulder, right_shoulder, overhead, wrist)")
+    p.add_argument("--max-attempts", type=int, default=10,
+                   help="scenes tried per demo before it is skipped (counted in the report)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.quiet)
+    from agnostos_mjx.tasks import parse_tasks
+
+    try:
+        if args.demos < 1 or args.batch < 1 or args.image_size < 8 or args.max_attempts < 1:
+            raise ValueError("--demos, --batch, --max-attempts must be >= 1, --image-size >= 8")
+        cfg = GenerateConfig(
+            out=args.out, tasks=tuple(t.name for t in parse_tasks(args.tasks)),
+            demos=args.demos, seed=args.seed, backend=args.backend, batch=args.batch,
+            image_size=args.image_size,
+            cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
+            max_attempts=args.max_attempts, quiet=args.quiet)
+        report = generate(cfg)
+    except (KeyError, ValueError, BankError) as err:
+        print(f"error: {err.args[0] if isinstance(err, KeyError) else err}", file=sys.stderr)
+        return 2
+    print(report["markdown"], end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
