@@ -40,7 +40,9 @@ class Outcome(enum.IntEnum):
     INVALID_ACTION = 5
     FAILURE_CONDITION = 6
     NO_ACTION = 7  # the policy had nothing valid to execute (e.g. bad LLM output)
-    POLICY_ERROR = 8  # the policy failed (e.g. an LLM request that kept failing)
+    POLICY_ERROR = 8  # the policy raised
+    BAD_LLM_OUTPUT = 9  # the LLM's answer held no valid 7-integer action
+    LLM_ERROR = 10  # an LLM request still failed after its retries
 
     @property
     def label(self) -> str:

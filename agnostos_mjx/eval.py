@@ -77,7 +77,7 @@ class UsageError(Exception):
 # ---------------------------------------------------------------------------------------
 @dataclass
 class EvalConfig:
-    policy: str = "oracle"
+    policy: str = "auto"
     policy_args: dict[str, Any] = field(default_factory=dict)
     tasks: str = "unseen"
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
@@ -89,6 +89,14 @@ class EvalConfig:
     resume: bool = False
     fail_fast: bool = False
     quiet: bool = False
+    llm_url: str | None = None
+    llm_model: str | None = None
+    llm_cache: str | None = None
+    llm_concurrency: int = 64
+    selection: str = "lang+vis.out"
+    num_demos: int = 18
+    memory: str | None = None
+    compare: str | None = None
 
 
 def _int_list(text: str) -> list[int]:
@@ -137,9 +145,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate a policy on AGNOSTOS tasks (X-ICM protocol) and write "
                     "episodes.jsonl, results.json, results.csv and results.md.",
         formatter_class=HelpFormatter)
-    p.add_argument("--policy", default="oracle",
-                   help="registered policy name (oracle) or 'module:attr' / 'file.py:attr' "
-                        "naming a Policy class, factory or instance")
+    p.add_argument("--policy", default="auto",
+                   help="auto (xicm when an LLM is configured, else retrieval), xicm, "
+                        "retrieval, oracle, or 'module:attr' / 'file.py:attr' naming a Policy "
+                        "class, factory or instance (see agnostos_mjx/policies/base.py)")
     p.add_argument("--policy-arg", action="append", type=_policy_arg, default=None,
                    metavar="KEY=VALUE",
                    help="keyword argument for the policy factory (VALUE parsed as JSON if it "
@@ -166,6 +175,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="re-raise policy exceptions instead of recording policy_error")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar, warnings-only logging (the table is still printed)")
+    llm = p.add_argument_group("X-ICM and retrieval")
+    llm.add_argument("--llm-url", default=None,
+                     help="OpenAI-compatible base URL, e.g. http://localhost:8000/v1 "
+                          "(default: $AGNOSTOS_LLM_URL); the key comes from "
+                          "$AGNOSTOS_LLM_API_KEY or $OPENAI_API_KEY")
+    llm.add_argument("--llm-model", default=None,
+                     help="model name on that server (default: $AGNOSTOS_LLM_MODEL)")
+    llm.add_argument("--llm-cache", default=None,
+                     help="response cache directory (default: <out>/llm_cache); reruns and "
+                          "--resume reuse answers, a shipped cache replays a run offline")
+    llm.add_argument("--llm-concurrency", type=_positive_int, default=64,
+                     help="LLM requests in flight at once")
+    llm.add_argument("--selection", default="lang+vis.out",
+                     help="in-context demo selection: random, text, or dynamics features "
+                          "lang, vis.in, vis.out joined with '+'")
+    llm.add_argument("--num-demos", type=_positive_int, default=18,
+                     help="K, in-context demonstrations per prompt")
+    llm.add_argument("--memory", default=None,
+                     help="seen-demo memory .npz (default: the one shipped with the package)")
+    llm.add_argument("--compare", default=None,
+                     help="add a column of published numbers: 'X-ICM 7B', 'X-ICM 72B', pi0, "
+                          "VoxPoser or RVT2")
     return p
 
 
@@ -174,7 +205,33 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
     return EvalConfig(policy=a.policy, policy_args=dict(a.policy_arg or []), tasks=a.tasks,
                       seeds=a.seeds, episodes=a.episodes, batch=a.batch, backend=a.backend,
                       variations=a.variations, out=a.out, resume=a.resume,
-                      fail_fast=a.fail_fast, quiet=a.quiet)
+                      fail_fast=a.fail_fast, quiet=a.quiet, llm_url=a.llm_url,
+                      llm_model=a.llm_model, llm_cache=a.llm_cache,
+                      llm_concurrency=a.llm_concurrency, selection=a.selection,
+                      num_demos=a.num_demos, memory=a.memory, compare=a.compare)
+
+
+def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
+    """(policy spec, factory kwargs, a one-line explanation) for `cfg`; fills in
+    the built-in policies' arguments from the command line."""
+    from agnostos_mjx.llm.client import LLMConfig
+
+    spec, note = cfg.policy, ""
+    if spec == "auto":
+        configured = LLMConfig.from_env(cfg.llm_url, cfg.llm_model) is not None
+        spec = "xicm" if configured else "retrieval"
+        note = ("an LLM is configured: running X-ICM" if configured else
+                "no LLM configured (set --llm-url/--llm-model or AGNOSTOS_LLM_URL/"
+                "AGNOSTOS_LLM_MODEL for X-ICM): running the retrieval baseline")
+    kwargs: dict[str, Any] = {}
+    if spec in ("xicm", "retrieval"):
+        kwargs.update(selection=cfg.selection, memory=cfg.memory)
+    if spec == "xicm":
+        cache = cfg.llm_cache or str(Path(cfg.out or ".") / "llm_cache")
+        kwargs.update(llm_url=cfg.llm_url, llm_model=cfg.llm_model, llm_cache=cache,
+                      concurrency=cfg.llm_concurrency, num_demos=cfg.num_demos)
+    kwargs.update(cfg.policy_args)
+    return spec, kwargs, note
 
 
 # ---------------------------------------------------------------------------------------
@@ -269,22 +326,29 @@ def _failures(outcomes: dict[str, int]) -> str:
     return ", ".join(bad) if bad else "-"
 
 
-def format_markdown(summary: dict, title: str = "") -> str:
-    """A readable Markdown report: one row per task, then the groups."""
+def format_markdown(summary: dict, title: str = "", compare: dict[str, float] | None = None,
+                    compare_label: str = "") -> str:
+    """A readable Markdown report: one row per task, then the groups; with
+    `compare`, a column of published numbers (task/group name -> %)."""
+    ref = (lambda name: f" | {compare[name]:.1f}" if name in compare else " | -") if compare \
+        else (lambda name: "")
+    extra = f" | {compare_label} (published)" if compare else ""
+    sep = "|---" if compare else ""
     lines = [f"## {title}", ""] if title else []
-    lines += ["| task | split | success % mean (std) | key actions | sim steps | failures |",
-              "|---|---|---|---|---|---|"]
+    lines += [f"| task | split | success % mean (std){extra} | key actions | sim steps | failures |",
+              f"|---|---|---{sep}|---|---|---|"]
     for name, t in summary["tasks"].items():
         lines.append(f"| {name} | {t['split']} | {t['success_mean']:.1f} ({t['success_std']:.1f})"
-                     f" | {t['mean_key_actions']:.2f} | {t['mean_sim_steps']:.0f}"
+                     f"{ref(name)} | {t['mean_key_actions']:.2f} | {t['mean_sim_steps']:.0f}"
                      f" | {_failures(t['outcomes'])} |")
     if summary["groups"]:
-        lines += ["", "| group | tasks | success % mean (std) | per seed |", "|---|---|---|---|"]
+        lines += ["", f"| group | tasks | success % mean (std){extra} | per seed |",
+                  f"|---|---|---{sep}|---|"]
         for name, g in summary["groups"].items():
             per_seed = ", ".join(f"{s}: {v:.1f}" for s, v in g["success_per_seed"].items())
             label = "All (unseen)" if name == "All" else name
             lines.append(f"| {label} | {len(g['tasks'])} | {g['success_mean']:.1f} "
-                         f"({g['success_std']:.1f}) | {per_seed} |")
+                         f"({g['success_std']:.1f}){ref(name)} | {per_seed} |")
     return "\n".join(lines) + "\n"
 
 
@@ -327,6 +391,15 @@ def _jsonl(records: Sequence[dict]) -> str:
 # ---------------------------------------------------------------------------------------
 # Running
 # ---------------------------------------------------------------------------------------
+def _accepts(func, name: str) -> bool:
+    import inspect
+
+    try:
+        return name in inspect.signature(func).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def _default_out(policy: str) -> Path:
     tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", policy.split(":")[-1]).strip("_") or "policy"
     return Path("results") / f"{tag}-{datetime.now():%Y%m%d-%H%M%S}"
@@ -359,11 +432,22 @@ def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
         instructions = [task.descriptions(int(v))[0] for v in variations]
         env = runner.reset(keys, variations)
         try:
-            policy.reset(runner, env, instructions)
+            if _accepts(policy.reset, "episode_seeds"):
+                policy.reset(runner, env, instructions,
+                             episode_seeds=[int(s) * 100_003 + int(e) for s, e in run_part])
+            else:
+                policy.reset(runner, env, instructions)
             for _ in range(task.max_key_actions):
                 if env.done.all():
                     break
-                env, _ = runner.step(env, policy.act(runner, env))
+                actions = policy.act(runner, env)
+                running = env.outcome == Outcome.RUNNING
+                env, _ = runner.step(env, actions)
+                # A policy may say why a world got no action (bad LLM output, LLM error).
+                reasons = getattr(policy, "end_reasons", None)
+                if reasons is not None:
+                    ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
+                    env.outcome = np.where(ended, reasons, env.outcome)
                 if progress is not None:
                     progress.update(done_before + len(out) + int(env.done[:n].sum()))
         except Exception:
@@ -386,6 +470,8 @@ def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
                 "backend": runner.backend_name, "batch_size": len(run_part),
                 "batch_wall_s": round(wall, 4),
             })
+            if hasattr(policy, "episode_info"):
+                records[-1]["policy_info"] = policy.episode_info(i)
         out += records
         on_batch(records)
         if progress is not None:
@@ -418,10 +504,18 @@ def evaluate(cfg: EvalConfig) -> dict:
     if episodes_path.exists() and not cfg.resume:
         raise UsageError(f"{episodes_path} exists; pass --resume to continue that run or "
                          f"choose another --out")
+    from agnostos_mjx.llm.client import LLMConfigError
+    from agnostos_mjx.xicm.memory import MemoryFileError
+
+    spec, kwargs, note = resolve_policy(cfg)
+    if note:
+        log.info("%s", note)
     try:
-        policy = make_policy(cfg.policy, **cfg.policy_args)
+        policy = make_policy(spec, **kwargs)
+    except (LLMConfigError, MemoryFileError) as e:
+        raise UsageError(str(e)) from None
     except (KeyError, ImportError, ValueError, TypeError) as e:
-        raise UsageError(f"cannot load policy {cfg.policy!r}: "
+        raise UsageError(f"cannot load policy {spec!r}: "
                          f"{e.args[0] if isinstance(e, KeyError) else e}") from None
     policy_name = getattr(policy, "name", cfg.policy)
     log.info("policy %s (%s.%s)", policy_name, type(policy).__module__, type(policy).__qualname__)
@@ -445,7 +539,7 @@ def evaluate(cfg: EvalConfig) -> dict:
 
     started = datetime.now().isoformat(timespec="seconds")
     t0 = time.perf_counter()
-    meta = {"config": asdict(cfg), "policy": {"spec": cfg.policy, "name": policy_name,
+    meta = {"config": asdict(cfg), "policy": {"spec": spec, "name": policy_name, "note": note,
                                               "class": f"{type(policy).__module__}."
                                                        f"{type(policy).__qualname__}"},
             "backend": backend, "versions": versions(), "started": started}
@@ -467,8 +561,17 @@ def evaluate(cfg: EvalConfig) -> dict:
         atomic_write(out_dir / "results.csv", format_csv(summary))
         title = (f"policy {policy_name}, backend {backend}, seeds "
                  f"{','.join(map(str, cfg.seeds))}, {cfg.episodes} episodes per seed")
-        results["markdown"] = format_markdown(summary, title)
+        compare = None
+        if cfg.compare:
+            from agnostos_mjx.paper import published
+
+            compare = published(cfg.compare)
+        results["markdown"] = format_markdown(summary, title, compare, cfg.compare or "")
         atomic_write(out_dir / "results.md", results["markdown"])
+        if final:
+            from agnostos_mjx.report_plot import plot_summary
+
+            plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")
         return results
 
     def on_batch(records: list[dict]) -> None:
@@ -488,7 +591,12 @@ def evaluate(cfg: EvalConfig) -> dict:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit code (2 for usage errors)."""
     cfg = parse_config(argv)
-    print(f"agnostos_mjx.eval: policy {cfg.policy}", flush=True)
+    try:
+        spec, _, note = resolve_policy(cfg)
+    except Exception as e:  # e.g. an LLM URL without a model
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"agnostos_mjx.eval: policy {spec}" + (f" ({note})" if note else ""), flush=True)
     setup_logging(cfg.quiet)
     try:
         results = evaluate(cfg)

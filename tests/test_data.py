@@ -16,20 +16,11 @@ from agnostos_mjx.data import generate as gen
 from agnostos_mjx.episode import Episodes, Outcome
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
-
-TASKS = ("open_drawer", "push_buttons")
+from tests.conftest import TASKS, tiny_bank_config
 
 
 def config(out: Path, demos: int = 2) -> gen.GenerateConfig:
-    return gen.GenerateConfig(out=out, tasks=TASKS, demos=demos, seed=3, backend="native",
-                              batch=2, image_size=32, quiet=True)
-
-
-@pytest.fixture(scope="module")
-def bank_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("bank")
-    gen.generate(config(out))
-    return out
+    return tiny_bank_config(out, demos)
 
 
 def test_round_trip(bank_dir):

@@ -58,7 +58,7 @@ def test_variations_follow_the_protocol() -> None:
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("eval") / "run"
-    code = ev.main(["--tasks", "lamp_on", "--seeds", "0", "--episodes", "2", "--batch", "2",
+    code = ev.main(["--policy", "oracle", "--tasks", "lamp_on", "--seeds", "0", "--episodes", "2", "--batch", "2",
                     "--backend", "native", "--quiet", "--out", str(out)])
     assert code == 0
     return out
@@ -91,7 +91,8 @@ def test_resume_does_not_rerun(run_dir: Path, monkeypatch: pytest.MonkeyPatch,
 
     monkeypatch.setattr(agnostos_mjx.episode, "Episodes", boom)
     before = (run_dir / "episodes.jsonl").read_text()
-    args = ["--tasks", "lamp_on", "--seeds", "0", "--episodes", "2", "--batch", "2",
+    args = ["--policy", "oracle", "--tasks", "lamp_on", "--seeds", "0", "--episodes", "2",
+            "--batch", "2",
             "--backend", "native", "--quiet", "--out", str(run_dir)]
     assert ev.main([*args, "--resume"]) == 0
     assert (run_dir / "episodes.jsonl").read_text() == before

@@ -68,6 +68,8 @@ def no_actions(batch: int) -> KeyActions:
 # (an LLM client, a model) load only when it is used.
 _REGISTRY: dict[str, str | Callable[..., Policy]] = {
     "oracle": "agnostos_mjx.policies.oracle:OraclePolicy",
+    "xicm": "agnostos_mjx.policies.xicm:XICMPolicy",
+    "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
 }
 
 

@@ -1,0 +1,67 @@
+"""Retrieval: a deterministic, LLM-free baseline.
+
+It selects demonstrations exactly as X-ICM does and replays the top-ranked
+one in the query scene: each demo key action is anchored to the demo object
+nearest to it and moved with that object's counterpart in the query scene
+(objects matched by their order in the task's object list, cyclically).
+Orientations and gripper states are copied.  It answers "how far does
+copying the most similar seen demonstration get?", the floor an LLM should
+beat.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from agnostos_mjx.control import ACTION_BOUNDS
+from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
+from agnostos_mjx.policies.xicm import queries_for
+from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
+from agnostos_mjx.xicm.selection import make_selector
+
+if TYPE_CHECKING:
+    from agnostos_mjx.episode import EnvState, Episodes
+
+
+def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.ndarray
+             ) -> np.ndarray:
+    """Move each key position with its nearest demo object's matched query object."""
+    demo = demo_objects[~np.isnan(demo_objects).any(-1)]
+    if len(demo) == 0 or len(query_objects) == 0:
+        return key_pos.copy()
+    nearest = np.argmin(np.linalg.norm(key_pos[:, None] - demo[None], axis=-1), axis=1)
+    target = query_objects[nearest % len(query_objects)]
+    moved = target + (key_pos - demo[nearest])
+    lo, hi = (np.asarray(b, np.float32) for b in ACTION_BOUNDS)
+    return np.clip(moved, lo, hi)
+
+
+class RetrievalPolicy(PlanningPolicy):
+    name = "retrieval"
+
+    def __init__(self, selection: str = "lang+vis.out", memory: str | None = None) -> None:
+        super().__init__()
+        self.memory = DemoMemory.load(memory or default_memory_path())
+        if selection != "random" and "lang" in selection and not self.memory.features:
+            selection = "text"  # a memory without dynamics features ranks by instruction text
+        self.selection = selection
+        self.selector = make_selector(selection, self.memory)
+        self.name = f"retrieval[{selection}]"
+
+    def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
+        task = episodes.task
+        names = list(task.objects)
+        chosen = self.selector.select(queries_for(self, episodes, env, worlds, self.selection), 1)
+        results = []
+        for w, idx in zip(worlds, chosen):
+            i = int(idx[0])
+            n = int(self.memory.n_keys[i])
+            query = np.stack([np.asarray(env.obs.pos(task.objects[nm]))[w] for nm in names]) \
+                if names else np.zeros((0, 3), np.float32)
+            pos = transfer(self.memory.key_pos[i, :n], self.memory.objects[i], query)
+            results.append(PlanResult(pos, self.memory.key_quat[i, :n],
+                                      self.memory.key_open[i, :n],
+                                      info={"selected": [f"{self.memory.task[i]}#{i}"]}))
+        return results

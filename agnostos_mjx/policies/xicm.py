@@ -1,0 +1,98 @@
+"""X-ICM: an LLM predicts key actions for an unseen task from K textualised
+seen-task demonstrations (spec: xicm_reference.md §3-4).
+
+Every world that needs a plan sends its request in the same round; the
+client keeps up to `concurrency` requests in flight, so a batch of 75
+episodes costs about one LLM latency per round instead of 75.  Every prompt,
+answer and parse result is kept in the episode record.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from agnostos_mjx.llm.client import ChatClient, LLMConfig, LLMConfigError, SamplingParams
+from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
+from agnostos_mjx.scene_text import query_texts
+from agnostos_mjx.textualise import decode_action
+from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
+from agnostos_mjx.xicm.prompt import messages, parse_actions
+from agnostos_mjx.xicm.selection import Query, make_selector
+
+if TYPE_CHECKING:
+    from agnostos_mjx.episode import EnvState, Episodes
+
+
+def needs_frames(selection: str) -> bool:
+    return "vis" in selection
+
+
+def queries_for(policy: PlanningPolicy, episodes: Episodes, env: EnvState, worlds: np.ndarray,
+                selection: str) -> list[Query]:
+    """Selection queries of the worlds being (re)planned: instruction, a seed
+    per (episode, replan) and, for dynamics features, the current front frame."""
+    frames = None
+    if needs_frames(selection):
+        frames = episodes.render(env, "front", 128, 128)
+    return [Query(policy.instructions[w], policy.plan_seed(w),
+                  None if frames is None else frames[w]) for w in worlds]
+
+
+class XICMPolicy(PlanningPolicy):
+    name = "xicm"
+
+    def __init__(self, llm_url: str | None = None, llm_model: str | None = None,
+                 selection: str = "lang+vis.out", num_demos: int = 18,
+                 memory: str | None = None, llm_cache: str | None = None,
+                 concurrency: int = 64, timeout_s: float = 60.0, retries: int = 4,
+                 temperature: float = 0.1, top_p: float = 0.001,
+                 repetition_penalty: float = 1.05, max_tokens: int = 256,
+                 client: ChatClient | None = None) -> None:
+        super().__init__()
+        if client is None:
+            config = LLMConfig.from_env(
+                llm_url, llm_model, concurrency=concurrency, timeout_s=timeout_s,
+                retries=retries, cache_dir=llm_cache,
+                sampling=SamplingParams(temperature, top_p, repetition_penalty, max_tokens))
+            if config is None:
+                raise LLMConfigError("X-ICM needs an LLM: pass --llm-url and --llm-model or set "
+                                     "AGNOSTOS_LLM_URL and AGNOSTOS_LLM_MODEL")
+            client = ChatClient(config)
+            client.preflight()
+        self.client = client
+        self.memory = DemoMemory.load(memory or default_memory_path())
+        self.selection = selection
+        self.selector = make_selector(selection, self.memory)
+        self.num_demos = num_demos
+        self.name = f"xicm[{selection},k={num_demos}]"
+
+    def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
+        from agnostos_mjx.episode import Outcome
+
+        variations = env.variation[worlds]
+        obs = type(env.obs)(env.obs.data[worlds], env.obs.layout, env.obs.attached[worlds])
+        query_lines = query_texts(episodes.task, obs, variations)
+        chosen = self.selector.select(queries_for(self, episodes, env, worlds, self.selection),
+                                      self.num_demos)
+        batch = [messages([str(self.memory.text[i]) for i in idx], q)
+                 for idx, q in zip(chosen, query_lines)]
+        answers = self.client.complete_batch(batch)
+        results = []
+        for idx, msgs, answer in zip(chosen, batch, answers):
+            info = {"selected": [f"{self.memory.task[i]}#{i}" for i in idx],
+                    "prompt": msgs[1]["content"], "response": answer.text,
+                    "error": answer.error, "cached": answer.cached,
+                    "attempts": answer.attempts}
+            if answer.text is None:
+                results.append(PlanResult(end_reason=Outcome.LLM_ERROR, info=info))
+                continue
+            parsed = parse_actions(answer.text)
+            info["parsed"] = parsed.summary()
+            if len(parsed.actions) == 0:
+                results.append(PlanResult(end_reason=Outcome.BAD_LLM_OUTPUT, info=info))
+                continue
+            pos, quat, grip = map(np.asarray, decode_action(parsed.actions))
+            results.append(PlanResult(pos, quat, grip, info=info))
+        return results

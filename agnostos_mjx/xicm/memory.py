@@ -1,0 +1,104 @@
+"""The seen-demo memory X-ICM selects its in-context examples from.
+
+Per demonstration: task, variation, instruction, its prompt segment (object
+text + key actions, exactly as X-ICM writes it), the continuous key actions
+and object centres (for the retrieval baseline), and optional selection
+features (``lang``, ``vis.in``, ``vis.out``) from the dynamics model.  It is
+built once from a demonstration bank and saved as one compressed .npz that
+ships with the package, so evaluation needs neither the bank nor training.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from agnostos_mjx.cli import atomic_write
+
+MEMORY_VERSION = 1
+MAX_OBJECTS = 8
+
+
+class MemoryFileError(Exception):
+    """A missing or incompatible memory file."""
+
+
+@dataclass(frozen=True, eq=False)
+class DemoMemory:
+    task: np.ndarray  # (M,) str
+    variation: np.ndarray  # (M,) int
+    instruction: np.ndarray  # (M,) str
+    text: np.ndarray  # (M,) str, the demo's prompt segment (ends with ", ")
+    n_keys: np.ndarray  # (M,)
+    key_pos: np.ndarray  # (M, 25, 3)
+    key_quat: np.ndarray  # (M, 25, 4)
+    key_open: np.ndarray  # (M, 25)
+    object_names: np.ndarray  # (M,) str, JSON list per demo
+    objects: np.ndarray  # (M, MAX_OBJECTS, 3), NaN padded
+    features: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (M, D)
+
+    def __len__(self) -> int:
+        return len(self.task)
+
+    def names(self, i: int) -> list[str]:
+        return json.loads(str(self.object_names[i]))
+
+    @classmethod
+    def from_bank(cls, bank, features: dict[str, np.ndarray] | None = None) -> DemoMemory:
+        rows: dict[str, list] = {k: [] for k in (
+            "task", "variation", "instruction", "text", "n_keys", "key_pos", "key_quat",
+            "key_open", "object_names", "objects")}
+        for demo in bank.demos():
+            n = len(demo.key_ints)
+            pad = lambda a, width=25: np.concatenate(  # noqa: E731
+                [a, np.zeros((width - len(a), *a.shape[1:]), a.dtype)])
+            objs = np.full((MAX_OBJECTS, 3), np.nan, np.float32)
+            names = list(demo.objects)[:MAX_OBJECTS]
+            for k, name in enumerate(names):
+                objs[k] = demo.objects[name]
+            rows["task"].append(demo.task)
+            rows["variation"].append(demo.variation)
+            rows["instruction"].append(demo.instruction)
+            rows["text"].append(demo.text())
+            rows["n_keys"].append(n)
+            rows["key_pos"].append(pad(demo.key_pos.astype(np.float32)))
+            rows["key_quat"].append(pad(demo.key_quat.astype(np.float32)))
+            rows["key_open"].append(pad(demo.key_open.astype(np.float32)))
+            rows["object_names"].append(json.dumps(names))
+            rows["objects"].append(objs)
+        arrays = {k: np.asarray(v) for k, v in rows.items()}
+        return cls(**arrays, features=dict(features or {}))
+
+    def save(self, path: str | Path) -> None:
+        arrays = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "features"}
+        arrays.update({f"feature:{k}": v.astype(np.float16) for k, v in self.features.items()})
+        arrays["version"] = np.asarray(MEMORY_VERSION)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        atomic_write(Path(path), buf.getvalue())
+
+    @classmethod
+    def load(cls, path: str | Path) -> DemoMemory:
+        path = Path(path)
+        if not path.exists():
+            raise MemoryFileError(f"{path}: no demo memory; build one with "
+                               "python -m agnostos_mjx.xicm.build_memory")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except Exception as err:  # a damaged zip raises several types
+            raise MemoryFileError(f"{path}: unreadable ({type(err).__name__}: {err})") from err
+        if int(arrays.pop("version", -1)) != MEMORY_VERSION:
+            raise MemoryFileError(f"{path}: memory version mismatch; rebuild it")
+        features = {k.split(":", 1)[1]: arrays.pop(k).astype(np.float32)
+                    for k in list(arrays) if k.startswith("feature:")}
+        return cls(**arrays, features=features)
+
+
+def default_memory_path() -> Path:
+    """The memory shipped with the package (built from the default seen bank)."""
+    return Path(__file__).resolve().parents[1] / "assets" / "seen_memory.npz"

@@ -1,0 +1,107 @@
+"""Choosing the K in-context demonstrations for a query.
+
+A selector ranks the seen-demo memory for each query (instruction + current
+front frame) and returns memory indices, most similar first.  Modes:
+
+* ``random``: K demos drawn without replacement from a per-query seed (the
+  original's "w/o selection" baseline used one fixed stream, seed 42, for
+  every seed; ours follows the evaluation seed);
+* ``text``: cosine similarity of hashed character-trigram vectors of the
+  instructions, a model-free lexical baseline;
+* dynamics-model features (``lang``, ``vis.in``, ``vis.out`` and ``+``
+  combinations, default ``lang+vis.out``), cosine over L2-normalised parts,
+  or the original's raw dot product with ``metric="dot"``.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from agnostos_mjx.xicm.memory import DemoMemory
+
+TEXT_DIM = 4096
+FEATURE_PARTS = ("lang", "vis.in", "vis.out")
+
+
+@dataclass(frozen=True)
+class Query:
+    instruction: str
+    seed: int  # per (episode, replan): makes random selection reproducible
+    frame: np.ndarray | None = None  # (H, W, 3) uint8 front camera, for dynamics features
+
+
+class Selector(Protocol):
+    name: str
+
+    def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]: ...
+
+
+class RandomSelector:
+    name = "random"
+
+    def __init__(self, memory: DemoMemory):
+        self.memory = memory
+
+    def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
+        m = len(self.memory)
+        return [np.random.default_rng(q.seed).choice(m, size=min(k, m), replace=False)
+                for q in queries]
+
+
+def text_vector(text: str) -> np.ndarray:
+    """L2-normalised hashed character-trigram counts (deterministic across runs)."""
+    v = np.zeros(TEXT_DIM, np.float32)
+    padded = f"  {text.lower()}  "
+    for i in range(len(padded) - 2):
+        v[zlib.crc32(padded[i:i + 3].encode()) % TEXT_DIM] += 1.0
+    return v / max(np.linalg.norm(v), 1e-8)
+
+
+def top_k(similarity: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the k largest values, largest first (ties: lower index first)."""
+    k = min(k, similarity.shape[-1])
+    return np.argsort(-similarity, kind="stable")[:k]
+
+
+class TextSelector:
+    name = "text"
+
+    def __init__(self, memory: DemoMemory):
+        self.memory = memory
+        self._vectors = np.stack([text_vector(str(s)) for s in memory.instruction])
+
+    def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
+        return [top_k(self._vectors @ text_vector(q.instruction), k) for q in queries]
+
+
+def combine(features: dict[str, np.ndarray], mode: str, normalise: bool) -> np.ndarray:
+    """Concatenate the parts named in `mode` ("lang+vis.out"), each L2-normalised
+    when `normalise` (cosine similarity); raw for the original's dot product."""
+    parts = mode.split("+")
+    unknown = [p for p in parts if p not in FEATURE_PARTS]
+    if unknown:
+        raise ValueError(f"unknown feature part(s) {unknown}; use {', '.join(FEATURE_PARTS)}")
+    out = []
+    for p in parts:
+        if p not in features:
+            raise KeyError(f"feature {p!r} missing (have {', '.join(features)})")
+        f = np.asarray(features[p], np.float32)
+        if normalise:
+            f = f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-8)
+        out.append(f)
+    return np.concatenate(out, -1)
+
+
+def make_selector(mode: str, memory: DemoMemory, **kwargs) -> Selector:
+    if mode == "random":
+        return RandomSelector(memory)
+    if mode == "text":
+        return TextSelector(memory)
+    from agnostos_mjx.xicm.dynamics_selector import DynamicsSelector
+
+    return DynamicsSelector(memory, mode, **kwargs)
