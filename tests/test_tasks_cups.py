@@ -1,0 +1,99 @@
+"""Container tasks (close_jar, light_bulb_in, stack_cups, place_cups,
+put_money_in_safe): variation counts, verbatim language, and the task-specific
+parts of their success conditions on real reset observations."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agnostos_mjx.episode import Episodes
+from agnostos_mjx.observables import Observation
+from agnostos_mjx.tasks import get_task, is_implemented
+
+
+def needs(name: str):
+    return pytest.mark.skipif(not is_implemented(name), reason=f"{name} not implemented")
+
+
+@functools.cache
+def episodes(name: str) -> Episodes:
+    return Episodes(get_task(name), "native")
+
+
+def reset_obs(name: str, variation: int, seed: int = 0) -> Observation:
+    """The settled observation of one world at reset."""
+    env = episodes(name).reset(jax.random.split(jax.random.PRNGKey(seed), 1), np.array([variation]))
+    return jax.tree.map(lambda x: x[0], env.initial_obs)
+
+
+def moved(obs: Observation, frame: str, pos, attached=None) -> Observation:
+    """`obs` with `frame` moved to `pos` (and the attach flags replaced)."""
+    data = jnp.asarray(obs.data).at[obs.layout.slice(f"{frame}.pos")].set(jnp.asarray(pos, jnp.float32))
+    return Observation(data, obs.layout, obs.attached if attached is None else
+                       jnp.asarray(attached))
+
+
+def met(task_name: str, variation: int, obs0: Observation, obs: Observation) -> bool:
+    cond = get_task(task_name).success(jnp.int32(variation))
+    return bool(cond.step(cond.init(obs0), obs)[1])
+
+
+# ---- language and variation counts -----------------------------------------------------------
+@pytest.mark.parametrize("name, count", [
+    ("close_jar", 20), ("light_bulb_in", 20), ("stack_cups", 20), ("place_cups", 3),
+    ("put_money_in_safe", 3),
+])
+def test_variation_count(name, count):
+    if not is_implemented(name):
+        pytest.skip(f"{name} not implemented")
+    assert get_task(name).num_variations == count
+
+
+@pytest.mark.parametrize("name, variation, expected", [
+    ("close_jar", 0, ["close the red jar", "screw on the red jar lid",
+                      "grasping the lid, lift it from the table and use it to seal the red jar",
+                      "pick up the lid from the table and put it on the red jar"]),
+    ("close_jar", 5, ["close the navy jar", "screw on the navy jar lid",
+                      "grasping the lid, lift it from the table and use it to seal the navy jar",
+                      "pick up the lid from the table and put it on the navy jar"]),
+    ("close_jar", 19, ["close the white jar", "screw on the white jar lid",
+                       "grasping the lid, lift it from the table and use it to seal the white jar",
+                       "pick up the lid from the table and put it on the white jar"]),
+])
+def test_descriptions_verbatim(name, variation, expected):
+    if not is_implemented(name):
+        pytest.skip(f"{name} not implemented")
+    assert get_task(name).descriptions(variation) == expected
+
+
+# ---- close_jar -------------------------------------------------------------------------------
+@needs("close_jar")
+@pytest.mark.parametrize("variation", [0, 1])
+def test_close_jar_only_the_target_jar_counts_and_lid_must_be_released(variation):
+    obs0 = reset_obs("close_jar", variation)
+    target, other = (f"jar{variation % 2}", f"jar{1 - variation % 2}")
+    on = lambda jar: np.asarray(obs0.pos(jar)) + np.array([0.0, 0.0, 0.0655])  # noqa: E731
+    assert met("close_jar", variation, obs0, moved(obs0, "jar_lid0", on(target)))
+    assert not met("close_jar", variation, obs0, moved(obs0, "jar_lid0", on(other)))
+    held = moved(obs0, "jar_lid0", on(target), attached=[True])
+    assert not met("close_jar", variation, obs0, held)
+
+
+@needs("close_jar")
+def test_close_jar_target_colour_and_distinct_other_colour():
+    ep = episodes("close_jar")
+    variations = np.array([4, 7, 4, 7])
+    env = ep.reset(jax.random.split(jax.random.PRNGKey(2), 4), variations)
+    model = ep.scene.model
+    from agnostos_mjx.colors import COLORS
+
+    for w, v in enumerate(variations):
+        target, other = v % 2, 1 - v % 2
+        rgb = env.geom_rgba[w, model.geom(f"jar{target}_body").id, :3]
+        np.testing.assert_allclose(rgb, COLORS[v][1])
+        assert not np.allclose(env.geom_rgba[w, model.geom(f"jar{other}_body").id, :3], rgb)
