@@ -64,6 +64,17 @@ def test_variation_count(name, count):
     ("close_jar", 19, ["close the white jar", "screw on the white jar lid",
                        "grasping the lid, lift it from the table and use it to seal the white jar",
                        "pick up the lid from the table and put it on the white jar"]),
+    ("light_bulb_in", 0, ["screw in the red light bulb",
+                          "screw the light bulb from the red holder into the lamp",
+                          "pick up the light bulb from the red stand, lift it up to just above "
+                          "the lamp, then screw it down into the lamp in a clockwise fashion",
+                          "put the light bulb from the red casing into the lamp"]),
+    ("light_bulb_in", 13, ["screw in the purple light bulb",
+                           "screw the light bulb from the purple holder into the lamp",
+                           "pick up the light bulb from the purple stand, lift it up to just "
+                           "above the lamp, then screw it down into the lamp in a clockwise "
+                           "fashion",
+                           "put the light bulb from the purple casing into the lamp"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     if not is_implemented(name):
@@ -97,3 +108,21 @@ def test_close_jar_target_colour_and_distinct_other_colour():
         rgb = env.geom_rgba[w, model.geom(f"jar{target}_body").id, :3]
         np.testing.assert_allclose(rgb, COLORS[v][1])
         assert not np.allclose(env.geom_rgba[w, model.geom(f"jar{other}_body").id, :3], rgb)
+
+
+# ---- light_bulb_in ---------------------------------------------------------------------------
+@needs("light_bulb_in")
+def test_light_bulb_in_clean_name_and_target_bulb():
+    task = get_task("light_bulb_in")
+    assert "bulb" in task.objects and "blub" not in task.objects  # X-ICM's typo fixed
+    assert task.descriptions(2)[0] == "screw in the lime light bulb"
+    for variation in (0, 1):
+        obs0 = reset_obs("light_bulb_in", variation)
+        socket = np.asarray(obs0.pos("light_bulb_in_success"))
+        target, other = variation % 2, 1 - variation % 2
+        assert met("light_bulb_in", variation, obs0, moved(obs0, f"bulb_phys{target}_base", socket))
+        assert not met("light_bulb_in", variation, obs0,
+                       moved(obs0, f"bulb_phys{other}_base", socket))
+        # Still held: not yet screwed in.
+        held = moved(obs0, f"bulb_phys{target}_base", socket, attached=[target == 0, target == 1])
+        assert not met("light_bulb_in", variation, obs0, held)

@@ -188,8 +188,48 @@ def lamp_with_socket(parent: mujoco.MjsBody, name: str, socket: str, pos) -> muj
     return body
 
 
+# ---- cups ----------------------------------------------------------------------------------
+CUP_HALF_HEIGHT = 0.07
+CUP_SIDES = 12
+
+
+def cup_geoms(name: str, sides: int = CUP_SIDES) -> list[str]:
+    """The geoms of `cup(..., name, ...)`, e.g. to colour them."""
+    return [f"{name}_bottom"] + [f"{name}_side{k}" for k in range(sides)]
+
+
+def cup_radius(z: float, bottom_radius: float = 0.032, top_radius: float = 0.047) -> float:
+    """Outer radius of a cup at height `z` above its bottom."""
+    return bottom_radius + (top_radius - bottom_radius) * z / (2 * CUP_HALF_HEIGHT)
+
+
+def cup(body: mujoco.MjsBody, name: str, *, bottom_radius: float = 0.032,
+        top_radius: float = 0.047, wall: float = 0.003, sides: int = CUP_SIDES,
+        mass: float = 0.0532, rgba=WHITE) -> None:
+    """A tapered, open plastic cup 0.14 m tall (a free object), origin at its
+    centre: a bottom plate and `sides` tilted wall panels, so that cups of the
+    same yaw nest inside each other.  Geoms as `cup_geoms(name)`."""
+    h = CUP_HALF_HEIGHT
+    tilt = np.arctan2(top_radius - bottom_radius, 2 * h)
+    mid = (top_radius + bottom_radius) / 2 - wall / 2 * np.cos(tilt)
+    half_width = mid * np.tan(np.pi / sides)
+    half_len = h / np.cos(tilt)
+    names = cup_geoms(name, sides)
+    inner = (bottom_radius - wall) / np.sqrt(2.0)
+    plate = panel(body, (inner, inner, wall / 2), (0, 0, -h + wall / 2), rgba, name=names[0])
+    plate.mass = mass / (sides + 1)
+    for k in range(sides):
+        theta = 2 * np.pi * k / sides
+        lean = np.array([np.cos(tilt / 2), 0.0, np.sin(tilt / 2), 0.0])  # about local y
+        quat = np.asarray(quat_mul(np.asarray(yaw_quat(np.float64(theta))), lean))
+        pos = (mid * np.cos(theta), mid * np.sin(theta), 0.0)
+        geom = panel(body, (wall / 2, half_width, half_len), pos, rgba, name=names[1 + k],
+                     quat=tuple(quat))
+        geom.mass = mass / (sides + 1)
+
+
 __all__ = [
-    "BULB_HALF_HEIGHT", "HOLDER_HALF", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
+    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
     "detected_one_of", "down_quat", "jar", "jar_lid", "lamp_with_socket", "light_bulb",
     "open_box", "open_box_geoms", "other_color", "spawn_on_root_plane", "square_yaw",
 ]
