@@ -75,6 +75,18 @@ def test_variation_count(name, count):
                            "above the lamp, then screw it down into the lamp in a clockwise "
                            "fashion",
                            "put the light bulb from the purple casing into the lamp"]),
+    ("stack_cups", 0, ["stack the other cups on top of the red cup",
+                       "place two of the cups onto the odd cup out",
+                       "put the remaining two cups on top of the red cup",
+                       "pick up and set the cups down into the red cup",
+                       "create a stack of cups with the red cup as its base",
+                       "keeping the red cup on the table, stack the other two onto it"]),
+    ("stack_cups", 11, ["stack the other cups on top of the orange cup",
+                        "place two of the cups onto the odd cup out",
+                        "put the remaining two cups on top of the orange cup",
+                        "pick up and set the cups down into the orange cup",
+                        "create a stack of cups with the orange cup as its base",
+                        "keeping the orange cup on the table, stack the other two onto it"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     if not is_implemented(name):
@@ -126,3 +138,29 @@ def test_light_bulb_in_clean_name_and_target_bulb():
         # Still held: not yet screwed in.
         held = moved(obs0, f"bulb_phys{target}_base", socket, attached=[target == 0, target == 1])
         assert not met("light_bulb_in", variation, obs0, held)
+
+
+# ---- stack_cups ------------------------------------------------------------------------------
+@needs("stack_cups")
+def test_stack_cups_needs_both_cups_inside_the_base_cup():
+    obs0 = reset_obs("stack_cups", 3)
+    base = np.asarray(obs0.pos("cup2"))
+    nested = base + np.array([0.0, 0.0, -0.07 + 0.035])  # a cup bottom nested in cup2
+    on_rim = base + np.array([0.0, 0.0, 0.07])  # a cup bottom resting on cup2's rim
+    both = moved(moved(obs0, "cup1_bottom", nested), "cup3_bottom", nested + [0, 0, 0.035])
+    assert met("stack_cups", 3, obs0, both)
+    assert not met("stack_cups", 3, obs0, moved(obs0, "cup1_bottom", nested))
+    assert not met("stack_cups", 3, obs0, moved(both, "cup3_bottom", on_rim))
+    assert not met("stack_cups", 3, obs0, moved(both, "cup1_bottom", nested, attached=[True, False]))
+
+
+@needs("stack_cups")
+def test_stack_cups_base_cup_takes_the_variation_colour():
+    from agnostos_mjx.colors import COLORS
+
+    ep = episodes("stack_cups")
+    env = ep.reset(jax.random.split(jax.random.PRNGKey(4), 2), np.array([6, 18]))
+    for w, v in enumerate((6, 18)):
+        for k in (1, 2, 3):
+            rgb = env.geom_rgba[w, ep.scene.model.geom(f"cup{k}_side0").id, :3]
+            assert np.allclose(rgb, COLORS[v][1]) == (k == 2)
