@@ -1,0 +1,235 @@
+"""Containers and what goes in or on them: jars and lids, nesting cups, bulb
+holders, light bulbs and a lamp socket, a safe with shelves, mugs and a mug
+tree.  Plus the two helpers the container tasks share: spawning objects on
+a plane of the task root, and a success test whose target object or volume
+the variation picks.
+
+Conventions: a piece's body origin is the centre of its bounding box (as
+RLBench's shape positions are), so the layout numbers of the spec carry over.
+Round parts are a visual cylinder with inscribed boxes for contact
+(MJX-jax has no box-cylinder collisions).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx.conditions import AnyOf, Condition, Detected
+from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.base import sample_on_plane
+from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
+from agnostos_mjx.world import OBJECT_COLLISION
+
+G = mujoco.mjtGeom
+INVISIBLE = (0.0, 0.0, 0.0, 0.0)
+
+
+# ---- sampling and conditions ----------------------------------------------------------------
+def spawn_on_root_plane(key: jax.Array, root: tuple[jnp.ndarray, jnp.ndarray], count: int,
+                        half_extents: tuple[float, float], plane_center: tuple[float, float],
+                        plane_half: tuple[float, float], *, yaw_range: float = jnp.pi,
+                        min_distance: float = 0.01, height: float = 0.0,
+                        ) -> list[tuple[jnp.ndarray, jnp.ndarray]]:
+    """RLBench's SpawnBoundary for objects on a plane of the task root:
+    `count` objects of footprint `half_extents` are sampled one after the
+    other (each avoiding those before it) and returned as world poses, the
+    origin `height` above the plane."""
+    root_pos, root_quat = root
+    placed, poses = [], []
+    for k in jax.random.split(key, count):
+        xy, yaw = sample_on_plane(k, half_extents, yaw_range, plane_center=plane_center,
+                                  plane_half=plane_half, others=tuple(placed),
+                                  min_distance=min_distance)
+        placed.append((xy, yaw, jnp.asarray(half_extents)))
+        local = jnp.array([xy[0], xy[1], height])
+        poses.append((root_pos + quat_rotate(root_quat, local), quat_mul(root_quat, yaw_quat(yaw))))
+    return poses
+
+
+def detected_one_of(pairs: Sequence[tuple[str, str]], index, half_extents, radius: float,
+                    ) -> Condition:
+    """DetectedCondition(object, volume) for the pair number `index` (traced,
+    e.g. from the variation): the other pairs get a negative probe radius,
+    which no distance satisfies, so one static condition tree serves every
+    variation."""
+    index = jnp.asarray(index)
+    return AnyOf(tuple(
+        Detected(obj, vol, tuple(half_extents), radius=jnp.where(index == k, radius, -1.0))
+        for k, (obj, vol) in enumerate(pairs)))
+
+
+def other_color(key: jax.Array, target: jnp.ndarray, count: int) -> jnp.ndarray:
+    """A colour index drawn uniformly from the `count` colours except `target`."""
+    pick = jax.random.randint(key, (), 0, count - 1)
+    return pick + (pick >= target)
+
+
+# ---- jars ----------------------------------------------------------------------------------
+JAR_HALF_HEIGHT = 0.055
+LID_HALF_HEIGHT = 0.0105
+
+
+def jar(body: mujoco.MjsBody, name: str, *, radius: float = 0.045, neck_radius: float = 0.036,
+        neck_height: float = 0.02, rgba=(1.0, 0.0, 0.0)) -> None:
+    """A closed jar 0.11 m tall: a body and a narrower threaded neck whose top
+    (at +JAR_HALF_HEIGHT) the lid rests on.  Geoms named `<name>_body` and
+    `<name>_neck` take the variation colour."""
+    h = JAR_HALF_HEIGHT
+    body_half = h - neck_height / 2
+    disc(body, radius, body_half, (0, 0, -h + body_half), rgba, name=f"{name}_body")
+    disc(body, neck_radius, neck_height / 2, (0, 0, h - neck_height / 2), rgba,
+         name=f"{name}_neck")
+    for r, half, z in ((radius, body_half, -h + body_half),
+                       (neck_radius, neck_height / 2, h - neck_height / 2)):
+        s = r / np.sqrt(2.0)
+        panel(body, (s, s, half), (0, 0, z)).rgba = list(INVISIBLE)
+
+
+def jar_lid(body: mujoco.MjsBody, name: str, *, radius: float = 0.037, mass: float = 1.0,
+            rgba=WHITE) -> None:
+    """A screw lid 0.021 m thick, origin at its centre (a free graspable)."""
+    disc(body, radius, LID_HALF_HEIGHT, (0, 0, 0), rgba, name=f"{name}_visual")
+    s = radius / np.sqrt(2.0)
+    box = panel(body, (s, s, LID_HALF_HEIGHT), (0, 0, 0))
+    box.rgba = list(INVISIBLE)
+    box.mass = mass
+
+
+def square_yaw(yaw: jnp.ndarray, symmetry: float = jnp.pi / 2) -> jnp.ndarray:
+    """The yaw in (-symmetry/2, symmetry/2] equivalent to `yaw` for an object
+    with `symmetry`-fold rotational symmetry (a square contact box): lets the
+    expert align its fingers with the faces without twisting the wrist far."""
+    return jnp.mod(yaw + symmetry / 2, symmetry) - symmetry / 2
+
+
+def down_quat(yaw: jnp.ndarray) -> jnp.ndarray:
+    """Gripper pointing down, fingers closing along the world y axis turned by `yaw`."""
+    flip = jnp.array([0.0, 1.0, 0.0, 0.0])  # pi about x: euler_xyz_quat(pi, 0, 0)
+    return quat_mul(yaw_quat(yaw + jnp.pi), flip)
+
+
+# ---- light bulbs ---------------------------------------------------------------------------
+HOLDER_HALF = (0.05, 0.05, 0.0325)
+HOLDER_FLOOR = 0.018  # floor top above the holder's bottom
+BULB_HALF_HEIGHT = 0.053
+BULB_GLASS_Z = 0.017  # glass centre above the bulb's centre
+BULB_BASE_Z = -0.0355  # screw-base centre
+SOCKET_FLOOR, SOCKET_WALL_TOP = 0.29, 0.32  # lamp socket, heights above the lamp's foot
+SOCKET_INNER = 0.014
+
+
+def open_box_geoms(name: str) -> list[str]:
+    """The geoms of `open_box(..., name, ...)`, e.g. to colour them."""
+    return [f"{name}_floor"] + [f"{name}_wall{k}" for k in range(4)]
+
+
+def open_box(body: mujoco.MjsBody, name: str, half, *, floor: float, wall: float,
+             rgba) -> None:
+    """A box open at the top, origin at its centre, with a floor `floor` thick
+    and walls `wall` thick (a bulb holder, a casing).  Geoms as `open_box_geoms`."""
+    hx, hy, hz = half
+    names = open_box_geoms(name)
+    panel(body, (hx, hy, floor / 2), (0, 0, -hz + floor / 2), rgba, name=names[0])
+    wall_half = hz - floor / 2
+    z = -hz + floor + wall_half
+    for k, (sx, sy) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
+        size = (wall / 2, hy, wall_half) if sx else (hx - wall, wall / 2, wall_half)
+        pos = (sx * (hx - wall / 2), sy * (hy - wall / 2), z)
+        panel(body, size, pos, rgba, name=names[1 + k])
+
+
+def bulb_holder(body: mujoco.MjsBody, name: str, rgba=(1.0, 0.0, 0.0)) -> None:
+    """A square casing 0.10 x 0.10 x 0.065 m whose floor carries a bulb
+    standing upright; its geoms (`open_box_geoms(name)`) take the variation colour."""
+    open_box(body, name, HOLDER_HALF, floor=HOLDER_FLOOR, wall=0.008, rgba=rgba)
+
+
+def light_bulb(body: mujoco.MjsBody, name: str, glass: str, *, mass: float = 1.0) -> None:
+    """A light bulb 0.106 m tall standing on its screw base (a free graspable):
+    a capsule screw base and a glass sphere.  Adds sites `glass` at the glass
+    centre (where it is grasped) and `<name>_base` at the screw base (what
+    the lamp's socket sensor detects)."""
+    body.add_geom(type=G.mjGEOM_SPHERE, size=[0.034, 0, 0], pos=[0, 0, BULB_GLASS_Z],
+                  rgba=[1.0, 1.0, 1.0, 1.0], mass=mass, contype=OBJECT_COLLISION[0],
+                  conaffinity=OBJECT_COLLISION[1], group=2, name=f"{glass}_glass")
+    body.add_geom(type=G.mjGEOM_CAPSULE, size=[0.011, 0.0065, 0], pos=[0, 0, BULB_BASE_Z],
+                  rgba=[0.6, 0.6, 0.6, 1.0], mass=0.01, contype=OBJECT_COLLISION[0],
+                  conaffinity=OBJECT_COLLISION[1], group=2)
+    disc(body, 0.015, 0.006, (0, 0, BULB_BASE_Z + 0.018), (0.6, 0.6, 0.6))
+    body.add_site(name=glass, pos=[0, 0, BULB_GLASS_Z], size=[0.005, 0, 0], rgba=[0, 0, 0, 0],
+                  group=4)
+    body.add_site(name=f"{name}_base", pos=[0, 0, BULB_BASE_Z], size=[0.005, 0, 0],
+                  rgba=[0, 0, 0, 0], group=4)
+
+
+def lamp_with_socket(parent: mujoco.MjsBody, name: str, socket: str, pos) -> mujoco.MjsBody:
+    """A bare table lamp 0.32 m tall whose socket, a cup 28 mm wide inside
+    (floor at SOCKET_FLOOR), takes a bulb's screw base.  Returns the socket
+    body `socket`, whose origin is at the socket floor's centre."""
+    x, y = pos
+    base = parent.add_body(name=name, pos=[x, y, 0.137])
+    disc(base, 0.047, 0.01, (0, 0, -0.127), (0.85, 0.85, 1.0))
+    disc(base, 0.012, 0.127, (0, 0, 0.01), (0.85, 0.85, 1.0))
+    panel(base, (0.033, 0.033, 0.137), (0, 0, 0)).rgba = list(INVISIBLE)
+    body = parent.add_body(name=socket, pos=[x, y, SOCKET_FLOOR])
+    dark = (0.1, 0.1, 0.1)
+    disc(body, 0.025, 0.0245, (0, 0, 0.0105), dark)
+    panel(body, (0.017, 0.017, 0.007), (0, 0, -0.007), dark)  # floor
+    wall_half = (SOCKET_WALL_TOP - SOCKET_FLOOR) / 2
+    for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        size = (0.002, SOCKET_INNER + 0.004, wall_half) if sx else (SOCKET_INNER, 0.002, wall_half)
+        panel(body, size, (sx * (SOCKET_INNER + 0.002), sy * (SOCKET_INNER + 0.002), wall_half),
+              dark).rgba = list(INVISIBLE)
+    return body
+
+
+# ---- cups ----------------------------------------------------------------------------------
+CUP_HALF_HEIGHT = 0.07
+CUP_SIDES = 12
+
+
+def cup_geoms(name: str, sides: int = CUP_SIDES) -> list[str]:
+    """The geoms of `cup(..., name, ...)`, e.g. to colour them."""
+    return [f"{name}_bottom"] + [f"{name}_side{k}" for k in range(sides)]
+
+
+def cup_radius(z: float, bottom_radius: float = 0.032, top_radius: float = 0.047) -> float:
+    """Outer radius of a cup at height `z` above its bottom."""
+    return bottom_radius + (top_radius - bottom_radius) * z / (2 * CUP_HALF_HEIGHT)
+
+
+def cup(body: mujoco.MjsBody, name: str, *, bottom_radius: float = 0.032,
+        top_radius: float = 0.047, wall: float = 0.003, sides: int = CUP_SIDES,
+        mass: float = 0.0532, rgba=WHITE) -> None:
+    """A tapered, open plastic cup 0.14 m tall (a free object), origin at its
+    centre: a bottom plate and `sides` tilted wall panels, so that cups of the
+    same yaw nest inside each other.  Geoms as `cup_geoms(name)`."""
+    h = CUP_HALF_HEIGHT
+    tilt = np.arctan2(top_radius - bottom_radius, 2 * h)
+    mid = (top_radius + bottom_radius) / 2 - wall / 2 * np.cos(tilt)
+    half_width = mid * np.tan(np.pi / sides)
+    half_len = h / np.cos(tilt)
+    names = cup_geoms(name, sides)
+    inner = (bottom_radius - wall) / np.sqrt(2.0)
+    plate = panel(body, (inner, inner, wall / 2), (0, 0, -h + wall / 2), rgba, name=names[0])
+    plate.mass = mass / (sides + 1)
+    for k in range(sides):
+        theta = 2 * np.pi * k / sides
+        lean = np.array([np.cos(tilt / 2), 0.0, np.sin(tilt / 2), 0.0])  # about local y
+        quat = np.asarray(quat_mul(np.asarray(yaw_quat(np.float64(theta))), lean))
+        pos = (mid * np.cos(theta), mid * np.sin(theta), 0.0)
+        geom = panel(body, (wall / 2, half_width, half_len), pos, rgba, name=names[1 + k],
+                     quat=tuple(quat))
+        geom.mass = mass / (sides + 1)
+
+
+__all__ = [
+    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
+    "detected_one_of", "down_quat", "jar", "jar_lid", "lamp_with_socket", "light_bulb",
+    "open_box", "open_box_geoms", "other_color", "spawn_on_root_plane", "square_yaw",
+]
