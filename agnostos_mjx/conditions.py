@@ -5,7 +5,8 @@ A condition is a small static object with two pure functions:
 position) and `step(carry, obs) -> (carry, met)` evaluated at every physics
 step.  Parameters may be traced (they may depend on the variation), the tree
 structure may not.  This mirrors RLBench's JointCondition, DetectedCondition,
-NothingGrasped, GraspedCondition, DetectedSeveralCondition and ConditionSet.
+NothingGrasped, GraspedCondition, DetectedSeveralCondition and ConditionSet
+(plus `Select`, a per-variation choice among conditions).
 """
 
 from __future__ import annotations
@@ -138,6 +139,24 @@ class AnyOf(Condition):
     def step(self, carry, obs):
         out = [cond.step(c, obs) for cond, c in zip(self.conditions, carry)]
         return tuple(c for c, _ in out), jnp.any(jnp.stack([m for _, m in out], -1), -1)
+
+
+@dataclass(frozen=True)
+class Select(Condition):
+    """The member number `index` (may be traced, e.g. the variation) of a
+    static tuple of conditions: one tree serves variations whose target
+    differs (which drawer's volume, which slot).  All members are stepped."""
+
+    conditions: tuple[Condition, ...]
+    index: Any
+
+    def init(self, obs0):
+        return tuple(c.init(obs0) for c in self.conditions)
+
+    def step(self, carry, obs):
+        out = [cond.step(c, obs) for cond, c in zip(self.conditions, carry)]
+        met = jnp.stack([m for _, m in out], -1)
+        return tuple(c for c, _ in out), _select(met, self.index)
 
 
 def never() -> Condition:
