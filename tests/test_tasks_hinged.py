@@ -5,10 +5,12 @@ model.  Expert success from reset is covered by tests/test_conditions.py."""
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
 
+from agnostos_mjx.observables import Observation
 from agnostos_mjx.tasks import get_task, is_implemented
 from agnostos_mjx.world import build_scene
 
@@ -17,6 +19,11 @@ LANGUAGE = {
     "open_grill": (1, {0: ["open the grill",
                            "grasp tha handle and raise the cover up to open the grill",
                            "open the bbq", "open the barbecue"]}),
+    "meat_off_grill": (2, {
+        0: ["take the chicken off the grill", "pick up the chicken and place it next to the grill",
+            "remove the chicken from the grill and set it down to the side"],
+        1: ["take the steak off the grill", "pick up the steak and place it next to the grill",
+            "remove the steak from the grill and set it down to the side"]}),
 }
 
 
@@ -62,3 +69,36 @@ def test_grill_handle_spins_on_the_lid():
     assert joint.type[0] == mujoco.mjtJoint.mjJNT_HINGE and not m.jnt_limited[joint.id]
     assert m.body("grill_lid_handle").parentid[0] == m.body("grill_lid").id
     np.testing.assert_allclose(joint.axis, m.joint("grill_lid_joint").axis)
+
+
+def _observe(name: str, bodies: dict[str, tuple[float, float, float]] = {},  # noqa: B006
+             attached=None) -> Observation:
+    """The observation of the default scene with free bodies moved to world positions."""
+    scene = build_scene(_task(name))
+    m = scene.model
+    d = mujoco.MjData(m)
+    d.qpos[:] = scene.initial_qpos
+    for body, pos in bodies.items():
+        adr = scene.free_address[body]
+        d.qpos[adr:adr + 3] = pos
+    mujoco.mj_forward(m, d)
+    if attached is None:
+        attached = np.zeros(len(scene.task.graspables), bool)
+    return Observation(jnp.asarray(d.sensordata, jnp.float32), scene.layout, jnp.asarray(attached))
+
+
+def _met(cond, obs) -> bool:
+    return bool(cond.step(cond.init(obs), obs)[1])
+
+
+def test_meat_off_grill_success_needs_the_chosen_meat_beside_the_grill_released():
+    task = _task("meat_off_grill")
+    start = _observe("meat_off_grill")
+    beside = np.asarray(start.pos("meat_off_grill_success")) + [0.0, 0.05, -0.02]
+    for v, (meat, other) in enumerate((("chicken", "steak"), ("steak", "chicken"))):
+        cond = task.success(jnp.int32(v))
+        assert not _met(cond, start)
+        assert _met(cond, _observe("meat_off_grill", {meat: beside}))
+        assert not _met(cond, _observe("meat_off_grill", {other: beside}))  # the other meat
+        held = np.arange(2) == v
+        assert not _met(cond, _observe("meat_off_grill", {meat: beside}, attached=held))
