@@ -19,6 +19,7 @@ LANGUAGE = {
     "open_grill": (1, {0: ["open the grill",
                            "grasp tha handle and raise the cover up to open the grill",
                            "open the bbq", "open the barbecue"]}),
+    "close_laptop_lid": (1, {0: ["close laptop lid", "close the laptop", "shut the laptop lid"]}),
     "meat_off_grill": (2, {
         0: ["take the chicken off the grill", "pick up the chicken and place it next to the grill",
             "remove the chicken from the grill and set it down to the side"],
@@ -43,7 +44,7 @@ def test_variations_and_descriptions(name):
 
 
 def _gravity_torque(name: str, joint: str, angle: float) -> tuple[float, float]:
-    """(|gravity torque| on `joint` at `angle`, its friction torque)."""
+    """(gravity torque on `joint` at `angle` (signed), its friction torque)."""
     scene = build_scene(_task(name))
     m = scene.model
     d = mujoco.MjData(m)
@@ -51,7 +52,7 @@ def _gravity_torque(name: str, joint: str, angle: float) -> tuple[float, float]:
     d.qpos[scene.qpos_address[joint]] = angle
     mujoco.mj_forward(m, d)
     dof = m.joint(joint).dofadr[0]
-    return abs(d.qfrc_bias[dof]), m.dof_frictionloss[dof]
+    return -d.qfrc_bias[dof], m.dof_frictionloss[dof]
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.5, 0.995])
@@ -59,7 +60,7 @@ def test_grill_lid_stays_where_it_is_left(angle):
     """RLBench holds the lid with a 1 N m motor at zero speed: more than its
     weight's torque, so the lid neither falls shut nor needs holding."""
     gravity, friction = _gravity_torque("open_grill", "grill_lid_joint", angle)
-    assert gravity < friction
+    assert abs(gravity) < friction
 
 
 def test_grill_handle_spins_on_the_lid():
@@ -102,3 +103,14 @@ def test_meat_off_grill_success_needs_the_chosen_meat_beside_the_grill_released(
         assert not _met(cond, _observe("meat_off_grill", {other: beside}))  # the other meat
         held = np.arange(2) == v
         assert not _met(cond, _observe("meat_off_grill", {meat: beside}, attached=held))
+
+
+def test_laptop_lid_rests_open_and_falls_shut_past_upright():
+    """The free lid leans back on its stop; pushed past upright it falls shut,
+    and its closed limit lies beyond the 1.79 rad success threshold."""
+    gravity, friction = _gravity_torque("close_laptop_lid", "laptop_lid_joint", 0.0)
+    assert gravity < -friction  # pulls it back onto the open stop
+    gravity, friction = _gravity_torque("close_laptop_lid", "laptop_lid_joint", 0.5)
+    assert gravity > friction  # falls on towards closed
+    m = build_scene(_task("close_laptop_lid")).model
+    assert m.joint("laptop_lid_joint").range[1] > 1.79 + 0.03

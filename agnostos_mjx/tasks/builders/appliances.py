@@ -10,6 +10,7 @@ a point: `<name>_handle`, `<name>_hinge`, visual centres.
 from __future__ import annotations
 
 import mujoco
+import numpy as np
 
 from agnostos_mjx.tasks.builders.articulated import hinged_door
 from agnostos_mjx.tasks.builders.primitives import panel, rod
@@ -91,3 +92,39 @@ def grill_lid(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill_li
     scene.exclude(f"{name}_handle", "grill")
     return joint
 
+
+
+LAPTOP_HINGE = (-0.03, 0.033, 0.115)
+LAPTOP_LID_TILT = 0.227  # rad: the open lid leans back 13 degrees past upright
+
+
+def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") -> str:
+    """close_laptop_lid's laptop on its brown holder block: a static base and
+    a free-swinging lid (RLBench's motor has 1e-5 N m) hinged on the base's
+    rear edge about +x; joint 0 = open and leaning back, positive closes.
+    The lid passes through the base (no lid-base contact) so that it comes
+    to rest on its 105-degree limit rather than on the keyboard at 103,
+    just above the 1.79 rad success threshold.  Sites `<name>_lid_center`,
+    `<name>_hinge`.  Returns the joint name."""
+    holder = parent.add_body(name=f"{name}_holder", pos=[-0.014, -0.074, 0.049])
+    panel(holder, (0.2, 0.15, 0.05), (0, 0, 0), (0.31, 0.19, 0.15))
+    base = parent.add_body(name=f"{name}_base", pos=[-0.029, -0.093, 0.106])
+    panel(base, (0.1735, 0.1265, 0.0075), (0, 0, 0), (0.75, 0.75, 0.78))
+    panel(base, (0.15, 0.06, 0.0005), (0, 0.023, 0.008), (0.15, 0.15, 0.17),
+          collide=False)  # keyboard
+    panel(base, (0.04, 0.03, 0.0005), (0, -0.082, 0.008), (0.6, 0.6, 0.63),
+          collide=False)  # touchpad
+    joint = hinged_door(scene, parent, f"{name}_lid", hinge_pos=LAPTOP_HINGE, axis=(1, 0, 0),
+                        panel_half=(0.17, 0.003, 0.1225), panel_offset=(0.003, 0.003, 0.1225),
+                        limits=(0.0, 1.833), initial=0.0, friction_torque=1e-5,
+                        rgba=(0.75, 0.75, 0.78), mass=0.083)
+    lid = scene.spec.body(f"{name}_lid")
+    lid.quat = [float(np.cos(-LAPTOP_LID_TILT / 2)), float(np.sin(-LAPTOP_LID_TILT / 2)), 0.0, 0.0]
+    scene.spec.joint(joint).damping[0] = 0.01
+    panel(lid, (0.155, 0.0005, 0.1), (0.003, -0.0005, 0.13), (0.1, 0.12, 0.2),
+          collide=False)  # screen
+    _site(lid, f"{name}_lid_center", (0.003, 0.0, 0.1225))
+    _site(parent, f"{name}_hinge", LAPTOP_HINGE)
+    scene.exclude(f"{name}_lid", f"{name}_base")
+    scene.exclude(f"{name}_lid", f"{name}_holder")
+    return joint
