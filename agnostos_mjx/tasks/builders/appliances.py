@@ -1,0 +1,130 @@
+"""Household appliances with hinged parts: barbecue grill, fridge, laptop, toilet.
+
+Each builder lays its piece out in the parent frame at the positions of the
+RLBench scene model (spec section of the task that uses it), so a task only
+places the root.  Moving parts reuse `hinged_door`; the builders add what a
+plain panel lacks (handles, rims) and sites where observers and experts need
+a point: `<name>_handle`, `<name>_hinge`, visual centres.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from agnostos_mjx.tasks.builders.articulated import hinged_door
+from agnostos_mjx.tasks.builders.primitives import panel, rod
+from agnostos_mjx.world import SceneBuilder
+
+GRILL_RGBA = (0.25, 0.25, 0.25)
+GRILL_LID_RGBA = (0.4, 0.4, 0.4)
+GRATE_RGBA = (0.59, 0.59, 0.59)
+HANDLE_RGBA = (0.5, 0.5, 0.5)
+# The barbecue of open_grill (root frame): firebox x[0.114, 0.321], y +-0.276,
+# rim at z 0.293, grate at z 0.273, lid hinged on the back edge over y < 0.03.
+GRILL_X = (0.114, 0.321)
+GRILL_HALF_Y = 0.276
+GRILL_RIM_Z = 0.293
+GRATE_Z = 0.276
+GRILL_LID_HINGE = (0.319, -0.116, 0.293)
+
+
+def _site(body: mujoco.MjsBody, name: str, pos) -> None:
+    body.add_site(name=name, pos=list(pos), size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=4)
+
+
+def grill(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill") -> mujoco.MjsBody:
+    """A static barbecue on four legs: a firebox whose grate (top at GRATE_Z)
+    lies 17 mm below a rim, so food placed on it stays put.  Returns the body
+    (its frame is the parent's; a site `<name>_center` marks the visual centre)."""
+    body = parent.add_body(name=name)
+    x0, x1 = GRILL_X
+    cx, hx, hy = (x0 + x1) / 2, (x1 - x0) / 2, GRILL_HALF_Y
+    floor_z = 0.17
+    panel(body, (hx, hy, (GRATE_Z - 0.006 - floor_z) / 2), (cx, 0, (GRATE_Z - 0.006 + floor_z) / 2),
+          GRILL_RGBA)  # firebox below the grate
+    panel(body, (hx - 0.01, hy - 0.01, 0.003), (cx, 0, GRATE_Z - 0.003), GRATE_RGBA,
+          name=f"{name}_grate")
+    rim_h = (GRILL_RIM_Z - GRATE_Z) / 2
+    rim_z = GRATE_Z + rim_h
+    for sx in (-1, 1):
+        panel(body, (0.005, hy, rim_h), (cx + sx * (hx - 0.005), 0, rim_z), GRILL_RGBA)
+    for sy in (-1, 1):
+        panel(body, (hx, 0.005, rim_h), (cx, sy * (hy - 0.005), rim_z), GRILL_RGBA)
+    for k in range(-4, 5):  # grate bars, visual only
+        y = k * (hy - 0.02) / 4.5
+        rod(body, (x0 + 0.012, y, GRATE_Z + 0.002), (x1 - 0.012, y, GRATE_Z + 0.002), 0.003,
+            (0.2, 0.2, 0.2))
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            leg = (cx + sx * (hx - 0.015), sy * (hy - 0.015))
+            rod(body, (*leg, 0.0), (*leg, floor_z), 0.012, GRILL_RGBA)
+    panel(body, (hx - 0.015, hy - 0.015, 0.005), (cx, 0, 0.06), GRILL_RGBA)  # shelf between legs
+    _site(body, f"{name}_center", (cx, 0, 0.15))
+    return body
+
+
+def grill_lid(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill_lid") -> str:
+    """The hinged cover of open_grill over one half of the grate: hinge on the
+    back edge about +y (positive opens), a motor of 1 N m at zero speed that
+    holds it where it is left, and a bar handle 5 cm in front of its front
+    edge.  The bar is its own body `<name>_handle`, free to spin about its
+    axis on two standoffs: a gripper holding it keeps its orientation while
+    the lid swings, as a round handle turns inside a real grip.  Sites
+    `<name>_hinge` and `<name>_center`.  Returns the lid joint name."""
+    hinge = GRILL_LID_HINGE
+    joint = hinged_door(scene, parent, name, hinge_pos=hinge, axis=(0, 1, 0),
+                        panel_half=(0.0975, 0.1465, 0.0495), panel_offset=(-0.1005, 0.0005, 0.0505),
+                        limits=(0.0, 1.047), initial=0.0, friction_torque=1.0,
+                        rgba=GRILL_LID_RGBA, mass=0.661)
+    lid = scene.spec.body(name)
+    bar = (0.081 - hinge[0], 0.0, 0.319 - hinge[2])  # root x = 0.081, z = 0.319
+    for sy in (-1, 1):
+        panel(lid, (0.02, 0.005, 0.005), (bar[0] + 0.02, sy * 0.045, bar[2]),
+              HANDLE_RGBA).mass = 0.01
+    handle = lid.add_body(name=f"{name}_handle", pos=list(bar))
+    handle.add_joint(name=f"{name}_handle_joint", type=mujoco.mjtJoint.mjJNT_HINGE,
+                     axis=[0, 1, 0], damping=0.01, armature=0.001)
+    panel(handle, (0.007, 0.04, 0.007), (0, 0, 0), HANDLE_RGBA).mass = 0.02
+    _site(lid, f"{name}_center", (-0.1005, 0.0, 0.0505))
+    _site(parent, f"{name}_hinge", hinge)
+    scene.exclude(name, "grill")
+    scene.exclude(f"{name}_handle", "grill")
+    return joint
+
+
+
+LAPTOP_HINGE = (-0.03, 0.033, 0.115)
+LAPTOP_LID_TILT = 0.227  # rad: the open lid leans back 13 degrees past upright
+
+
+def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") -> str:
+    """close_laptop_lid's laptop on its brown holder block: a static base and
+    a free-swinging lid (RLBench's motor has 1e-5 N m) hinged on the base's
+    rear edge about +x; joint 0 = open and leaning back, positive closes.
+    The lid passes through the base (no lid-base contact) so that it comes
+    to rest on its 105-degree limit rather than on the keyboard at 103,
+    just above the 1.79 rad success threshold.  Sites `<name>_lid_center`,
+    `<name>_hinge`.  Returns the joint name."""
+    holder = parent.add_body(name=f"{name}_holder", pos=[-0.014, -0.074, 0.049])
+    panel(holder, (0.2, 0.15, 0.05), (0, 0, 0), (0.31, 0.19, 0.15))
+    base = parent.add_body(name=f"{name}_base", pos=[-0.029, -0.093, 0.106])
+    panel(base, (0.1735, 0.1265, 0.0075), (0, 0, 0), (0.75, 0.75, 0.78))
+    panel(base, (0.15, 0.06, 0.0005), (0, 0.023, 0.008), (0.15, 0.15, 0.17),
+          collide=False)  # keyboard
+    panel(base, (0.04, 0.03, 0.0005), (0, -0.082, 0.008), (0.6, 0.6, 0.63),
+          collide=False)  # touchpad
+    joint = hinged_door(scene, parent, f"{name}_lid", hinge_pos=LAPTOP_HINGE, axis=(1, 0, 0),
+                        panel_half=(0.17, 0.003, 0.1225), panel_offset=(0.003, 0.003, 0.1225),
+                        limits=(0.0, 1.833), initial=0.0, friction_torque=1e-5,
+                        rgba=(0.75, 0.75, 0.78), mass=0.083)
+    lid = scene.spec.body(f"{name}_lid")
+    lid.quat = [float(np.cos(-LAPTOP_LID_TILT / 2)), float(np.sin(-LAPTOP_LID_TILT / 2)), 0.0, 0.0]
+    scene.spec.joint(joint).damping[0] = 0.01
+    panel(lid, (0.155, 0.0005, 0.1), (0.003, -0.0005, 0.13), (0.1, 0.12, 0.2),
+          collide=False)  # screen
+    _site(lid, f"{name}_lid_center", (0.003, 0.0, 0.1225))
+    _site(parent, f"{name}_hinge", LAPTOP_HINGE)
+    scene.exclude(f"{name}_lid", f"{name}_base")
+    scene.exclude(f"{name}_lid", f"{name}_holder")
+    return joint

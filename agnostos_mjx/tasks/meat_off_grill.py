@@ -1,0 +1,122 @@
+"""meat_off_grill (seen): take the chicken or the steak off the grill and set it down beside it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax.numpy as jnp
+import mujoco
+
+from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
+from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
+from agnostos_mjx.tasks.base import (
+    Placement,
+    Split,
+    Task,
+    frame_quat,
+    in_frame,
+    key_actions,
+    place_root,
+)
+from agnostos_mjx.tasks.builders.appliances import GRATE_Z, GRILL_X, grill
+from agnostos_mjx.tasks.builders.primitives import panel, rod
+
+MEATS = ("chicken", "steak")
+GRILL_CX = (GRILL_X[0] + GRILL_X[1]) / 2
+MEAT_Y = (-0.1, 0.1)  # on the grate, root frame
+# The "beside the grill" sensor: a box on the table in front of the grill.
+SUCCESS_POS, SUCCESS_HALF = (-0.05, 0.0, 0.05), (0.1, 0.2, 0.05)
+# Footprint: grill x[0.114, 0.321] plus the sensor x[-0.15, 0.05], y +-0.276.
+FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.2355, 0.276), (0.0855, 0.0)
+DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # fingers along the meat's y (its short side)
+HOVER, LIFT = 0.1, 0.15
+
+
+def _chicken(body: mujoco.MjsBody) -> None:
+    """A drumstick along x: a meaty capsule and a bone end (visual)."""
+    meat = body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.022, 0.03, 0],
+                         quat=[0.7071068, 0, 0.7071068, 0], rgba=[0.85, 0.6, 0.35, 1],
+                         contype=2, conaffinity=3, group=2, mass=0.1)
+    meat.name = "chicken_meat"
+    rod(body, (0.03, 0, 0), (0.075, 0, 0), 0.007, (0.95, 0.93, 0.85))
+
+
+def _steak(body: mujoco.MjsBody) -> None:
+    panel(body, (0.05, 0.035, 0.01), (0, 0, 0), (0.55, 0.12, 0.1), name="steak_meat").mass = 0.1
+
+
+@dataclass(frozen=True)
+class _Chosen(Condition):
+    """The condition of `conditions` picked by a traced index (the variation)."""
+
+    conditions: tuple[Condition, ...]
+    index: Any
+
+    def init(self, obs0):
+        return tuple(c.init(obs0) for c in self.conditions)
+
+    def step(self, carry, obs):
+        out = [c.step(k, obs) for c, k in zip(self.conditions, carry)]
+        met = jnp.stack([m for _, m in out], -1)
+        return tuple(k for k, _ in out), jnp.take(met, self.index, axis=-1)
+
+
+class MeatOffGrill(Task):
+    name = "meat_off_grill"
+    split = Split.SEEN
+    num_variations = 2
+    # X-ICM's name map lists only the chicken and the grill, for both variations.
+    objects = {"chicken": "chicken", "grill": "grill_center"}
+    frames = ("steak", "meat_off_grill_root", "meat_off_grill_success")
+    graspables = MEATS
+    graspable_radius = (0.02, 0.02)
+    notes = ("Scene layout undocumented in the spec: designed here. The grill of open_grill "
+             "without its lid; chicken (drumstick) and steak lie on the grate, 0.2 m apart; the "
+             "'success' sensor is a 0.2 x 0.4 x 0.1 m box on the table in front of the grill. "
+             "Expert: top-down grasp, lift, carry to the front, release 3 cm above the table (RLBench's waypoints are undocumented).")
+
+    def descriptions(self, variation: int) -> list[str]:
+        m = MEATS[variation]
+        return [f"take the {m} off the grill", f"pick up the {m} and place it next to the grill",
+                f"remove the {m} from the grill and set it down to the side"]
+
+    def build(self, scene) -> None:
+        root = scene.mocap("meat_off_grill_root")
+        grill(scene, root)
+        root.add_site(name="meat_off_grill_success", pos=list(SUCCESS_POS), size=[0.005, 0, 0],
+                      rgba=[0, 1, 0, 0], group=4)
+        for name, y, shape in zip(MEATS, MEAT_Y, (_chicken, _steak)):
+            body = scene.world.add_body(name=name, pos=[0.25 + GRILL_CX, y, 1.2])
+            body.add_freejoint()
+            shape(body)
+
+    def sample(self, key, variation) -> Placement:
+        pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
+        bodies = {"meat_off_grill_root": (pos, quat)}
+        for name, y, half_h in zip(MEATS, MEAT_Y, (0.022, 0.01)):
+            local = jnp.array([GRILL_CX, y, GRATE_Z + half_h + 0.001])
+            bodies[name] = (pos + quat_rotate(quat, local), quat)
+        return Placement(bodies=bodies)
+
+    def success(self, variation):
+        detected = tuple(Detected(m, "meat_off_grill_success", SUCCESS_HALF) for m in MEATS)
+        return all_of([_Chosen(detected, variation), NothingGrasped()])
+
+    def expert(self, obs, variation):
+        meat = jnp.stack([obs.pos(m) for m in MEATS])[variation]
+        grip = jnp.stack([frame_quat(obs, m, DOWN) for m in MEATS])[variation]
+        # Set down in front of the grill, level with where it lay, 3 cm above the table.
+        drop = in_frame(obs, "meat_off_grill_root",
+                        jnp.stack([SUCCESS_POS[0], jnp.asarray(MEAT_Y)[variation], 0.045]))
+        up = jnp.array([0.0, 0.0, 1.0])
+        return key_actions([
+            (meat + HOVER * up, grip, 1.0),  # above the meat
+            (meat + 0.005 * up, grip, 0.0),  # around it, close: attach
+            (meat + LIFT * up, grip, 0.0),  # lift off the grate
+            (drop.at[2].set(meat[2] + LIFT), grip, 0.0),  # over the table beside the grill
+            (drop, grip, 1.0),  # lower and release
+        ])
+
+
+TASK = MeatOffGrill()

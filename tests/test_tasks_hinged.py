@@ -1,0 +1,116 @@
+"""Hinged appliance tasks (builders/appliances.py): close_fridge,
+close_laptop_lid, toilet_seat_down, open_grill, meat_off_grill.  Language
+and variations against the spec; task-specific mechanics on the compiled
+model.  Expert success from reset is covered by tests/test_conditions.py."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from agnostos_mjx.observables import Observation
+from agnostos_mjx.tasks import get_task, is_implemented
+from agnostos_mjx.world import build_scene
+
+# name -> (variations, {variation: verbatim descriptions (spec)})
+LANGUAGE = {
+    "open_grill": (1, {0: ["open the grill",
+                           "grasp tha handle and raise the cover up to open the grill",
+                           "open the bbq", "open the barbecue"]}),
+    "close_laptop_lid": (1, {0: ["close laptop lid", "close the laptop", "shut the laptop lid"]}),
+    "meat_off_grill": (2, {
+        0: ["take the chicken off the grill", "pick up the chicken and place it next to the grill",
+            "remove the chicken from the grill and set it down to the side"],
+        1: ["take the steak off the grill", "pick up the steak and place it next to the grill",
+            "remove the steak from the grill and set it down to the side"]}),
+}
+
+
+def _task(name: str):
+    if not is_implemented(name):
+        pytest.skip(f"{name} not implemented yet")
+    return get_task(name)
+
+
+@pytest.mark.parametrize("name", sorted(LANGUAGE))
+def test_variations_and_descriptions(name):
+    task = _task(name)
+    count, expected = LANGUAGE[name]
+    assert task.num_variations == count
+    for v, descriptions in expected.items():
+        assert task.descriptions(v) == descriptions
+
+
+def _gravity_torque(name: str, joint: str, angle: float) -> tuple[float, float]:
+    """(gravity torque on `joint` at `angle` (signed), its friction torque)."""
+    scene = build_scene(_task(name))
+    m = scene.model
+    d = mujoco.MjData(m)
+    d.qpos[:] = scene.initial_qpos
+    d.qpos[scene.qpos_address[joint]] = angle
+    mujoco.mj_forward(m, d)
+    dof = m.joint(joint).dofadr[0]
+    return -d.qfrc_bias[dof], m.dof_frictionloss[dof]
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.5, 0.995])
+def test_grill_lid_stays_where_it_is_left(angle):
+    """RLBench holds the lid with a 1 N m motor at zero speed: more than its
+    weight's torque, so the lid neither falls shut nor needs holding."""
+    gravity, friction = _gravity_torque("open_grill", "grill_lid_joint", angle)
+    assert abs(gravity) < friction
+
+
+def test_grill_handle_spins_on_the_lid():
+    """The gripper keeps its orientation while the lid swings (the handle turns)."""
+    m = build_scene(_task("open_grill")).model
+    joint = m.joint("grill_lid_handle_joint")
+    assert joint.type[0] == mujoco.mjtJoint.mjJNT_HINGE and not m.jnt_limited[joint.id]
+    assert m.body("grill_lid_handle").parentid[0] == m.body("grill_lid").id
+    np.testing.assert_allclose(joint.axis, m.joint("grill_lid_joint").axis)
+
+
+def _observe(name: str, bodies: dict[str, tuple[float, float, float]] = {},  # noqa: B006
+             attached=None) -> Observation:
+    """The observation of the default scene with free bodies moved to world positions."""
+    scene = build_scene(_task(name))
+    m = scene.model
+    d = mujoco.MjData(m)
+    d.qpos[:] = scene.initial_qpos
+    for body, pos in bodies.items():
+        adr = scene.free_address[body]
+        d.qpos[adr:adr + 3] = pos
+    mujoco.mj_forward(m, d)
+    if attached is None:
+        attached = np.zeros(len(scene.task.graspables), bool)
+    return Observation(jnp.asarray(d.sensordata, jnp.float32), scene.layout, jnp.asarray(attached))
+
+
+def _met(cond, obs) -> bool:
+    return bool(cond.step(cond.init(obs), obs)[1])
+
+
+def test_meat_off_grill_success_needs_the_chosen_meat_beside_the_grill_released():
+    task = _task("meat_off_grill")
+    start = _observe("meat_off_grill")
+    beside = np.asarray(start.pos("meat_off_grill_success")) + [0.0, 0.05, -0.02]
+    for v, (meat, other) in enumerate((("chicken", "steak"), ("steak", "chicken"))):
+        cond = task.success(jnp.int32(v))
+        assert not _met(cond, start)
+        assert _met(cond, _observe("meat_off_grill", {meat: beside}))
+        assert not _met(cond, _observe("meat_off_grill", {other: beside}))  # the other meat
+        held = np.arange(2) == v
+        assert not _met(cond, _observe("meat_off_grill", {meat: beside}, attached=held))
+
+
+def test_laptop_lid_rests_open_and_falls_shut_past_upright():
+    """The free lid leans back on its stop; pushed past upright it falls shut,
+    and its closed limit lies beyond the 1.79 rad success threshold."""
+    gravity, friction = _gravity_torque("close_laptop_lid", "laptop_lid_joint", 0.0)
+    assert gravity < -friction  # pulls it back onto the open stop
+    gravity, friction = _gravity_torque("close_laptop_lid", "laptop_lid_joint", 0.5)
+    assert gravity > friction  # falls on towards closed
+    m = build_scene(_task("close_laptop_lid")).model
+    assert m.joint("laptop_lid_joint").range[1] > 1.79 + 0.03
