@@ -33,13 +33,16 @@ def moved(obs: Observation, frame: str, pos, attached=None) -> Observation:
 
 
 def met(name: str, obs: Observation, variation: int = 0) -> np.ndarray:
+    """Success after holding `obs` for two steps (ordered sets advance one per step)."""
     cond = get_task(name).success(jnp.int32(variation))
     carry = jax.vmap(cond.init)(obs)
+    carry, _ = jax.vmap(cond.step)(carry, obs)
     return np.asarray(jax.vmap(cond.step)(carry, obs)[1])
 
 
 @pytest.mark.parametrize("name, count, variation, first", [
     ("put_rubbish_in_bin", 1, 0, "put rubbish in bin"),
+    ("phone_on_base", 1, 0, "put the phone on the base"),
 ])
 def test_variations_and_first_description(name, count, variation, first):
     task = get_task(name)
@@ -72,3 +75,24 @@ def test_rubbish_detected_in_bin_not_beside_it():
     assert met("put_rubbish_in_bin", moved(obs, "rubbish", bin_floor)).all()
     above = bin_floor + jnp.array([0.0, 0.0, 0.2])
     assert not met("put_rubbish_in_bin", moved(obs, "rubbish", above)).any()
+
+
+def test_phone_descriptions_fix_the_hone_typo():
+    descriptions = get_task("phone_on_base").descriptions(0)
+    assert descriptions[2] == "put the phone on the hub"
+    assert len(descriptions) == 6 and "hone" not in " ".join(descriptions).replace("phone", "")
+
+
+@pytest.mark.parametrize("name, obj", [
+    ("phone_on_base", "phone"),
+])
+def test_detected_in_volume_only_once_released(name, obj):
+    """Success needs the object in the volume and nothing in the gripper."""
+    obs = reset(name).initial_obs
+    assert not met(name, obs).any()
+    inside = jax.vmap(lambda o: o.pos("success"))(obs)
+    assert met(name, moved(obs, obj, inside)).all()
+    held = jnp.ones_like(obs.attached)
+    assert not met(name, moved(obs, obj, inside, attached=held)).any()
+    beside = inside + jnp.array([0.0, 0.0, 0.1])
+    assert not met(name, moved(obs, obj, beside)).any()

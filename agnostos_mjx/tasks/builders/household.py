@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
@@ -80,16 +80,17 @@ def yaw_of(quat) -> jnp.ndarray:
     return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-def down_grasp(yaw, tilt=None) -> jnp.ndarray:
+def down_grasp(yaw, pitch=0.0) -> jnp.ndarray:
     """Gripper pointing down with its fingers closing along the heading `yaw`
-    + 90 deg (the frame's y axis).  The two-finger grasp is symmetric under a
-    half turn, so the yaw is wrapped into +-90 deg of the start pose, which
-    keeps the wrist joint far from its limits.  `tilt` (a quaternion applied
-    in the world before the yaw) pitches the gripper, e.g. to lay an object
-    down."""
+    + 90 deg (the y axis of a frame with that yaw).  The two-finger grasp is
+    symmetric under a half turn, so the yaw is wrapped into +-90 deg of the
+    start pose, which keeps the wrist joint far from its limits.  `pitch`
+    tilts the approach axis about the fingers towards the frame's +x (pi/2:
+    level, pointing along +x), e.g. to lay a held object down."""
     wrapped = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2
-    quat = DOWN if tilt is None else quat_mul(jnp.asarray(tilt, jnp.float32), DOWN)
-    return quat_mul(yaw_quat(wrapped), quat)
+    same = jnp.cos(wrapped - yaw)  # +1, or -1 where the wrap turned the frame
+    tilt = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), -same * jnp.asarray(pitch, jnp.float32))
+    return quat_mul(yaw_quat(wrapped), quat_mul(tilt, DOWN))
 
 
 # ---- success ------------------------------------------------------------------------------
