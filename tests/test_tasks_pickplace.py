@@ -43,6 +43,7 @@ def met(name: str, obs: Observation, variation: int = 0) -> np.ndarray:
 @pytest.mark.parametrize("name, count, variation, first", [
     ("put_rubbish_in_bin", 1, 0, "put rubbish in bin"),
     ("phone_on_base", 1, 0, "put the phone on the base"),
+    ("put_knife_on_chopping_board", 1, 0, "put the knife on the chopping board"),
 ])
 def test_variations_and_first_description(name, count, variation, first):
     task = get_task(name)
@@ -85,6 +86,7 @@ def test_phone_descriptions_fix_the_hone_typo():
 
 @pytest.mark.parametrize("name, obj", [
     ("phone_on_base", "phone"),
+    ("put_knife_on_chopping_board", "knife"),
 ])
 def test_detected_in_volume_only_once_released(name, obj):
     """Success needs the object in the volume and nothing in the gripper."""
