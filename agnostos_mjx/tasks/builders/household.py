@@ -1,0 +1,104 @@
+"""Household pieces for the pick-and-place tasks: free graspable objects,
+open containers (bins, umbrella stands, shelves), success volumes, and the
+small pose helpers their samplers and experts share.
+
+RLBench carries objects by a kinematic attach and checks success with sensor
+volumes; here a graspable is a free body (attached by a weld on close, see
+episode.py) and a volume is an invisible site read by `conditions.Detected`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
+from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.builders.primitives import panel
+from agnostos_mjx.world import SceneBuilder
+
+# The gripper pointing down with its fingers closing along the world y axis.
+DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
+IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+# ---- scene pieces -------------------------------------------------------------------------
+def free_object(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
+    """A body with a free joint (free bodies must hang off the world body);
+    the sampler gives it a world pose every episode."""
+    body = scene.world.add_body(name=name)
+    body.add_freejoint()
+    return body
+
+
+def solid(body: mujoco.MjsBody, half, pos, rgba, mass: float, name: str = "",
+          quat=IDENTITY) -> mujoco.MjsGeom:
+    """A colliding box with an explicit mass (default densities make toy-like
+    objects far too heavy or light)."""
+    geom = panel(body, half, pos, rgba, name=name, quat=quat)
+    geom.mass = mass
+    return geom
+
+
+def open_container(body: mujoco.MjsBody, name: str, pos, inner_radius: float, height: float,
+                   rgba, sides: int = 4, wall: float = 0.006, floor: float = 0.006) -> None:
+    """An open-top container (bin, umbrella stand, pot) of `sides` flat walls
+    around a regular polygon of inscribed radius `inner_radius`, standing on
+    its floor at `pos`."""
+    x, y, z = pos
+    half_side = (inner_radius + wall) * np.tan(np.pi / sides) + 1e-4
+    panel(body, (inner_radius + wall, inner_radius + wall, floor / 2), (x, y, z + floor / 2), rgba,
+          name=f"{name}_floor")
+    for k in range(sides):
+        angle = 2 * np.pi * k / sides
+        r = inner_radius + wall / 2
+        quat = np.asarray(yaw_quat(np.float64(angle)))
+        panel(body, (wall / 2, half_side, height / 2),
+              (x + r * np.cos(angle), y + r * np.sin(angle), z + height / 2), rgba,
+              name=f"{name}_wall{k}", quat=tuple(quat))
+
+
+def volume(body: mujoco.MjsBody, name: str, center, half) -> tuple[float, float, float]:
+    """An invisible box sensor volume (RLBench proximity sensor) as a site;
+    returns its half extents for `Detected`."""
+    body.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(center), size=list(half),
+                  rgba=[0, 1, 0, 0.2], group=4)
+    return tuple(half)
+
+
+# ---- poses ----------------------------------------------------------------------------------
+def to_world(pos, quat, local_pos, local_quat=IDENTITY) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """World pose of a pose given in the frame (pos, quat)."""
+    local_pos = jnp.asarray(local_pos, jnp.float32)
+    return pos + quat_rotate(quat, local_pos), quat_mul(quat, jnp.asarray(local_quat, jnp.float32))
+
+
+def yaw_of(quat) -> jnp.ndarray:
+    """Heading of a frame that stays upright (rotation about z only)."""
+    w, x, y, z = (quat[..., i] for i in range(4))
+    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def down_grasp(yaw, pitch=0.0) -> jnp.ndarray:
+    """Gripper pointing down with its fingers closing along the heading `yaw`
+    + 90 deg (the y axis of a frame with that yaw).  The two-finger grasp is
+    symmetric under a half turn, so the yaw is wrapped into +-90 deg of the
+    start pose, which keeps the wrist joint far from its limits.  `pitch`
+    tilts the approach axis about the fingers towards the frame's +x (pi/2:
+    level, pointing along +x), e.g. to lay a held object down."""
+    wrapped = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2
+    same = jnp.cos(wrapped - yaw)  # +1, or -1 where the wrap turned the frame
+    tilt = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), -same * jnp.asarray(pitch, jnp.float32))
+    return quat_mul(yaw_quat(wrapped), quat_mul(tilt, DOWN))
+
+
+# ---- success ------------------------------------------------------------------------------
+def placed(obj: str, vol: str, half, radius: float = 0.0, released: bool = True,
+           ordered: bool = False) -> Condition:
+    """RLBench's DetectedCondition(obj, volume), with NothingGrasped when
+    `released` (both at once, or the detection first when `ordered`)."""
+    detected = Detected(obj, vol, tuple(half), radius=radius)
+    if not released:
+        return detected
+    return all_of([detected, NothingGrasped()], ordered=ordered)

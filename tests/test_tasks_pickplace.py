@@ -1,0 +1,100 @@
+"""The household pick-and-place tasks (unseen Level 1): variation counts,
+verbatim descriptions (with the documented typo fixes), and what their
+success volumes detect.  Expert success from reset is covered for every task
+by the generic tests in test_conditions.py and test_seeds.py."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agnostos_mjx.episode import Episodes
+from agnostos_mjx.observables import Observation
+from agnostos_mjx.tasks import get_task
+
+
+@functools.cache
+def reset(name: str, variation: int = 0, worlds: int = 3):
+    """Settled initial observations of a few worlds (cached per task)."""
+    episodes = Episodes(get_task(name), "native")
+    keys = jax.random.split(jax.random.PRNGKey(3), worlds)
+    return episodes.reset(keys, np.full(worlds, variation))
+
+
+def moved(obs: Observation, frame: str, pos, attached=None) -> Observation:
+    """The observation with `frame` moved to world position `pos`."""
+    sl = obs.layout.slice(f"{frame}.pos")
+    data = jnp.asarray(obs.data).at[..., sl].set(jnp.asarray(pos, jnp.float32))
+    return Observation(data, obs.layout, obs.attached if attached is None else attached)
+
+
+def met(name: str, obs: Observation, variation: int = 0) -> np.ndarray:
+    """Success after holding `obs` for two steps (ordered sets advance one per step)."""
+    cond = get_task(name).success(jnp.int32(variation))
+    carry = jax.vmap(cond.init)(obs)
+    carry, _ = jax.vmap(cond.step)(carry, obs)
+    return np.asarray(jax.vmap(cond.step)(carry, obs)[1])
+
+
+@pytest.mark.parametrize("name, count, variation, first", [
+    ("put_rubbish_in_bin", 1, 0, "put rubbish in bin"),
+    ("phone_on_base", 1, 0, "put the phone on the base"),
+    ("put_knife_on_chopping_board", 1, 0, "put the knife on the chopping board"),
+])
+def test_variations_and_first_description(name, count, variation, first):
+    task = get_task(name)
+    assert task.num_variations == count
+    assert task.descriptions(variation)[0] == first
+
+
+def test_rubbish_descriptions_fix_the_chuck_way_typo():
+    assert get_task("put_rubbish_in_bin").descriptions(0) == [
+        "put rubbish in bin", "drop the rubbish into the bin",
+        "pick up the rubbish and leave it in the trash can",
+        "throw away the trash, leaving any other objects alone",
+        "chuck away any rubbish on the table"]
+
+
+def test_rubbish_swaps_places_with_a_tomato():
+    env = reset("put_rubbish_in_bin", worlds=12)
+    obs = env.initial_obs
+    local = np.asarray(jax.vmap(lambda o: jnp.linalg.norm(
+        o.pos("rubbish")[:2] - o.pos("bin_root")[:2]))(obs))
+    # The three spots lie 0.13, 0.28 and 0.11 m from the root: all three occur.
+    spots = {round(float(d), 2) for d in local}
+    assert spots == {0.13, 0.28, 0.11}, spots
+
+
+def test_rubbish_detected_in_bin_not_beside_it():
+    obs = reset("put_rubbish_in_bin").initial_obs
+    assert not met("put_rubbish_in_bin", obs).any()
+    bin_floor = jax.vmap(lambda o: o.pos("success"))(obs)
+    assert met("put_rubbish_in_bin", moved(obs, "rubbish", bin_floor)).all()
+    above = bin_floor + jnp.array([0.0, 0.0, 0.2])
+    assert not met("put_rubbish_in_bin", moved(obs, "rubbish", above)).any()
+
+
+def test_phone_descriptions_fix_the_hone_typo():
+    descriptions = get_task("phone_on_base").descriptions(0)
+    assert descriptions[2] == "put the phone on the hub"
+    assert len(descriptions) == 6 and "hone" not in " ".join(descriptions).replace("phone", "")
+
+
+@pytest.mark.parametrize("name, obj", [
+    ("phone_on_base", "phone"),
+    ("put_knife_on_chopping_board", "knife"),
+])
+def test_detected_in_volume_only_once_released(name, obj):
+    """Success needs the object in the volume and nothing in the gripper."""
+    obs = reset(name).initial_obs
+    assert not met(name, obs).any()
+    inside = jax.vmap(lambda o: o.pos("success"))(obs)
+    assert met(name, moved(obs, obj, inside)).all()
+    held = jnp.ones_like(obs.attached)
+    assert not met(name, moved(obs, obj, inside, attached=held)).any()
+    beside = inside + jnp.array([0.0, 0.0, 0.1])
+    assert not met(name, moved(obs, obj, beside)).any()
