@@ -1,0 +1,106 @@
+"""Household pieces of the Level-2 tasks: saucepan with lid, dish rack and
+plate, oven with knobs, wall socket with charger, desktop computer with USB
+stick.
+
+Objects the gripper carries are free bodies in the world (MuJoCo free joints
+cannot hang under a mocap root), so a builder creates them at the origin and
+returns their pose in the task-root frame; the task's sampler places them with
+`pose_in_root` next to the root it draws.  Static parts hang under the root.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx.math3d import quat_mul, quat_rotate
+from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
+from agnostos_mjx.world import SceneBuilder
+
+STEEL = (0.75, 0.75, 0.75)
+GREY = (0.6, 0.6, 0.6)
+DARK = (0.15, 0.15, 0.15)
+
+
+def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
+                 local_quat=(1.0, 0.0, 0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """World pose of a free body whose pose in the task-root frame is known."""
+    local_pos = jnp.asarray(local_pos, jnp.float32)
+    return (root_pos + quat_rotate(root_quat, local_pos),
+            quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
+
+
+def free_body(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
+    """A body on a free joint (a graspable object), placed by the sampler."""
+    body = scene.world.add_body(name=name)
+    body.add_freejoint()
+    return body
+
+
+def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
+    """Make a collision proxy invisible (a visual geom shows the shape)."""
+    geom.rgba = [0.0, 0.0, 0.0, 0.0]
+    if mass is not None:
+        geom.mass = mass
+    return geom
+
+
+def _ring(body: mujoco.MjsBody, center, radius: float, half_thickness: float, z: tuple[float, float],
+          rgba, sides: int = 8) -> None:
+    """A vertical polygonal wall (collision) around `center`, z from z[0] to z[1]."""
+    half_len = radius * np.tan(np.pi / sides) + half_thickness
+    zc, hz = (z[0] + z[1]) / 2, (z[1] - z[0]) / 2
+    for k in range(sides):
+        a = 2 * np.pi * k / sides
+        pos = (center[0] + radius * np.cos(a), center[1] + radius * np.sin(a), zc)
+        quat = (np.cos(a / 2), 0.0, 0.0, np.sin(a / 2))
+        hidden(panel(body, (half_thickness, half_len, hz), pos, rgba, quat=quat))
+
+
+# ---- saucepan ------------------------------------------------------------------------------
+def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(0.0, 0.0),
+             radius: float = 0.112, height: float = 0.072, handle_length: float = 0.2,
+             lid_name: str = "", knob_radius: float = 0.03) -> tuple[str, str, tuple]:
+    """A pot with a long handle along the root's -y, and a free lid with a
+    knob resting on its rim.  The lid body is `<lid_name>` (default
+    `<name>_lid`) with a site `<lid_name>_grasp_point` at the knob's centre.
+    Returns (lid body, knob site, lid pose in the root frame)."""
+    cx, cy = center
+    lid_name = lid_name or f"{name}_lid"
+    pot = parent.add_body(name=name, pos=[0.0, 0.0, 0.0])
+    disc(pot, radius, height / 2, (cx, cy, height / 2), STEEL, name=f"{name}_visual")
+    disc(pot, radius - 0.006, 0.001, (cx, cy, height + 0.0005), DARK)  # the dark inside
+    hidden(panel(pot, (radius * 0.7, radius * 0.7, 0.003), (cx, cy, 0.003), STEEL))
+    _ring(pot, (cx, cy), radius - 0.004, 0.003, (0.0, height), STEEL)
+    # Handle: a bar rising slightly away from the pot.
+    y0, y1 = cy - radius, cy - radius - handle_length
+    rod(pot, (cx, y0, height - 0.015), (cx, y1, height + 0.01), 0.011, DARK)
+    mid = (cx, (y0 + y1) / 2, height - 0.002)
+    tilt = np.arctan2(0.025, handle_length) / 2
+    hidden(panel(pot, (0.008, handle_length / 2, 0.008), mid, DARK,
+                 quat=(np.cos(tilt), -np.sin(tilt), 0.0, 0.0)))
+
+    lid = free_body(scene, lid_name)
+    lid_half = 0.009
+    disc(lid, radius + 0.003, lid_half, (0, 0, 0), WHITE, name=f"{lid_name}_visual")
+    # Collision: two crossed squares (an eight-pointed star) whose points rest on the rim.
+    square = (radius + 0.001) / np.sqrt(2.0)
+    for a in (0.0, np.pi / 4):
+        hidden(panel(lid, (square, square, lid_half), (0, 0, 0), WHITE,
+                     quat=(np.cos(a / 2), 0.0, 0.0, np.sin(a / 2))), mass=0.028)
+    knob_z = lid_half + 0.01
+    disc(lid, knob_radius, 0.01, (0, 0, knob_z), WHITE, name=f"{lid_name}_knob")
+    side = knob_radius / np.sqrt(2.0)
+    hidden(panel(lid, (side, side, 0.01), (0, 0, knob_z), WHITE), mass=0.057)
+    lid.add_site(name=f"{lid_name}_grasp_point", pos=[0, 0, knob_z], size=[0.005, 0, 0],
+                 rgba=[0, 1, 0, 0], group=4)
+    return lid_name, f"{lid_name}_grasp_point", (cx, cy, height + lid_half)
+
+
+def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
+    """An invisible box site standing for an RLBench proximity-sensor volume
+    (a `Detected` condition tests against it).  `pos` is the box centre."""
+    parent.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), size=list(half),
+                    rgba=[0, 1, 0, 0], group=4)
+    return name

@@ -1,0 +1,64 @@
+"""Unseen Level-2 tasks of the kitchen family: variation counts, verbatim
+language (spec section per task) and each task's own success semantics,
+checked on observations edited by hand (cheap: one reset per task)."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from agnostos_mjx.episode import Episodes
+from agnostos_mjx.observables import Observation
+from agnostos_mjx.tasks import get_task
+
+
+@functools.cache
+def reset(name: str, variation: int = 0) -> tuple[Episodes, Observation]:
+    """One world of `name` at reset: (episodes, its first observation)."""
+    ep = Episodes(get_task(name), "native")
+    env = ep.reset(jax.random.split(jax.random.PRNGKey(0), 1), np.array([variation]))
+    return ep, jax.tree.map(lambda x: x[0], env.initial_obs)
+
+
+def moved(obs: Observation, frame: str, pos, attached=None) -> Observation:
+    """`obs` with `frame` moved to world position `pos` (and the grasp flags set)."""
+    data = jnp.asarray(obs.data).at[obs.layout.slice(f"{frame}.pos")].set(jnp.asarray(pos, jnp.float32))
+    flags = obs.attached if attached is None else jnp.asarray(attached)
+    return Observation(data, obs.layout, flags)
+
+
+def met(name: str, variation: int, obs0: Observation, obs: Observation) -> bool:
+    cond = get_task(name).success(jnp.int32(variation))
+    return bool(cond.step(cond.init(obs0), obs)[1])
+
+
+@pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1)])
+def test_variation_count(name, count):
+    assert get_task(name).num_variations == count
+
+
+@pytest.mark.parametrize("name, variation, expected", [
+    ("take_lid_off_saucepan", 0, ["take lid off the saucepan",
+                                  "using the handle, lift the lid off of the pan",
+                                  "remove the lid from the pan",
+                                  "grip the saucepan's lid and remove it from the pan",
+                                  "leave the pan open", "uncover the saucepan"]),
+])
+def test_descriptions_verbatim(name, variation, expected):
+    assert get_task(name).descriptions(variation) == expected
+
+
+def test_saucepan_lid_must_be_held_in_the_volume():
+    name = "take_lid_off_saucepan"
+    _, obs0 = reset(name)
+    knob = "saucepan_lid_grasp_point"
+    above = obs0.pos("saucepan_success")
+    assert not met(name, 0, obs0, moved(obs0, knob, above, attached=[False]))  # lifted, dropped
+    assert not met(name, 0, obs0, moved(obs0, knob, obs0.pos(knob), attached=[True]))  # held low
+    assert met(name, 0, obs0, moved(obs0, knob, above, attached=[True]))
+    # The lid rests on the rim at reset, 0.11 m below the volume's floor.
+    assert 0.10 < float(above[2] - obs0.pos(knob)[2]) - 0.025 < 0.13
