@@ -36,7 +36,7 @@ def met(name: str, variation: int, obs0: Observation, obs: Observation) -> bool:
     return bool(cond.step(cond.init(obs0), obs)[1])
 
 
-@pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1)])
+@pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1), ("unplug_charger", 1)])
 def test_variation_count(name, count):
     assert get_task(name).num_variations == count
 
@@ -47,6 +47,10 @@ def test_variation_count(name, count):
                                   "remove the lid from the pan",
                                   "grip the saucepan's lid and remove it from the pan",
                                   "leave the pan open", "uncover the saucepan"]),
+    ("unplug_charger", 0, ["unplug charger", "take the charger out of the wall",
+                           "grip the black charger and pull it out of its socket",
+                           "slide the plug out from the wall", "remove the charger from the mains",
+                           "get the charger from the wall plug"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     assert get_task(name).descriptions(variation) == expected
@@ -62,3 +66,16 @@ def test_saucepan_lid_must_be_held_in_the_volume():
     assert met(name, 0, obs0, moved(obs0, knob, above, attached=[True]))
     # The lid rests on the rim at reset, 0.11 m below the volume's floor.
     assert 0.10 < float(above[2] - obs0.pos(knob)[2]) - 0.025 < 0.13
+
+
+def test_charger_held_by_its_pins_and_detected_once_pulled_out():
+    from agnostos_mjx.math3d import quat_conj, quat_rotate
+    from agnostos_mjx.tasks.unplug_charger import CHARGER_POS
+
+    name = "unplug_charger"
+    _, obs0 = reset(name)
+    local = quat_rotate(quat_conj(obs0.quat(name)), obs0.pos("charger") - obs0.pos(name))
+    np.testing.assert_allclose(local, CHARGER_POS, atol=0.003)  # not fallen out at reset
+    assert not met(name, 0, obs0, obs0)
+    pulled = obs0.pos("charger_success")
+    assert met(name, 0, obs0, moved(obs0, "charger", pulled))  # grasped or not

@@ -104,3 +104,55 @@ def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
     parent.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), size=list(half),
                     rgba=[0, 1, 0, 0], group=4)
     return name
+
+
+# ---- plugs and sockets (charger in a wall socket, USB stick in a computer) -----------------
+def socket_tube(parent: mujoco.MjsBody, front, inner_half: tuple[float, float], depth: float,
+                wall: float = 0.0015, rgba=GREY) -> None:
+    """A rectangular hole running along the root's +x from the point `front`
+    (its mouth): four thin walls that hold a plugged pin by contact."""
+    x, y, z = front
+    hy, hz = inner_half
+    xc, hx = x + depth / 2, depth / 2
+    for s in (-1, 1):
+        hidden(panel(parent, (hx, wall, hz + 2 * wall), (xc, y + s * (hy + wall), z), rgba))
+        hidden(panel(parent, (hx, hy, wall), (xc, y, z + s * (hz + wall)), rgba))
+    parent.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.0005, hy + wall, hz + wall],
+                    pos=[x - 0.0005, y, z], rgba=[*DARK, 1.0], contype=0, conaffinity=0, group=1)
+
+
+def plug(scene: SceneBuilder, name: str, *, body_half, pins, pin_half: tuple[float, float],
+         pin_length: float, grasp_offset=(0.0, 0.0, 0.0), rgba=GREY, pin_rgba=STEEL,
+         mass: float = 0.01) -> str:
+    """A free plug: a box body (origin at its centre) with pins sticking out
+    of its +x face at (y, z) offsets `pins`, and a site `<name>_grasp_point`
+    where the gripper should hold it.  Returns the site name."""
+    body = free_body(scene, name)
+    panel(body, body_half, (0, 0, 0), rgba, name=f"{name}_visual").mass = mass
+    x = body_half[0] + pin_length / 2
+    for i, (y, z) in enumerate(pins):
+        panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
+              name=f"{name}_pin{i}").mass = 0.1 * mass
+    body.add_site(name=f"{name}_grasp_point", pos=list(grasp_offset), size=[0.005, 0, 0],
+                  rgba=[0, 1, 0, 0], group=4)
+    return f"{name}_grasp_point"
+
+
+def wall_socket(parent: mujoco.MjsBody, name: str, *, face_x: float, plate_center, holes,
+                hole_half=(0.0032, 0.0032), depth: float = 0.05, wall_center=(0.0, 0.2),
+                wall_half=(0.2, 0.2)) -> str:
+    """A wall facing the root's -x with a square socket plate whose front is
+    at `face_x`, centred at (y, z) `plate_center`, with holes at (y, z)
+    `holes`.  Returns a site `<name>_socket` at the plate's front centre."""
+    wall_x = face_x + 0.019
+    # Visual only, as RLBench's wall plane: the holes' tubes run through it.
+    panel(parent, (0.004, *wall_half), (wall_x + 0.004, *wall_center), WHITE, collide=False,
+          name=f"{name}_wall")
+    cy, cz = plate_center
+    panel(parent, (0.009, 0.074, 0.074), (face_x + 0.009, cy, cz), (0.95, 0.95, 0.95),
+          collide=False, name=f"{name}_plate")
+    for y, z in holes:
+        socket_tube(parent, (face_x, y, z), hole_half, depth)
+    parent.add_site(name=f"{name}_socket", pos=[face_x, cy, cz], size=[0.005, 0, 0],
+                    rgba=[0, 1, 0, 0], group=4)
+    return f"{name}_socket"
