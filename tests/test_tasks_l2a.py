@@ -36,7 +36,8 @@ def met(name: str, variation: int, obs0: Observation, obs: Observation) -> bool:
     return bool(cond.step(cond.init(obs0), obs)[1])
 
 
-@pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1), ("unplug_charger", 1)])
+@pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1), ("unplug_charger", 1),
+                                         ("take_usb_out_of_computer", 1)])
 def test_variation_count(name, count):
     assert get_task(name).num_variations == count
 
@@ -51,6 +52,10 @@ def test_variation_count(name, count):
                            "grip the black charger and pull it out of its socket",
                            "slide the plug out from the wall", "remove the charger from the mains",
                            "get the charger from the wall plug"]),
+    ("take_usb_out_of_computer", 0, [
+        "take usb out of computer", "remove the usb stick from its port", "retrieve the usb stick",
+        "grasp the usb stick and slide it out of the pc",
+        "get a hold of the usb stick and pull it out of the desktop computer"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     assert get_task(name).descriptions(variation) == expected
@@ -79,3 +84,13 @@ def test_charger_held_by_its_pins_and_detected_once_pulled_out():
     assert not met(name, 0, obs0, obs0)
     pulled = obs0.pos("charger_success")
     assert met(name, 0, obs0, moved(obs0, "charger", pulled))  # grasped or not
+
+
+def test_usb_must_leave_the_port_and_be_released():
+    name = "take_usb_out_of_computer"
+    _, obs0 = reset(name)
+    assert not met(name, 0, obs0, obs0)  # plugged in, nothing held
+    out = obs0.pos("usb") + jnp.array([0.0, 0.0, -0.2])  # fallen to the table
+    assert not met(name, 0, obs0, moved(obs0, "usb", out, attached=[True]))  # still held
+    assert met(name, 0, obs0, moved(obs0, "usb", out, attached=[False]))
+    assert not met(name, 0, obs0, moved(obs0, "usb", obs0.pos("usb"), attached=[False]))

@@ -46,6 +46,14 @@ def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
     return geom
 
 
+def stiff(geom: mujoco.MjsGeom) -> mujoco.MjsGeom:
+    """Hard contacts for a tight fit: the default soft contacts let a pin sink
+    millimetres into its hole's walls, enough to tilt a plug out."""
+    geom.solref = [0.01, 1.0]
+    geom.solimp = [0.95, 0.99, 0.001, 0.5, 2.0]
+    return geom
+
+
 def _ring(body: mujoco.MjsBody, center, radius: float, half_thickness: float, z: tuple[float, float],
           rgba, sides: int = 8) -> None:
     """A vertical polygonal wall (collision) around `center`, z from z[0] to z[1]."""
@@ -115,8 +123,8 @@ def socket_tube(parent: mujoco.MjsBody, front, inner_half: tuple[float, float], 
     hy, hz = inner_half
     xc, hx = x + depth / 2, depth / 2
     for s in (-1, 1):
-        hidden(panel(parent, (hx, wall, hz + 2 * wall), (xc, y + s * (hy + wall), z), rgba))
-        hidden(panel(parent, (hx, hy, wall), (xc, y, z + s * (hz + wall)), rgba))
+        stiff(hidden(panel(parent, (hx, wall, hz + 2 * wall), (xc, y + s * (hy + wall), z), rgba)))
+        stiff(hidden(panel(parent, (hx, hy, wall), (xc, y, z + s * (hz + wall)), rgba)))
     parent.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.0005, hy + wall, hz + wall],
                     pos=[x - 0.0005, y, z], rgba=[*DARK, 1.0], contype=0, conaffinity=0, group=1)
 
@@ -131,8 +139,8 @@ def plug(scene: SceneBuilder, name: str, *, body_half, pins, pin_half: tuple[flo
     panel(body, body_half, (0, 0, 0), rgba, name=f"{name}_visual").mass = mass
     x = body_half[0] + pin_length / 2
     for i, (y, z) in enumerate(pins):
-        panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
-              name=f"{name}_pin{i}").mass = 0.1 * mass
+        stiff(panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
+                    name=f"{name}_pin{i}")).mass = 0.1 * mass
     body.add_site(name=f"{name}_grasp_point", pos=list(grasp_offset), size=[0.005, 0, 0],
                   rgba=[0, 1, 0, 0], group=4)
     return f"{name}_grasp_point"
@@ -156,3 +164,29 @@ def wall_socket(parent: mujoco.MjsBody, name: str, *, face_x: float, plate_cente
     parent.add_site(name=f"{name}_socket", pos=[face_x, cy, cz], size=[0.005, 0, 0],
                     rgba=[0, 1, 0, 0], group=4)
     return f"{name}_socket"
+
+
+def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=(0.15, 0.09, 0.18),
+                     port=(0.0, 0.3), port_half=(0.0062, 0.0024), port_depth: float = 0.02,
+                     rgba=(0.22, 0.22, 0.25)) -> str:
+    """A tower PC on the table whose front (at `front_x`) faces the root's -x,
+    with one USB port at (y, z) `port`.  The case collides from `port_depth`
+    behind its front so the port's tube fits in the bezel.  Returns a site
+    `<name>_port` at the port's mouth."""
+    hx, hy, hz = half
+    case = parent.add_body(name=name, pos=[front_x + hx, 0.0, hz])
+    depth = port_depth + 0.002
+    panel(case, (hx - depth / 2, hy, hz), (depth / 2, 0, 0), rgba, name=f"{name}_case")
+    panel(case, (depth / 2, hy, hz), (-hx + depth / 2, 0, 0), (0.3, 0.3, 0.33), collide=False,
+          name=f"{name}_bezel")
+    # Drive bay and power button on the bezel (visual).
+    panel(case, (0.001, hy * 0.8, 0.02), (-hx - 0.001, 0, hz * 0.6), DARK, collide=False)
+    button = case.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.008, 0.001, 0],
+                           pos=[-hx - 0.001, 0, hz * 0.35], quat=[0.7071068, 0, 0.7071068, 0],
+                           rgba=[0.6, 0.8, 1.0, 1.0], contype=0, conaffinity=0, group=1)
+    button.name = f"{name}_power"
+    y, z = port
+    socket_tube(case, (-hx, y, z - hz), port_half, port_depth, wall=0.002)
+    case.add_site(name=f"{name}_port", pos=[-hx, y, z - hz], size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
+                  group=4)
+    return f"{name}_port"
