@@ -37,7 +37,8 @@ def met(name: str, variation: int, obs0: Observation, obs: Observation) -> bool:
 
 
 @pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1), ("unplug_charger", 1),
-                                         ("take_usb_out_of_computer", 1)])
+                                         ("take_usb_out_of_computer", 1),
+                                         ("take_plate_off_colored_dish_rack", 3)])
 def test_variation_count(name, count):
     assert get_task(name).num_variations == count
 
@@ -56,6 +57,13 @@ def test_variation_count(name, count):
         "take usb out of computer", "remove the usb stick from its port", "retrieve the usb stick",
         "grasp the usb stick and slide it out of the pc",
         "get a hold of the usb stick and pull it out of the desktop computer"]),
+    ("take_plate_off_colored_dish_rack", 0, [
+        "take plate off the black colored rack", "remove the dish from the black rack",
+        "find the dish placed between the black spokes of the dish rack and drop it on the table",
+        "grasp the plate from the black part of the dish rack, lift it up off of the rack, and "
+        "leave it on the table top", "move the plate from the black rack to the table's surface",
+        "lift the plate up off the black colored rack and drop it onto the table from a "
+        "considerable height"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     assert get_task(name).descriptions(variation) == expected
@@ -94,3 +102,36 @@ def test_usb_must_leave_the_port_and_be_released():
     assert not met(name, 0, obs0, moved(obs0, "usb", out, attached=[True]))  # still held
     assert met(name, 0, obs0, moved(obs0, "usb", out, attached=[False]))
     assert not met(name, 0, obs0, moved(obs0, "usb", obs0.pos("usb"), attached=[False]))
+
+
+@pytest.mark.parametrize("variation, color, rows", [(0, "black", (0, 1)), (1, "red", (2, 3)),
+                                                    (2, "purple", (4, 5))])
+def test_plate_stands_between_the_named_rods(variation, color, rows):
+    from agnostos_mjx.math3d import quat_conj, quat_rotate
+
+    name = "take_plate_off_colored_dish_rack"
+    task = get_task(name)
+    assert task.descriptions(variation)[0] == f"take plate off the {color} colored rack"
+    ep, obs0 = reset(name, variation)
+    root = name
+    local = quat_rotate(quat_conj(obs0.quat(root)), obs0.pos("plate") - obs0.pos(root))
+    model = ep.scene.model
+    row_y = [float(model.geom(f"dish_rack_pillar{k}_a").pos[1]) for k in rows]
+    assert min(row_y) < float(local[1]) < max(row_y)
+    assert float(local[2]) > 0.11  # standing upright on the rack
+    assert not met(name, variation, obs0, obs0)
+
+
+def test_plate_must_be_on_the_block_off_the_rack_and_released():
+    name = "take_plate_off_colored_dish_rack"
+    _, obs0 = reset(name)
+    goal = obs0.pos("success_target")
+    on_block = obs0
+    for i in range(5):  # the whole plate moves with its centre probe
+        offset = obs0.pos(f"plate_probe{i}") - obs0.pos("plate_probe0")
+        on_block = moved(on_block, f"plate_probe{i}", goal + offset + jnp.array([0, 0, 0.09]))
+    assert met(name, 0, obs0, on_block)
+    held = Observation(on_block.data, on_block.layout, jnp.asarray([True]))
+    assert not met(name, 0, obs0, held)
+    half_off = moved(on_block, "plate_probe3", obs0.pos("plate_probe3"))  # a rim point still in
+    assert not met(name, 0, obs0, half_off)

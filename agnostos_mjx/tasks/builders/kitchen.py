@@ -190,3 +190,47 @@ def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=
     case.add_site(name=f"{name}_port", pos=[-hx, y, z - hz], size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
                   group=4)
     return f"{name}_port"
+
+
+# ---- dish rack and plate --------------------------------------------------------------------
+def dish_rack(parent: mujoco.MjsBody, name: str, *, pillar_colors, spacing: float = 0.05,
+              rod_x: float = 0.08, rod_height: float = 0.15, base_half=(0.08, 0.15, 0.0075)) -> None:
+    """A flat base with rows of vertical rod pairs across it: row k stands at
+    y = (k - (n-1)/2) * spacing with rods at x = +-rod_x, coloured
+    `pillar_colors[k]`; plates stand upright between two rows."""
+    panel(parent, base_half, (0, 0, base_half[2]), (0.65, 0.65, 0.65), name=f"{name}_base")
+    n = len(pillar_colors)
+    for k, rgba in enumerate(pillar_colors):
+        y = (k - (n - 1) / 2) * spacing
+        for x in (-rod_x, rod_x):
+            rod(parent, (x, y, 0.005), (x, y, rod_height - 0.005), 0.005, rgba, collide=True,
+                name=f"{name}_pillar{k}_{'a' if x < 0 else 'b'}")
+
+
+def plate(scene: SceneBuilder, name: str, *, radius: float = 0.1, half_thickness: float = 0.0125,
+          mass: float = 0.25, grasp_height: float = 0.071) -> tuple[str, ...]:
+    """A free plate standing upright: its face in the body's x-z plane.  It
+    collides as two squares turned 22.5 and 67.5 degrees, an eight-pointed
+    star whose hull is an octagon with a flat bottom at the disc's lowest
+    point (so it stands on the rack like the disc would).  Sites: `<name>_grasp_point` on the
+    top edge where the gripper holds it, and probe points (centre and four
+    rim points) standing in for its shape in sensor-volume tests.  Returns
+    the probe site names."""
+    body = free_body(scene, name)
+    body.add_geom(name=f"{name}_visual", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                  size=[radius, half_thickness, 0], quat=[0.7071068, 0.7071068, 0, 0],
+                  rgba=[0.99, 0.99, 0.99, 1.0], contype=0, conaffinity=0, group=1)
+    half = radius / np.cos(np.pi / 8) / np.sqrt(2.0)
+    for a in (np.pi / 8, 3 * np.pi / 8):
+        hidden(panel(body, (half, half_thickness, half), (0, 0, 0), WHITE,
+                     quat=(np.cos(a / 2), 0.0, np.sin(a / 2), 0.0)), mass=mass / 2)
+    body.add_site(name=f"{name}_grasp_point", pos=[0, 0, grasp_height], size=[0.005, 0, 0],
+                  rgba=[0, 1, 0, 0], group=4)
+    probes = [(0.0, 0.0)] + [(0.9 * radius * np.cos(a), 0.9 * radius * np.sin(a))
+                             for a in np.arange(4) * np.pi / 2]
+    names = []
+    for i, (x, z) in enumerate(probes):
+        body.add_site(name=f"{name}_probe{i}", pos=[x, 0, z], size=[0.004, 0, 0],
+                      rgba=[0, 1, 0, 0], group=4)
+        names.append(f"{name}_probe{i}")
+    return tuple(names)
