@@ -1,0 +1,236 @@
+"""Household pieces of the Level-2 tasks: saucepan with lid, dish rack and
+plate, oven with knobs, wall socket with charger, desktop computer with USB
+stick.
+
+Objects the gripper carries are free bodies in the world (MuJoCo free joints
+cannot hang under a mocap root), so a builder creates them at the origin and
+returns their pose in the task-root frame; the task's sampler places them with
+`pose_in_root` next to the root it draws.  Static parts hang under the root.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx.math3d import quat_mul, quat_rotate
+from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
+from agnostos_mjx.world import SceneBuilder
+
+STEEL = (0.75, 0.75, 0.75)
+GREY = (0.6, 0.6, 0.6)
+DARK = (0.15, 0.15, 0.15)
+
+
+def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
+                 local_quat=(1.0, 0.0, 0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """World pose of a free body whose pose in the task-root frame is known."""
+    local_pos = jnp.asarray(local_pos, jnp.float32)
+    return (root_pos + quat_rotate(root_quat, local_pos),
+            quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
+
+
+def free_body(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
+    """A body on a free joint (a graspable object), placed by the sampler."""
+    body = scene.world.add_body(name=name)
+    body.add_freejoint()
+    return body
+
+
+def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
+    """Make a collision proxy invisible (a visual geom shows the shape)."""
+    geom.rgba = [0.0, 0.0, 0.0, 0.0]
+    if mass is not None:
+        geom.mass = mass
+    return geom
+
+
+def stiff(geom: mujoco.MjsGeom) -> mujoco.MjsGeom:
+    """Hard contacts for a tight fit: the default soft contacts let a pin sink
+    millimetres into its hole's walls, enough to tilt a plug out."""
+    geom.solref = [0.01, 1.0]
+    geom.solimp = [0.95, 0.99, 0.001, 0.5, 2.0]
+    return geom
+
+
+def _ring(body: mujoco.MjsBody, center, radius: float, half_thickness: float, z: tuple[float, float],
+          rgba, sides: int = 8) -> None:
+    """A vertical polygonal wall (collision) around `center`, z from z[0] to z[1]."""
+    half_len = radius * np.tan(np.pi / sides) + half_thickness
+    zc, hz = (z[0] + z[1]) / 2, (z[1] - z[0]) / 2
+    for k in range(sides):
+        a = 2 * np.pi * k / sides
+        pos = (center[0] + radius * np.cos(a), center[1] + radius * np.sin(a), zc)
+        quat = (np.cos(a / 2), 0.0, 0.0, np.sin(a / 2))
+        hidden(panel(body, (half_thickness, half_len, hz), pos, rgba, quat=quat))
+
+
+# ---- saucepan ------------------------------------------------------------------------------
+def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(0.0, 0.0),
+             radius: float = 0.112, height: float = 0.072, handle_length: float = 0.2,
+             lid_name: str = "", knob_radius: float = 0.03) -> tuple[str, str, tuple]:
+    """A pot with a long handle along the root's -y, and a free lid with a
+    knob resting on its rim.  The lid body is `<lid_name>` (default
+    `<name>_lid`) with a site `<lid_name>_grasp_point` at the knob's centre.
+    Returns (lid body, knob site, lid pose in the root frame)."""
+    cx, cy = center
+    lid_name = lid_name or f"{name}_lid"
+    pot = parent.add_body(name=name, pos=[0.0, 0.0, 0.0])
+    disc(pot, radius, height / 2, (cx, cy, height / 2), STEEL, name=f"{name}_visual")
+    disc(pot, radius - 0.006, 0.001, (cx, cy, height + 0.0005), DARK)  # the dark inside
+    hidden(panel(pot, (radius * 0.7, radius * 0.7, 0.003), (cx, cy, 0.003), STEEL))
+    _ring(pot, (cx, cy), radius - 0.004, 0.003, (0.0, height), STEEL)
+    # Handle: a bar rising slightly away from the pot.
+    y0, y1 = cy - radius, cy - radius - handle_length
+    rod(pot, (cx, y0, height - 0.015), (cx, y1, height + 0.01), 0.011, DARK)
+    mid = (cx, (y0 + y1) / 2, height - 0.002)
+    tilt = np.arctan2(0.025, handle_length) / 2
+    hidden(panel(pot, (0.008, handle_length / 2, 0.008), mid, DARK,
+                 quat=(np.cos(tilt), -np.sin(tilt), 0.0, 0.0)))
+
+    lid = free_body(scene, lid_name)
+    lid_half = 0.009
+    disc(lid, radius + 0.003, lid_half, (0, 0, 0), WHITE, name=f"{lid_name}_visual")
+    # Collision: two crossed squares (an eight-pointed star) whose points rest on the rim.
+    square = (radius + 0.001) / np.sqrt(2.0)
+    for a in (0.0, np.pi / 4):
+        hidden(panel(lid, (square, square, lid_half), (0, 0, 0), WHITE,
+                     quat=(np.cos(a / 2), 0.0, 0.0, np.sin(a / 2))), mass=0.028)
+    knob_z = lid_half + 0.01
+    disc(lid, knob_radius, 0.01, (0, 0, knob_z), WHITE, name=f"{lid_name}_knob")
+    side = knob_radius / np.sqrt(2.0)
+    hidden(panel(lid, (side, side, 0.01), (0, 0, knob_z), WHITE), mass=0.057)
+    lid.add_site(name=f"{lid_name}_grasp_point", pos=[0, 0, knob_z], size=[0.005, 0, 0],
+                 rgba=[0, 1, 0, 0], group=4)
+    return lid_name, f"{lid_name}_grasp_point", (cx, cy, height + lid_half)
+
+
+def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
+    """An invisible box site standing for an RLBench proximity-sensor volume
+    (a `Detected` condition tests against it).  `pos` is the box centre."""
+    parent.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), size=list(half),
+                    rgba=[0, 1, 0, 0], group=4)
+    return name
+
+
+# ---- plugs and sockets (charger in a wall socket, USB stick in a computer) -----------------
+def socket_tube(parent: mujoco.MjsBody, front, inner_half: tuple[float, float], depth: float,
+                wall: float = 0.0015, rgba=GREY) -> None:
+    """A rectangular hole running along the root's +x from the point `front`
+    (its mouth): four thin walls that hold a plugged pin by contact."""
+    x, y, z = front
+    hy, hz = inner_half
+    xc, hx = x + depth / 2, depth / 2
+    for s in (-1, 1):
+        stiff(hidden(panel(parent, (hx, wall, hz + 2 * wall), (xc, y + s * (hy + wall), z), rgba)))
+        stiff(hidden(panel(parent, (hx, hy, wall), (xc, y, z + s * (hz + wall)), rgba)))
+    parent.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.0005, hy + wall, hz + wall],
+                    pos=[x - 0.0005, y, z], rgba=[*DARK, 1.0], contype=0, conaffinity=0, group=1)
+
+
+def plug(scene: SceneBuilder, name: str, *, body_half, pins, pin_half: tuple[float, float],
+         pin_length: float, grasp_offset=(0.0, 0.0, 0.0), rgba=GREY, pin_rgba=STEEL,
+         mass: float = 0.01) -> str:
+    """A free plug: a box body (origin at its centre) with pins sticking out
+    of its +x face at (y, z) offsets `pins`, and a site `<name>_grasp_point`
+    where the gripper should hold it.  Returns the site name."""
+    body = free_body(scene, name)
+    panel(body, body_half, (0, 0, 0), rgba, name=f"{name}_visual").mass = mass
+    x = body_half[0] + pin_length / 2
+    for i, (y, z) in enumerate(pins):
+        stiff(panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
+                    name=f"{name}_pin{i}")).mass = 0.1 * mass
+    body.add_site(name=f"{name}_grasp_point", pos=list(grasp_offset), size=[0.005, 0, 0],
+                  rgba=[0, 1, 0, 0], group=4)
+    return f"{name}_grasp_point"
+
+
+def wall_socket(parent: mujoco.MjsBody, name: str, *, face_x: float, plate_center, holes,
+                hole_half=(0.0032, 0.0032), depth: float = 0.05, wall_center=(0.0, 0.2),
+                wall_half=(0.2, 0.2)) -> str:
+    """A wall facing the root's -x with a square socket plate whose front is
+    at `face_x`, centred at (y, z) `plate_center`, with holes at (y, z)
+    `holes`.  Returns a site `<name>_socket` at the plate's front centre."""
+    wall_x = face_x + 0.019
+    # Visual only, as RLBench's wall plane: the holes' tubes run through it.
+    panel(parent, (0.004, *wall_half), (wall_x + 0.004, *wall_center), WHITE, collide=False,
+          name=f"{name}_wall")
+    cy, cz = plate_center
+    panel(parent, (0.009, 0.074, 0.074), (face_x + 0.009, cy, cz), (0.95, 0.95, 0.95),
+          collide=False, name=f"{name}_plate")
+    for y, z in holes:
+        socket_tube(parent, (face_x, y, z), hole_half, depth)
+    parent.add_site(name=f"{name}_socket", pos=[face_x, cy, cz], size=[0.005, 0, 0],
+                    rgba=[0, 1, 0, 0], group=4)
+    return f"{name}_socket"
+
+
+def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=(0.15, 0.09, 0.18),
+                     port=(0.0, 0.3), port_half=(0.0062, 0.0024), port_depth: float = 0.02,
+                     rgba=(0.22, 0.22, 0.25)) -> str:
+    """A tower PC on the table whose front (at `front_x`) faces the root's -x,
+    with one USB port at (y, z) `port`.  The case collides from `port_depth`
+    behind its front so the port's tube fits in the bezel.  Returns a site
+    `<name>_port` at the port's mouth."""
+    hx, hy, hz = half
+    case = parent.add_body(name=name, pos=[front_x + hx, 0.0, hz])
+    depth = port_depth + 0.002
+    panel(case, (hx - depth / 2, hy, hz), (depth / 2, 0, 0), rgba, name=f"{name}_case")
+    panel(case, (depth / 2, hy, hz), (-hx + depth / 2, 0, 0), (0.3, 0.3, 0.33), collide=False,
+          name=f"{name}_bezel")
+    # Drive bay and power button on the bezel (visual).
+    panel(case, (0.001, hy * 0.8, 0.02), (-hx - 0.001, 0, hz * 0.6), DARK, collide=False)
+    button = case.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.008, 0.001, 0],
+                           pos=[-hx - 0.001, 0, hz * 0.35], quat=[0.7071068, 0, 0.7071068, 0],
+                           rgba=[0.6, 0.8, 1.0, 1.0], contype=0, conaffinity=0, group=1)
+    button.name = f"{name}_power"
+    y, z = port
+    socket_tube(case, (-hx, y, z - hz), port_half, port_depth, wall=0.002)
+    case.add_site(name=f"{name}_port", pos=[-hx, y, z - hz], size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
+                  group=4)
+    return f"{name}_port"
+
+
+# ---- dish rack and plate --------------------------------------------------------------------
+def dish_rack(parent: mujoco.MjsBody, name: str, *, pillar_colors, spacing: float = 0.05,
+              rod_x: float = 0.08, rod_height: float = 0.15, base_half=(0.08, 0.15, 0.0075)) -> None:
+    """A flat base with rows of vertical rod pairs across it: row k stands at
+    y = (k - (n-1)/2) * spacing with rods at x = +-rod_x, coloured
+    `pillar_colors[k]`; plates stand upright between two rows."""
+    panel(parent, base_half, (0, 0, base_half[2]), (0.65, 0.65, 0.65), name=f"{name}_base")
+    n = len(pillar_colors)
+    for k, rgba in enumerate(pillar_colors):
+        y = (k - (n - 1) / 2) * spacing
+        for x in (-rod_x, rod_x):
+            rod(parent, (x, y, 0.005), (x, y, rod_height - 0.005), 0.005, rgba, collide=True,
+                name=f"{name}_pillar{k}_{'a' if x < 0 else 'b'}")
+
+
+def plate(scene: SceneBuilder, name: str, *, radius: float = 0.1, half_thickness: float = 0.0125,
+          mass: float = 0.25, grasp_height: float = 0.071) -> tuple[str, ...]:
+    """A free plate standing upright: its face in the body's x-z plane.  It
+    collides as two squares turned 22.5 and 67.5 degrees, an eight-pointed
+    star whose hull is an octagon with a flat bottom at the disc's lowest
+    point (so it stands on the rack like the disc would).  Sites: `<name>_grasp_point` on the
+    top edge where the gripper holds it, and probe points (centre and four
+    rim points) standing in for its shape in sensor-volume tests.  Returns
+    the probe site names."""
+    body = free_body(scene, name)
+    body.add_geom(name=f"{name}_visual", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                  size=[radius, half_thickness, 0], quat=[0.7071068, 0.7071068, 0, 0],
+                  rgba=[0.99, 0.99, 0.99, 1.0], contype=0, conaffinity=0, group=1)
+    half = radius / np.cos(np.pi / 8) / np.sqrt(2.0)
+    for a in (np.pi / 8, 3 * np.pi / 8):
+        hidden(panel(body, (half, half_thickness, half), (0, 0, 0), WHITE,
+                     quat=(np.cos(a / 2), 0.0, np.sin(a / 2), 0.0)), mass=mass / 2)
+    body.add_site(name=f"{name}_grasp_point", pos=[0, 0, grasp_height], size=[0.005, 0, 0],
+                  rgba=[0, 1, 0, 0], group=4)
+    probes = [(0.0, 0.0)] + [(0.9 * radius * np.cos(a), 0.9 * radius * np.sin(a))
+                             for a in np.arange(4) * np.pi / 2]
+    names = []
+    for i, (x, z) in enumerate(probes):
+        body.add_site(name=f"{name}_probe{i}", pos=[x, 0, z], size=[0.004, 0, 0],
+                      rgba=[0, 1, 0, 0], group=4)
+        names.append(f"{name}_probe{i}")
+    return tuple(names)
