@@ -1,0 +1,124 @@
+"""Free-moving props of the Level-2 tasks: a buzz-wire game with its ring
+wand, a basketball hoop and ball, a rope of capsule links, a spatula, and a
+watering can with a plant pot.
+
+Every prop is made of boxes, capsules and spheres (the contact pairs MJX-jax
+supports); round things that need a cylinder look get a visual disc.  Dynamic
+props are free bodies parented to the world: their task samples their pose
+every episode, so the builders place them at an arbitrary spot.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from agnostos_mjx.tasks.builders.primitives import WHITE, panel, rod
+from agnostos_mjx.world import OBJECT_COLLISION, SceneBuilder
+
+G = mujoco.mjtGeom
+GREY = (0.6, 0.6, 0.6)
+ORANGE = (1.0, 0.5, 0.0)
+
+
+def capsule(body: mujoco.MjsBody, start, end, radius: float, rgba, mass: float = 0.0,
+            name: str = "") -> mujoco.MjsGeom:
+    """A colliding capsule; `mass` 0 keeps the density default."""
+    geom = rod(body, start, end, radius, rgba, collide=True, name=name)
+    geom.group = 2
+    if mass:
+        geom.mass = mass
+    return geom
+
+
+def sensor_volume(body: mujoco.MjsBody, name: str, pos, half, rgba=(0.0, 1.0, 0.0),
+                  quat=(1.0, 0.0, 0.0, 0.0)) -> mujoco.MjsSite:
+    """An invisible box site standing in for an RLBench proximity sensor (a
+    `Detected` condition reads its pose; its half sizes live in the task)."""
+    return body.add_site(name=name, type=G.mjGEOM_BOX, pos=list(pos), size=list(half),
+                         quat=list(quat), rgba=[*rgba, 0.0], group=4)
+
+
+def free_body(scene: SceneBuilder, name: str, damping: float = 0.0,
+              gravcomp: float = 0.0) -> mujoco.MjsBody:
+    """A dynamic body on a free joint, parented to the world."""
+    body = scene.world.add_body(name=name, gravcomp=gravcomp)
+    joint = body.add_freejoint(name=f"{name}_free")
+    joint.damping = [damping, 0.0, 0.0]
+    return body
+
+
+# ---- beat_the_buzz ---------------------------------------------------------------------------
+def buzz_wire(parent: mujoco.MjsBody, name: str, *, wire_z: float = 0.295,
+              half_span: float = 0.16, wire_radius: float = 0.003) -> None:
+    """The buzz-wire stand (RLBench's `Cuboid`): a base plate, two posts and a
+    straight metal wire along the parent's y axis at height `wire_z`."""
+    panel(parent, (0.05, half_span + 0.016, 0.005), (0, 0, 0.005), (0.85, 0.85, 1.0),
+          name=f"{name}_base")
+    for sy in (-1, 1):
+        panel(parent, (0.006, 0.006, wire_z / 2), (0, sy * half_span, wire_z / 2 + 0.005),
+              (0.85, 0.85, 1.0), name=f"{name}_post{'ab'[sy > 0]}")
+    capsule(parent, (0, -half_span, wire_z), (0, half_span, wire_z), wire_radius, GREY,
+            name=f"{name}_wire")
+
+
+def ring_wand(scene: SceneBuilder, name: str, *, ring_radius: float = 0.0385,
+              tube_radius: float = 0.0055, handle_end=(-0.10, 0.0, -0.236),
+              segments: int = 16, mass: float = 0.03) -> mujoco.MjsBody:
+    """The buzz-wire wand: a ring (a polygon of capsules) in the body's x-z
+    plane around its origin, and a straight handle from the ring's bottom to
+    `handle_end`.  The wand is gravity compensated: RLBench's model saves it
+    hovering with the ring centred on the wire, as if hung on a holder, and
+    the kinematic grasp carries it from there."""
+    body = free_body(scene, name, damping=0.02, gravcomp=1.0)
+    angles = np.linspace(0.0, 2 * np.pi, segments + 1)
+    points = [(ring_radius * np.cos(a), 0.0, ring_radius * np.sin(a)) for a in angles]
+    for i in range(segments):
+        capsule(body, points[i], points[i + 1], tube_radius, GREY, mass=mass / (2 * segments))
+    capsule(body, (0.0, 0.0, -ring_radius), handle_end, tube_radius, ORANGE, mass=mass / 2,
+            name=f"{name}_handle")
+    return body
+
+
+# ---- basketball_in_hoop ----------------------------------------------------------------------
+def basketball_hoop(parent: mujoco.MjsBody, name: str, *, rim_center, rim_radius: float = 0.06,
+                    tube_radius: float = 0.005, segments: int = 16) -> None:
+    """A hoop on a pole: base plate and pole behind the rim (along +x), a
+    backboard and a horizontal ring of capsules, with a visual net."""
+    cx, cy, cz = rim_center
+    board_x = cx + rim_radius + 0.04
+    panel(parent, (0.05, 0.08, 0.01), (board_x + 0.05, cy, 0.01), WHITE, name=f"{name}_base")
+    panel(parent, (0.012, 0.012, (cz + 0.1) / 2), (board_x + 0.03, cy, (cz + 0.1) / 2), GREY,
+          name=f"{name}_pole")
+    panel(parent, (0.006, 0.21, 0.13), (board_x, cy, cz + 0.1), WHITE, name=f"{name}_board")
+    panel(parent, (0.02, 0.008, 0.004), (board_x - 0.02, cy, cz), ORANGE, name=f"{name}_bracket")
+    angles = np.linspace(0.0, 2 * np.pi, segments + 1)
+    points = [(cx + rim_radius * np.cos(a), cy + rim_radius * np.sin(a), cz) for a in angles]
+    for i in range(segments):
+        capsule(parent, points[i], points[i + 1], tube_radius, ORANGE)
+    for a in angles[:-1:2]:  # the net: visual strings
+        top = (cx + rim_radius * np.cos(a), cy + rim_radius * np.sin(a), cz)
+        bottom = (cx + 0.7 * rim_radius * np.cos(a), cy + 0.7 * rim_radius * np.sin(a), cz - 0.1)
+        rod(parent, top, bottom, 0.0015, WHITE)
+
+
+def ball_stop(parent: mujoco.MjsBody, center, ball_radius: float) -> None:
+    """RLBench's invisible `ball_stop`: a low collar that keeps a ball from
+    rolling away from where it rests on the table."""
+    x, y = center
+    gap = 0.6 * ball_radius + 0.004  # the collar touches the ball below its equator
+    for dx, dy in ((gap, 0.0), (-gap, 0.0), (0.0, gap), (0.0, -gap)):
+        geom = panel(parent, (0.004 + abs(dy) * 0.5, 0.004 + abs(dx) * 0.5, 0.005),
+                     (x + dx + np.sign(dx) * 0.004, y + dy + np.sign(dy) * 0.004, 0.005))
+        geom.rgba[3] = 0.0
+
+
+def ball(scene: SceneBuilder, name: str, radius: float, mass: float, rgba=WHITE) -> mujoco.MjsBody:
+    """A free sphere that rolls (torsional and rolling friction keep it from
+    spinning forever)."""
+    body = free_body(scene, name)
+    contype, conaffinity = OBJECT_COLLISION
+    body.add_geom(name=f"{name}_geom", type=G.mjGEOM_SPHERE, size=[radius, 0, 0],
+                  rgba=[*rgba, 1.0], mass=mass, contype=contype, conaffinity=conaffinity,
+                  group=2, condim=6, friction=[1.0, 0.005, 0.0005])
+    return body

@@ -1,0 +1,80 @@
+"""Level-2 tasks with delicate physics: language against the spec, and each
+task's own mechanics (a failure condition, a falling ball, a scoop, a rope,
+water drops).  The expert's success is covered by the generic tests."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import numpy as np
+import pytest
+
+from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.tasks import get_task, is_implemented
+
+# (task, variations, variation, index, verbatim string from the spec)
+DESCRIPTIONS = [
+    ("beat_the_buzz", 1, 0, 0, "beat the buzz"),
+    ("beat_the_buzz", 1, 0, 6, "move the ring from end of the pole to the other whilst "
+                               "maintaining separation between them"),
+]
+
+
+def _needs(name: str):
+    return pytest.mark.skipif(not is_implemented(name), reason=f"{name} not implemented")
+
+
+@functools.cache
+def episodes(name: str) -> Episodes:
+    return Episodes(get_task(name), "native")
+
+
+def _reset(name: str, n: int = 2, seed: int = 0):
+    ep = episodes(name)
+    env = ep.reset(jax.random.split(jax.random.PRNGKey(seed), n), np.zeros(n, int))
+    return ep, env, ep.expert_actions(env)
+
+
+def _step(ep, env, actions, k, **changes):
+    """Execute expert key action k, with fields replaced by `changes`."""
+    step = jax.tree.map(lambda x: np.array(x[:, k]), actions)
+    for field, value in changes.items():
+        setattr(step, field, value)
+    return ep.step(env, step)[0]
+
+
+@pytest.mark.parametrize("name, count, variation, index, text", DESCRIPTIONS)
+def test_descriptions_verbatim(name, count, variation, index, text):
+    if not is_implemented(name):
+        pytest.skip(f"{name} not implemented")
+    task = get_task(name)
+    assert task.num_variations == count
+    assert task.descriptions(variation)[index] == text
+
+
+@_needs("beat_the_buzz")
+def test_beat_the_buzz_touching_the_wire_fails():
+    """Sliding the ring 3 cm low brings it onto the wire: the failure
+    condition ends the episode; the expert's slide keeps clear of it."""
+    ep, env, actions = _reset("beat_the_buzz")
+    for k in range(3):  # via-point, behind the handle, grasp
+        env = _step(ep, env, actions, k)
+    assert env.attached.all() and (env.outcome == Outcome.RUNNING).all()
+    for k in range(3, int(actions.valid[0].sum())):  # the slide, 3 cm low, holding on
+        low = np.array(actions.pos[:, k]) - np.array([0.0, 0.0, 0.03])
+        env = _step(ep, env, actions, k, pos=low, gripper=np.full(2, 0.14, np.float32))
+    assert (env.outcome == Outcome.FAILURE_CONDITION).all()
+
+
+@_needs("beat_the_buzz")
+def test_beat_the_buzz_holding_at_the_end_is_not_success():
+    """Success needs the wand at the far end *and* released (NothingGrasped)."""
+    ep, env, actions = _reset("beat_the_buzz", seed=1)
+    last = int(actions.valid[0].sum()) - 1
+    for k in range(last):
+        env = _step(ep, env, actions, k)
+    env = _step(ep, env, actions, last, gripper=np.full(2, 0.14, np.float32))
+    assert (env.outcome == Outcome.RUNNING).all()
+    env = _step(ep, env, actions, last)
+    assert (env.outcome == Outcome.SUCCESS).all()
