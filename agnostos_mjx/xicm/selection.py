@@ -98,10 +98,19 @@ def combine(features: dict[str, np.ndarray], mode: str, normalise: bool) -> np.n
 
 
 def make_selector(mode: str, memory: DemoMemory, **kwargs) -> Selector:
+    """A selector by mode name; a clear ValueError for unknown or unusable modes."""
     if mode == "random":
         return RandomSelector(memory)
     if mode == "text":
         return TextSelector(memory)
+    unknown = [p for p in mode.split("+") if p not in FEATURE_PARTS]
+    if unknown:
+        raise ValueError(f"unknown selection {mode!r}: use random, text, or "
+                         f"{', '.join(FEATURE_PARTS)} joined with '+'")
+    if not memory.features:
+        raise ValueError(f"selection {mode!r} needs dynamics features, and this memory has "
+                         "none; use --selection random or text, or rebuild the memory with "
+                         "python -m agnostos_mjx.xicm.build_memory --checkpoint ...")
     from agnostos_mjx.xicm.dynamics_selector import DynamicsSelector
 
     return DynamicsSelector(memory, mode, **kwargs)
