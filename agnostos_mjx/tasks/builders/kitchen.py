@@ -3,9 +3,10 @@ plate, oven with knobs, wall socket with charger, desktop computer with USB
 stick.
 
 Objects the gripper carries are free bodies in the world (MuJoCo free joints
-cannot hang under a mocap root), so a builder creates them at the origin and
-returns their pose in the task-root frame; the task's sampler places them with
-`pose_in_root` next to the root it draws.  Static parts hang under the root.
+cannot hang under a mocap root): a builder creates them at the origin, the
+task declares their resting pose in its root frame and its sampler places them
+with `pose_in_root` next to the root it draws.  Static parts hang under the
+root.  Sensor volumes are box sites (`sensor_volume`) for `Detected`.
 """
 
 from __future__ import annotations
@@ -67,15 +68,18 @@ def _ring(body: mujoco.MjsBody, center, radius: float, half_thickness: float, z:
 
 
 # ---- saucepan ------------------------------------------------------------------------------
+LID_HALF_THICKNESS = 0.009
+
+
 def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(0.0, 0.0),
              radius: float = 0.112, height: float = 0.072, handle_length: float = 0.2,
-             lid_name: str = "", knob_radius: float = 0.03) -> tuple[str, str, tuple]:
-    """A pot with a long handle along the root's -y, and a free lid with a
-    knob resting on its rim.  The lid body is `<lid_name>` (default
-    `<name>_lid`) with a site `<lid_name>_grasp_point` at the knob's centre.
-    Returns (lid body, knob site, lid pose in the root frame)."""
+             knob_radius: float = 0.03) -> tuple[str, str]:
+    """A pot with a long handle along the root's -y, and a free lid
+    `<name>_lid` with a knob, to be placed on the rim at (*center, height +
+    LID_HALF_THICKNESS) in the root frame.  A site `<name>_lid_grasp_point`
+    marks the knob's centre.  Returns (lid body, knob site)."""
     cx, cy = center
-    lid_name = lid_name or f"{name}_lid"
+    lid_name = f"{name}_lid"
     pot = parent.add_body(name=name, pos=[0.0, 0.0, 0.0])
     disc(pot, radius, height / 2, (cx, cy, height / 2), STEEL, name=f"{name}_visual")
     disc(pot, radius - 0.006, 0.001, (cx, cy, height + 0.0005), DARK)  # the dark inside
@@ -90,7 +94,7 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
                  quat=(np.cos(tilt), -np.sin(tilt), 0.0, 0.0)))
 
     lid = free_body(scene, lid_name)
-    lid_half = 0.009
+    lid_half = LID_HALF_THICKNESS
     disc(lid, radius + 0.003, lid_half, (0, 0, 0), WHITE, name=f"{lid_name}_visual")
     # Collision: two crossed squares (an eight-pointed star) whose points rest on the rim.
     square = (radius + 0.001) / np.sqrt(2.0)
@@ -103,7 +107,7 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
     hidden(panel(lid, (side, side, 0.01), (0, 0, knob_z), WHITE), mass=0.057)
     lid.add_site(name=f"{lid_name}_grasp_point", pos=[0, 0, knob_z], size=[0.005, 0, 0],
                  rgba=[0, 1, 0, 0], group=4)
-    return lid_name, f"{lid_name}_grasp_point", (cx, cy, height + lid_half)
+    return lid_name, f"{lid_name}_grasp_point"
 
 
 def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
