@@ -38,7 +38,8 @@ def met(name: str, variation: int, obs0: Observation, obs: Observation) -> bool:
 
 @pytest.mark.parametrize("name, count", [("take_lid_off_saucepan", 1), ("unplug_charger", 1),
                                          ("take_usb_out_of_computer", 1),
-                                         ("take_plate_off_colored_dish_rack", 3)])
+                                         ("take_plate_off_colored_dish_rack", 3),
+                                         ("turn_oven_on", 1)])
 def test_variation_count(name, count):
     assert get_task(name).num_variations == count
 
@@ -64,6 +65,11 @@ def test_variation_count(name, count):
         "leave it on the table top", "move the plate from the black rack to the table's surface",
         "lift the plate up off the black colored rack and drop it onto the table from a "
         "considerable height"]),
+    ("turn_oven_on", 0, [
+        "turn on the oven",
+        "grip the left most knob on the oven and rotate it anti-clockwise to turn the oven on",
+        "turn the left most knob on the oven to switch the oven on", "heat up the oven",
+        "get the oven hot", "preheat the oven", "get the oven heat going"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     assert get_task(name).descriptions(variation) == expected
@@ -135,3 +141,23 @@ def test_plate_must_be_on_the_block_off_the_rack_and_released():
     assert not met(name, 0, obs0, held)
     half_off = moved(on_block, "plate_probe3", obs0.pos("plate_probe3"))  # a rim point still in
     assert not met(name, 0, obs0, half_off)
+
+
+def test_oven_knob_is_the_left_most_and_needs_almost_a_quarter_turn():
+    name = "turn_oven_on"
+    ep, obs0 = reset(name)
+    model = ep.scene.model
+    knobs = [model.body(b).pos[1] for b in range(model.nbody)
+             if model.body(b).name.startswith("oven_knob")]
+    assert model.body("oven_knob").pos[1] == max(knobs)  # left-most seen from the front
+    joint = model.joint("oven_knob_joint")
+    np.testing.assert_allclose(joint.range, [0.0, np.pi / 2], atol=1e-6)
+    door = ep.scene.initial_qpos[ep.scene.qpos_address["oven_door_joint"]]
+    assert door == pytest.approx(np.pi / 2)  # closed, RLBench's convention
+
+    def turned(angle):
+        data = jnp.asarray(obs0.data).at[obs0.layout.slice("oven_knob_joint.q")].set(angle)
+        return Observation(data, obs0.layout, obs0.attached)
+
+    assert not met(name, 0, obs0, turned(1.45))
+    assert met(name, 0, obs0, turned(1.55))

@@ -7,13 +7,20 @@ import jax.numpy as jnp
 from agnostos_mjx.conditions import Detected, Grasped, all_of
 from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.kitchen import pose_in_root, saucepan, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import (
+    LID_HALF_THICKNESS,
+    pose_in_root,
+    saucepan,
+    sensor_volume,
+)
 
 DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 # RLBench's `success` volume: 0.1 x 0.1 m, 0.05 m high, from 0.216 m above the
 # table over the knob's start (the knob starts at 0.101 m).
 SUCCESS_HALF = (0.05, 0.05, 0.025)
-KNOB_XY = (-0.026, 0.030)
+KNOB_XY = (-0.026, 0.030)  # the lid's and pot's centre
+POT_HEIGHT = 0.072
+LID_POS = (*KNOB_XY, POT_HEIGHT + LID_HALF_THICKNESS)  # resting on the rim
 # Model bounding box in the root frame: x[-0.142, 0.089], y[-0.304, 0.145].
 FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.116, 0.225), (-0.027, -0.080)
 
@@ -37,15 +44,13 @@ class TakeLidOffSaucepan(Task):
 
     def build(self, scene) -> None:
         root = scene.mocap("take_lid_off_saucepan")
-        # The builder returns the free lid's resting pose in the root frame,
-        # which the sampler needs (build always runs before sampling).
-        *_, self._lid_local = saucepan(scene, root, "saucepan", center=KNOB_XY)
+        saucepan(scene, root, "saucepan", center=KNOB_XY, height=POT_HEIGHT)
         sensor_volume(root, "saucepan_success", (*KNOB_XY, 0.216 + SUCCESS_HALF[2]), SUCCESS_HALF)
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
         return Placement(bodies={"take_lid_off_saucepan": (pos, quat),
-                                 "saucepan_lid": pose_in_root(pos, quat, self._lid_local)})
+                                 "saucepan_lid": pose_in_root(pos, quat, LID_POS)})
 
     def success(self, variation):
         # Knob held and lifted into the volume (RLBench's ConditionSet, unordered).

@@ -3,9 +3,10 @@ plate, oven with knobs, wall socket with charger, desktop computer with USB
 stick.
 
 Objects the gripper carries are free bodies in the world (MuJoCo free joints
-cannot hang under a mocap root), so a builder creates them at the origin and
-returns their pose in the task-root frame; the task's sampler places them with
-`pose_in_root` next to the root it draws.  Static parts hang under the root.
+cannot hang under a mocap root): a builder creates them at the origin, the
+task declares their resting pose in its root frame and its sampler places them
+with `pose_in_root` next to the root it draws.  Static parts hang under the
+root.  Sensor volumes are box sites (`sensor_volume`) for `Detected`.
 """
 
 from __future__ import annotations
@@ -67,15 +68,18 @@ def _ring(body: mujoco.MjsBody, center, radius: float, half_thickness: float, z:
 
 
 # ---- saucepan ------------------------------------------------------------------------------
+LID_HALF_THICKNESS = 0.009
+
+
 def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(0.0, 0.0),
              radius: float = 0.112, height: float = 0.072, handle_length: float = 0.2,
-             lid_name: str = "", knob_radius: float = 0.03) -> tuple[str, str, tuple]:
-    """A pot with a long handle along the root's -y, and a free lid with a
-    knob resting on its rim.  The lid body is `<lid_name>` (default
-    `<name>_lid`) with a site `<lid_name>_grasp_point` at the knob's centre.
-    Returns (lid body, knob site, lid pose in the root frame)."""
+             knob_radius: float = 0.03) -> tuple[str, str]:
+    """A pot with a long handle along the root's -y, and a free lid
+    `<name>_lid` with a knob, to be placed on the rim at (*center, height +
+    LID_HALF_THICKNESS) in the root frame.  A site `<name>_lid_grasp_point`
+    marks the knob's centre.  Returns (lid body, knob site)."""
     cx, cy = center
-    lid_name = lid_name or f"{name}_lid"
+    lid_name = f"{name}_lid"
     pot = parent.add_body(name=name, pos=[0.0, 0.0, 0.0])
     disc(pot, radius, height / 2, (cx, cy, height / 2), STEEL, name=f"{name}_visual")
     disc(pot, radius - 0.006, 0.001, (cx, cy, height + 0.0005), DARK)  # the dark inside
@@ -90,7 +94,7 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
                  quat=(np.cos(tilt), -np.sin(tilt), 0.0, 0.0)))
 
     lid = free_body(scene, lid_name)
-    lid_half = 0.009
+    lid_half = LID_HALF_THICKNESS
     disc(lid, radius + 0.003, lid_half, (0, 0, 0), WHITE, name=f"{lid_name}_visual")
     # Collision: two crossed squares (an eight-pointed star) whose points rest on the rim.
     square = (radius + 0.001) / np.sqrt(2.0)
@@ -103,7 +107,7 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
     hidden(panel(lid, (side, side, 0.01), (0, 0, knob_z), WHITE), mass=0.057)
     lid.add_site(name=f"{lid_name}_grasp_point", pos=[0, 0, knob_z], size=[0.005, 0, 0],
                  rgba=[0, 1, 0, 0], group=4)
-    return lid_name, f"{lid_name}_grasp_point", (cx, cy, height + lid_half)
+    return lid_name, f"{lid_name}_grasp_point"
 
 
 def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
@@ -234,3 +238,65 @@ def plate(scene: SceneBuilder, name: str, *, radius: float = 0.1, half_thickness
                       rgba=[0, 1, 0, 0], group=4)
         names.append(f"{name}_probe{i}")
     return tuple(names)
+
+
+# ---- oven ------------------------------------------------------------------------------------
+def knob(parent: mujoco.MjsBody, name: str, pos, *, joint_range=None, friction_torque: float = 0.1,
+         rgba=(0.67, 0.67, 0.67)) -> str | None:
+    """A control knob on a front face that looks along the root's -x: a round
+    base and a grip bar (2.2 cm tall, 1.1 cm wide) the fingers close around.
+    With `joint_range` it turns on a hinge whose axis points out of the face
+    (positive = anticlockwise seen from the front), held by friction as
+    CoppeliaSim's zero-velocity motor does; returns the joint name."""
+    body = parent.add_body(name=name, pos=list(pos))
+    joint = None
+    if joint_range is not None:
+        joint = f"{name}_joint"
+        body.add_joint(name=joint, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[-1, 0, 0],
+                       range=list(joint_range), frictionloss=friction_torque, damping=0.01,
+                       armature=0.001)
+    along_x = [0.7071068, 0.0, 0.7071068, 0.0]
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.02, 0.003, 0], pos=[0.009, 0, 0],
+                  quat=along_x, rgba=[*rgba, 1.0], contype=0, conaffinity=0, group=1)
+    bar = panel(body, (0.011, 0.0055, 0.011), (0, 0, 0), rgba, collide=joint is not None,
+                name=f"{name}_grip")
+    bar.mass = 0.1
+    panel(body, (0.0005, 0.0015, 0.008), (-0.0112, 0, 0.003), DARK, collide=False)  # marker
+    return joint
+
+
+def oven(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, active_knob,
+         decor_knobs=(), body_min=(0.04, -0.31, 0.0), body_max=(0.467, 0.258, 0.596),
+         rgba=(0.95, 0.95, 0.95)) -> str:
+    """A free-standing oven whose front faces the root's -x: a cabinet (one
+    collision box), a stove top with burners, a door hinged at its bottom
+    (closed), a tray on a slide inside, a row of decorative knobs and one
+    turning knob `<name>_knob` at (x, y, z) `active_knob`.  Returns the
+    turning knob's joint name."""
+    lo, hi = np.asarray(body_min), np.asarray(body_max)
+    half, mid = (hi - lo) / 2, (hi + lo) / 2
+    cabinet = parent.add_body(name=f"{name}_frame")
+    panel(cabinet, half, mid, rgba, name=f"{name}_cabinet")
+    panel(cabinet, (half[0], half[1], 0.014), (mid[0], mid[1], hi[2] + 0.014), DARK, collide=False,
+          name=f"{name}_stove_top")
+    for dx in (-0.09, 0.09):
+        for dy in (-0.13, 0.13):
+            disc(cabinet, 0.045, 0.006, (mid[0] + dx, mid[1] + dy, hi[2] + 0.03), GREY)
+    # Door: hinged at its bottom front edge about the root's y; q = pi/2 is
+    # closed (RLBench's convention), q = 0 lies open towards the robot.
+    door = cabinet.add_body(name=f"{name}_door", pos=[lo[0] - 0.017, mid[1], 0.1])
+    door.add_joint(name=f"{name}_door_joint", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0],
+                   range=[0.0, np.pi / 2], ref=np.pi / 2, frictionloss=1.0, damping=0.5,
+                   armature=0.02)
+    panel(door, (0.017, half[1] - 0.01, 0.17), (0, 0, 0.17), (0.67, 0.67, 0.67),
+          name=f"{name}_door_panel").mass = 0.1
+    panel(door, (0.0005, half[1] * 0.6, 0.09), (-0.0175, 0, 0.2), DARK, collide=False)  # window
+    rod(door, (-0.03, -half[1] * 0.6, 0.31), (-0.03, half[1] * 0.6, 0.31), 0.008, GREY)
+    scene.initial_joints[f"{name}_door_joint"] = np.pi / 2
+    tray = cabinet.add_body(name=f"{name}_tray", pos=[mid[0], mid[1], 0.288])
+    tray.add_joint(name=f"{name}_tray_joint", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[-1, 0, 0],
+                   range=[0.0, 0.3], damping=5.0)
+    panel(tray, (0.145, 0.235, 0.005), (0, 0, 0), GREY, collide=False).mass = 1.36
+    for i, pos in enumerate(decor_knobs):
+        knob(cabinet, f"{name}_knob_decor{i}", pos)
+    return knob(cabinet, f"{name}_knob", active_knob, joint_range=(0.0, np.pi / 2))
