@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.conditions import JointMoved, Select
-from agnostos_mjx.math3d import quat_rotate, yaw_quat
+from agnostos_mjx.math3d import axis_angle_quat, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.observables import Layout, Observation
 from agnostos_mjx.tasks import get_task, is_implemented
 from agnostos_mjx.tasks.base import TABLE_Z
 from agnostos_mjx.world import build_scene
 
 ROOT_POS = np.array([0.25, 0.0, TABLE_Z])
+FAR = (0.5, 0.5, 0.05)  # a root-frame spot on the table away from every task's scene
 COUNTS = {"put_item_in_drawer": 3, "turn_tap": 2, "place_wine_at_rack_location": 3,
           "put_groceries_in_cupboard": 9, "place_shape_in_shape_sorter": 5}
 
@@ -30,7 +31,7 @@ def needs(name: str):
 def posed(name: str, free: dict | None = None, joints: dict | None = None, steps: int = 0,
           attached=None, root_yaw: float = 0.0) -> Observation:
     """The task's scene with its root at the workspace centre, free bodies at
-    given root-frame positions ((x, y, z), or ((x, y, z), yaw)), joints set, after `steps`
+    given root-frame positions ((x, y, z), or ((x, y, z), yaw or quat)), joints set, after `steps`
     physics steps with the arm holding still."""
     task = get_task(name)
     scene = build_scene(task)
@@ -44,10 +45,11 @@ def posed(name: str, free: dict | None = None, joints: dict | None = None, steps
         d.mocap_pos[scene.mocap_index[body]] = ROOT_POS
         d.mocap_quat[scene.mocap_index[body]] = root_q
     for body, value in (free or {}).items():
-        pos, yaw = value if len(value) == 2 else (value, 0.0)
+        pos, turn = value if len(value) == 2 else (value, 0.0)
+        local_q = np.asarray(yaw_quat(turn)) if np.ndim(turn) == 0 else np.asarray(turn, float)
         adr = scene.free_address[body]
         d.qpos[adr:adr + 3] = ROOT_POS + np.asarray(quat_rotate(root_q, np.asarray(pos, float)))
-        d.qpos[adr + 3:adr + 7] = np.asarray(yaw_quat(root_yaw + yaw))
+        d.qpos[adr + 3:adr + 7] = np.asarray(quat_mul(root_q, local_q))
     for joint, value in (joints or {}).items():
         d.qpos[scene.qpos_address[joint]] = value
     mujoco.mj_forward(m, d)
@@ -89,6 +91,38 @@ def test_variation_count(name):
     ("turn_tap", 0, ["turn left tap", "rotate the left tap", "grasp the left tap and turn it"]),
     ("turn_tap", 1, ["turn right tap", "rotate the right tap",
                      "grasp the right tap and turn it"]),
+    ("place_wine_at_rack_location", 0, [
+        "stack the wine bottle to the middle of the rack",
+        "slide the bottle onto the middle part of the rack", "put the wine on the middle",
+        "leave the wine on the middle section of the shelf",
+        "grasp the bottle and put it away on the middle"]),
+    ("place_wine_at_rack_location", 2, [
+        "stack the wine bottle to the right of the rack",
+        "slide the bottle onto the right part of the rack", "put the wine on the right",
+        "leave the wine on the right section of the shelf",
+        "grasp the bottle and put it away on the right"]),
+    ("put_groceries_in_cupboard", 0, [
+        "put the crackers in the cupboard", "pick up the crackers and place it in the cupboard",
+        "move the crackers to the bottom shelf", "put away the crackers in the cupboard"]),
+    ("put_groceries_in_cupboard", 1, [
+        "put the chocolate jello in the cupboard",
+        "pick up the chocolate jello and place it in the cupboard",
+        "move the chocolate jello to the bottom shelf",
+        "put away the chocolate jello in the cupboard"]),
+    ("put_groceries_in_cupboard", 8, [
+        "put the sugar in the cupboard", "pick up the sugar and place it in the cupboard",
+        "move the sugar to the bottom shelf", "put away the sugar in the cupboard"]),
+    ("place_shape_in_shape_sorter", 0, [
+        "put the cube in the shape sorter", "pick up the cube and put it in the sorter",
+        "place the cube into its slot in the shape sorter", "slot the cube into the shape sorter"]),
+    ("place_shape_in_shape_sorter", 2, [
+        "put the triangular prism in the shape sorter",
+        "pick up the triangular prism and put it in the sorter",
+        "place the triangular prism into its slot in the shape sorter",
+        "slot the triangular prism into the shape sorter"]),
+    ("place_shape_in_shape_sorter", 4, [
+        "put the moon in the shape sorter", "pick up the moon and put it in the sorter",
+        "place the moon into its slot in the shape sorter", "slot the moon into the shape sorter"]),
 ]])
 def test_descriptions_verbatim(name, variation, expected):
     assert get_task(name).descriptions(variation) == expected
@@ -125,4 +159,25 @@ def test_put_item_in_drawer_volume_detects_the_item_in_the_pulled_drawer():
     assert met(task.success(jnp.int32(1)), start, inside)
     assert not met(task.success(jnp.int32(0)), start, inside)
     assert not met(task.success(jnp.int32(2)), start, inside)
+    assert not any(met(task.success(jnp.int32(v)), start) for v in range(3))
+
+
+# ---- place_wine_at_rack_location -----------------------------------------------------------
+LAID_ALONG_Y = tuple(np.asarray(axis_angle_quat(np.array([1.0, 0.0, 0.0]), -np.pi / 2)))
+
+
+@needs("place_wine_at_rack_location")
+@pytest.mark.parametrize("variation, slot_x", [(0, 0.051), (1, 0.170), (2, -0.065)])
+def test_wine_in_its_slot_and_released(variation, slot_x):
+    """A bottle laid in a slot settles there; it counts for that slot only, and
+    only once released (RLBench's NothingGrasped)."""
+    name = "place_wine_at_rack_location"
+    task = get_task(name)
+    start = posed(name)
+    laid = posed(name, free={"wine_bottle": ((slot_x, 0.25, 0.15), LAID_ALONG_Y)}, steps=300)
+    assert abs(float(laid.pos("wine_bottle")[2]) - TABLE_Z - 0.113) < 0.01  # rests in the slot
+    results = [met(task.success(jnp.int32(v)), start, laid) for v in range(3)]
+    assert results == [v == variation for v in range(3)]
+    held = Observation(laid.data, laid.layout, jnp.ones(1, bool))
+    assert not met(task.success(jnp.int32(variation)), start, held)
     assert not any(met(task.success(jnp.int32(v)), start) for v in range(3))

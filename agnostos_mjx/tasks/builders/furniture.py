@@ -83,15 +83,17 @@ GLASS_BROWN = (0.41, 0.23, 0.11)
 def octagonal_prism(body: mujoco.MjsBody, radius: float, half_length: float, pos, rgba,
                     mass: float, name: str = "") -> None:
     """A round part that must stand and roll on boxes: a visual cylinder plus
-    an octagonal collision prism (two boxes, one turned 45 degrees) about the
-    body's z axis (MJX-jax has no cylinder-box contacts)."""
+    a regular octagonal collision prism about the body's z axis (MJX-jax has
+    no cylinder-box contacts).  The octagon is the union of four slabs
+    (apothem x apothem*tan(22.5 deg)) turned 45 degrees apart."""
     disc(body, radius, half_length, pos, rgba, name=name)
-    apothem = radius * 0.96
-    for k, yaw in enumerate((0.0, np.pi / 4)):
-        geom = panel(body, (apothem, apothem, half_length), pos, rgba,
+    apothem = 0.98 * radius
+    for k in range(4):
+        yaw = k * np.pi / 4
+        geom = panel(body, (apothem, apothem * np.tan(np.pi / 8), half_length), pos, rgba,
                      quat=(np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)))
         geom.rgba = [0, 0, 0, 0]
-        geom.mass = mass / 2
+        geom.mass = mass / 4
         if k == 0 and name:
             geom.name = f"{name}_collision"
 
@@ -137,5 +139,137 @@ def wine_rack(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, slots_x, *
               ((a + b) / 2, cy, (rail_top + divider_top) / 2), rgba)
 
 
-__all__ = ["CHROME", "CREAM", "WHITE", "WOOD", "disc", "free_body", "free_box", "octagonal_prism",
-           "rod", "sensor_volume", "two_handle_tap", "wine_bottle", "wine_rack"]
+def holed_plate(body: mujoco.MjsBody, half: tuple[float, float], z: float, thickness: float,
+                holes, rgba) -> int:
+    """A horizontal plate (centred on the body's x, y, top at `z`) with
+    rectangular holes ((cx, cy, hx, hy), overlaps allowed), built from boxes:
+    the plate is cut into columns at every hole edge; each column gets a box
+    for every y-interval not covered by a hole.  Neighbouring columns with
+    the same intervals are merged.  Returns the number of boxes."""
+    xs = sorted({-half[0], half[0], *(min(max(c + s * h, -half[0]), half[0])
+                                      for c, _, h, _ in holes for s in (-1, 1))})
+    columns: list[tuple[float, float, list[tuple[float, float]]]] = []
+    for x0, x1 in zip(xs[:-1], xs[1:]):
+        xm = (x0 + x1) / 2
+        cuts = sorted((cy - hy, cy + hy) for cx, cy, hx, hy in holes if abs(xm - cx) < hx)
+        solid, y = [], -half[1]
+        for lo, hi in cuts:
+            if lo > y:
+                solid.append((y, min(lo, half[1])))
+            y = max(y, hi)
+        if y < half[1]:
+            solid.append((y, half[1]))
+        if columns and columns[-1][2] == solid:
+            columns[-1] = (columns[-1][0], x1, solid)
+        else:
+            columns.append((x0, x1, solid))
+    count = 0
+    for x0, x1, solid in columns:
+        for y0, y1 in solid:
+            panel(body, ((x1 - x0) / 2, (y1 - y0) / 2, thickness / 2),
+                  ((x0 + x1) / 2, (y0 + y1) / 2, z - thickness / 2), rgba)
+            count += 1
+    return count
+
+
+def shape_sorter(parent: mujoco.MjsBody, name: str, holes, *, half: float = 0.089,
+                 height: float = 0.143, wall: float = 0.01, rgba=(0.8, 0.6, 0.4),
+                 lid_rgba=(0.89, 0.79, 0.67)) -> mujoco.MjsBody:
+    """A static shape-sorter box standing on the table (four walls, the
+    table as its floor) with a lid cut by `holes` (see `holed_plate`,
+    positions relative to the box centre).  Returns the box body (`name`)."""
+    body = parent.add_body(name=name)
+    lid = 0.012
+    wall_half_z = (height - lid) / 2
+    for sx in (-1, 1):
+        panel(body, (wall / 2, half, wall_half_z), (sx * (half - wall / 2), 0.0, wall_half_z), rgba)
+        panel(body, (half - wall, wall / 2, wall_half_z), (0.0, sx * (half - wall / 2),
+                                                              wall_half_z), rgba)
+    holed_plate(body, (half, half), height, lid, holes, lid_rgba)
+    return body
+
+
+def _prism_sides(body, length: float, width: float, height: float, rgba, mass: float) -> None:
+    """A triangular prism along x (base `width` on the table, apex `height`
+    up) from three boxes: a base slab and two slanted side slabs."""
+    t = 0.004
+    panel(body, (length / 2, width / 2, t / 2), (0.0, 0.0, -height / 2 + t / 2), rgba).mass = mass / 3
+    slant = np.arctan2(height, width / 2)
+    side = np.hypot(height, width / 2)
+    for sy in (-1, 1):
+        angle = -sy * slant  # the slab's long axis runs from the base edge up to the apex
+        panel(body, (length / 2, side / 2, t / 2), (0.0, sy * width / 4, 0.0), rgba,
+              quat=(np.cos(angle / 2), np.sin(angle / 2), 0.0, 0.0)).mass = mass / 3
+
+
+def sorter_shape(scene: SceneBuilder, kind: str, name: str, rgba, mass: float = 0.1) -> float:
+    """A free shape for the shape sorter, its body frame at its centre:
+    'cube', 'cylinder', 'triangular_prism', 'star' or 'moon'.  Returns its
+    half height (the centre's height above the table when it lies flat)."""
+    body = free_body(scene, name)
+    if kind == "cube":
+        panel(body, (0.021, 0.021, 0.021), (0, 0, 0), rgba).mass = mass
+        return 0.021
+    if kind == "cylinder":
+        octagonal_prism(body, 0.0225, 0.021, (0, 0, 0), rgba, mass)
+        return 0.021
+    if kind == "triangular_prism":
+        _prism_sides(body, 0.046, 0.039, 0.039, rgba, mass)
+        return 0.0195
+    if kind == "star":
+        half = 0.015
+        for k in range(5):  # five rays around a hub, visual
+            yaw = 2 * np.pi * k / 5 + np.pi / 2
+            quat = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
+            panel(body, (0.013, 0.006, half), (0.012 * np.cos(yaw), 0.012 * np.sin(yaw), 0),
+                  rgba, collide=False, quat=quat)
+        panel(body, (0.013, 0.013, half), (0, 0, 0), rgba).mass = mass  # RLBench's small proxy
+        return half
+    if kind == "moon":
+        half = 0.012
+        for yaw in (-0.9, 0.0, 0.9):  # a crescent of three segments, tips along x, visual
+            quat = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
+            panel(body, (0.011, 0.006, half), (0.017 * np.sin(yaw), 0.017 * (1 - np.cos(yaw)), 0),
+                  rgba, collide=False, quat=quat)
+        panel(body, (0.015, 0.0085, half), (0, 0, 0), rgba).mass = mass  # RLBench's proxy
+        return half
+    raise ValueError(f"unknown sorter shape {kind!r}")
+
+
+def cupboard(parent: mujoco.MjsBody, name: str, *, depth: float = 0.20, width: float = 0.36,
+             height: float = 0.50, shelf_z: float = 0.26, board: float = 0.015,
+             rgba=WHITE) -> tuple[float, float]:
+    """A static cupboard standing on the table, open towards the parent's -x
+    (front face at x = 0), with a bottom compartment and a shelf at `shelf_z`.
+    Returns the bottom compartment's floor height and clear height."""
+    hd, hw = depth / 2, width / 2
+    body = parent.add_body(name=name)
+    panel(body, (hd, hw, board / 2), (hd, 0.0, board / 2), rgba)  # floor (bottom shelf)
+    panel(body, (hd, hw, board / 2), (hd, 0.0, height - board / 2), rgba)  # top
+    panel(body, (hd - board / 2, hw - board, board / 2), (hd + board / 2, 0.0, shelf_z), rgba)
+    panel(body, (board / 2, hw, height / 2), (depth - board / 2, 0.0, height / 2), rgba)  # back
+    for sy in (-1, 1):
+        panel(body, (hd, board / 2, height / 2), (hd, sy * (hw - board / 2), height / 2), rgba)
+    return board, shelf_z - board / 2 - board
+
+
+def grocery(scene: SceneBuilder, name: str, size, rgba, round_: bool = False,
+            mass: float = 0.1) -> mujoco.MjsBody:
+    """A free grocery item standing upright, its body frame at its centre:
+    a box of full `size` (x, y, z; keep the thinner side along y, where the
+    fingers close), or with `round_` a can of diameter size[0]."""
+    body = free_body(scene, name)
+    half = [v / 2 for v in size]
+    if round_:
+        octagonal_prism(body, half[0], half[2], (0.0, 0.0, 0.0), rgba, mass, name=f"{name}_visual")
+        disc(body, half[0] * 1.01, 0.004, (0.0, 0.0, half[2] - 0.004), CHROME)  # lid
+    else:
+        panel(body, half, (0.0, 0.0, 0.0), rgba, name=f"{name}_visual").mass = mass
+        panel(body, (half[0] * 0.7, half[1] * 1.02, half[2] * 0.4), (0.0, 0.0, 0.0),
+              (0.95, 0.95, 0.95), collide=False)  # label band
+    return body
+
+
+__all__ = ["CHROME", "CREAM", "WHITE", "WOOD", "cupboard", "disc", "free_body", "free_box",
+           "grocery", "holed_plate", "octagonal_prism", "rod", "sensor_volume", "shape_sorter",
+           "sorter_shape", "two_handle_tap", "wine_bottle", "wine_rack"]
