@@ -20,6 +20,12 @@ LANGUAGE = {
                            "grasp tha handle and raise the cover up to open the grill",
                            "open the bbq", "open the barbecue"]}),
     "close_laptop_lid": (1, {0: ["close laptop lid", "close the laptop", "shut the laptop lid"]}),
+    "toilet_seat_down": (1, {0: [
+        "toilet seat down", "put the toilet seat down",
+        "grasping the top of the lid, close the toilet seat", "put the toilet lid down",
+        "leave the toilet seat down", "close the lid on the toilet", "leave the toilet seat down",
+        "lower the toilet seat",
+        "grip the edge of the toilet lid and lower it flat on the toilet seat"]}),
     "meat_off_grill": (2, {
         0: ["take the chicken off the grill", "pick up the chicken and place it next to the grill",
             "remove the chicken from the grill and set it down to the side"],
@@ -114,3 +120,16 @@ def test_laptop_lid_rests_open_and_falls_shut_past_upright():
     assert gravity > friction  # falls on towards closed
     m = build_scene(_task("close_laptop_lid")).model
     assert m.joint("laptop_lid_joint").range[1] > 1.79 + 0.03
+
+
+def test_toilet_seat_rests_up_and_falls_down_past_upright():
+    """The raised seat leans back on its stop; pushed past upright it falls,
+    and only lying flat (within 0.045 rad of 0) meets the 1.7 rad threshold."""
+    gravity, _ = _gravity_torque("toilet_seat_down", "toilet_seat_joint", 1.745)
+    assert gravity > 0  # holds it on the upper (up) stop
+    gravity, _ = _gravity_torque("toilet_seat_down", "toilet_seat_joint", 1.3)
+    assert gravity < 0  # falls towards down
+    task = _task("toilet_seat_down")
+    scene = build_scene(task)
+    assert scene.initial_qpos[scene.qpos_address["toilet_seat_joint"]] == pytest.approx(1.745)
+    assert scene.model.joint("toilet_seat_joint").range[0] == 0.0

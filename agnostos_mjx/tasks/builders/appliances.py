@@ -128,3 +128,38 @@ def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") ->
     scene.exclude(f"{name}_lid", f"{name}_base")
     scene.exclude(f"{name}_lid", f"{name}_holder")
     return joint
+
+
+TOILET_HINGE = (-0.006, -0.034, 0.237)
+TOILET_SEAT_UP = 1.745  # rad, 100 degrees: up and leaning back on the cistern
+
+
+def toilet(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "toilet") -> str:
+    """toilet_seat_down's toilet: a bowl on a pedestal, a cistern at the back
+    (-y) and a free seat hinged about +x behind the bowl; joint 0 = down on
+    the bowl, positive raises it, starting up at TOILET_SEAT_UP.  The seat
+    has no contact with the toilet and comes to rest on its limits, so down
+    means exactly 0.  Bodies `<name>_bowl`, `<name>_cistern`, `<name>_seat`;
+    sites `<name>_seat_center`, `<name>_hinge`.  Returns the joint name."""
+    bowl = parent.add_body(name=f"{name}_bowl", pos=[-0.005, 0.045, 0.0])
+    panel(bowl, (0.06, 0.08, 0.075), (0, -0.01, 0.075))  # pedestal
+    panel(bowl, (0.1, 0.145, 0.04), (0, 0.0, 0.19))  # bowl
+    panel(bowl, (0.09, 0.13, 0.0015), (0, 0.005, 0.2315), (0.3, 0.5, 0.7),
+          collide=False)  # water
+    panel(bowl, (0.1, 0.02, 0.015), (0, -0.125, 0.245))  # back joint to the cistern
+    cistern = parent.add_body(name=f"{name}_cistern", pos=[-0.004, -0.128, 0.362])
+    panel(cistern, (0.1, 0.048, 0.104), (0, 0, 0))
+    panel(cistern, (0.015, 0.01, 0.004), (0.06, 0.0, 0.106), (0.7, 0.7, 0.7),
+          collide=False)  # flush button
+    joint = hinged_door(scene, parent, f"{name}_seat", hinge_pos=TOILET_HINGE, axis=(1, 0, 0),
+                        panel_half=(0.1125, 0.1275, 0.0055),
+                        panel_offset=(0.0, 0.1275, 0.0055), limits=(0.0, TOILET_SEAT_UP),
+                        initial=TOILET_SEAT_UP, friction_torque=0.0, rgba=(0.57, 0.57, 0.57),
+                        mass=0.178)
+    seat = scene.spec.body(f"{name}_seat")
+    scene.spec.joint(joint).damping[0] = 0.002
+    _site(seat, f"{name}_seat_center", (0.0, 0.1275, 0.0055))
+    _site(parent, f"{name}_hinge", TOILET_HINGE)
+    for part in ("bowl", "cistern"):
+        scene.exclude(f"{name}_seat", f"{name}_{part}")
+    return joint
