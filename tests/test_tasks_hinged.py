@@ -5,6 +5,7 @@ model.  Expert success from reset is covered by tests/test_conditions.py."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -19,7 +20,15 @@ LANGUAGE = {
     "open_grill": (1, {0: ["open the grill",
                            "grasp tha handle and raise the cover up to open the grill",
                            "open the bbq", "open the barbecue"]}),
+    "close_fridge": (1, {0: ["close fridge", "close the fridge", "shut the fridge",
+                             "close the fridge door", "swing the fridge door shut"]}),
     "close_laptop_lid": (1, {0: ["close laptop lid", "close the laptop", "shut the laptop lid"]}),
+    "toilet_seat_down": (1, {0: [
+        "toilet seat down", "put the toilet seat down",
+        "grasping the top of the lid, close the toilet seat", "put the toilet lid down",
+        "leave the toilet seat down", "close the lid on the toilet", "leave the toilet seat down",
+        "lower the toilet seat",
+        "grip the edge of the toilet lid and lower it flat on the toilet seat"]}),
     "meat_off_grill": (2, {
         0: ["take the chicken off the grill", "pick up the chicken and place it next to the grill",
             "remove the chicken from the grill and set it down to the side"],
@@ -114,3 +123,49 @@ def test_laptop_lid_rests_open_and_falls_shut_past_upright():
     assert gravity > friction  # falls on towards closed
     m = build_scene(_task("close_laptop_lid")).model
     assert m.joint("laptop_lid_joint").range[1] > 1.79 + 0.03
+
+
+def test_toilet_seat_rests_up_and_falls_down_past_upright():
+    """The raised seat leans back on its stop; pushed past upright it falls,
+    and only lying flat (within 0.045 rad of 0) meets the 1.7 rad threshold."""
+    gravity, _ = _gravity_torque("toilet_seat_down", "toilet_seat_joint", 1.745)
+    assert gravity > 0  # holds it on the upper (up) stop
+    gravity, _ = _gravity_torque("toilet_seat_down", "toilet_seat_joint", 1.3)
+    assert gravity < 0  # falls towards down
+    task = _task("toilet_seat_down")
+    scene = build_scene(task)
+    assert scene.initial_qpos[scene.qpos_address["toilet_seat_joint"]] == pytest.approx(1.745)
+    assert scene.model.joint("toilet_seat_joint").range[0] == 0.0
+
+
+def test_fridge_hand_footprint_covers_the_start_pose():
+    """The placement check's hand points span the hand and finger geoms at the
+    start pose, and that pose lies inside the top door's height span."""
+    from agnostos_mjx.tasks.close_fridge import HAND_POINTS
+
+    scene = build_scene(_task("close_fridge"))
+    m = scene.model
+    d = mujoco.MjData(m)
+    d.qpos[:] = scene.initial_qpos
+    mujoco.mj_forward(m, d)
+    xs, ys = np.array(HAND_POINTS).T
+    for g in ("hand_collision", "left_pad", "right_pad"):
+        corners = d.geom_xpos[m.geom(g).id] + (d.geom_xmat[m.geom(g).id].reshape(3, 3) @ (
+            np.array(np.meshgrid(*[[-1, 1]] * 3)).reshape(3, -1) * m.geom(g).size[:, None])).T
+        assert xs.min() - 0.01 <= corners[:, 0].min() and corners[:, 0].max() <= xs.max() + 0.01
+        assert ys.min() - 0.01 <= corners[:, 1].min() and corners[:, 1].max() <= ys.max() + 0.01
+        assert 0.752 + 0.403 < corners[:, 2].min() and corners[:, 2].max() < 0.752 + 0.948
+
+
+def test_fridge_placements_keep_the_door_clear_of_the_hand():
+    """RLBench re-samples placements where the arm collides; most raw
+    placements put the open door through the hand at its start pose."""
+    from agnostos_mjx.tasks.close_fridge import _hand_clear
+
+    task = _task("close_fridge")
+    keys = jax.random.split(jax.random.PRNGKey(3), 64)
+    placed = jax.vmap(lambda k: task.sample(k, jnp.int32(0)))(keys)
+    pos, quat = placed.bodies["fridge_root"]
+    assert np.asarray(jax.vmap(_hand_clear)(pos, quat)).all()
+    yaw = 2 * np.arctan2(np.asarray(quat)[:, 3], np.asarray(quat)[:, 0])
+    assert np.abs(yaw).max() <= np.pi / 4 + 1e-5 and np.ptp(yaw) > 0.5

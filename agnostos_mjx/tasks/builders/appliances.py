@@ -128,3 +128,81 @@ def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") ->
     scene.exclude(f"{name}_lid", f"{name}_base")
     scene.exclude(f"{name}_lid", f"{name}_holder")
     return joint
+
+
+TOILET_HINGE = (-0.006, -0.034, 0.237)
+TOILET_SEAT_UP = 1.745  # rad, 100 degrees: up and leaning back on the cistern
+
+
+def toilet(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "toilet") -> str:
+    """toilet_seat_down's toilet: a bowl on a pedestal, a cistern at the back
+    (-y) and a free seat hinged about +x behind the bowl; joint 0 = down on
+    the bowl, positive raises it, starting up at TOILET_SEAT_UP.  The seat
+    has no contact with the toilet and comes to rest on its limits, so down
+    means exactly 0.  Bodies `<name>_bowl`, `<name>_cistern`, `<name>_seat`;
+    sites `<name>_seat_center`, `<name>_hinge`.  Returns the joint name."""
+    bowl = parent.add_body(name=f"{name}_bowl", pos=[-0.005, 0.045, 0.0])
+    panel(bowl, (0.06, 0.08, 0.075), (0, -0.01, 0.075))  # pedestal
+    panel(bowl, (0.1, 0.145, 0.04), (0, 0.0, 0.19))  # bowl
+    panel(bowl, (0.09, 0.13, 0.0015), (0, 0.005, 0.2315), (0.3, 0.5, 0.7),
+          collide=False)  # water
+    panel(bowl, (0.1, 0.02, 0.015), (0, -0.125, 0.245))  # back joint to the cistern
+    cistern = parent.add_body(name=f"{name}_cistern", pos=[-0.004, -0.128, 0.362])
+    panel(cistern, (0.1, 0.048, 0.104), (0, 0, 0))
+    panel(cistern, (0.015, 0.01, 0.004), (0.06, 0.0, 0.106), (0.7, 0.7, 0.7),
+          collide=False)  # flush button
+    joint = hinged_door(scene, parent, f"{name}_seat", hinge_pos=TOILET_HINGE, axis=(1, 0, 0),
+                        panel_half=(0.1125, 0.1275, 0.0055),
+                        panel_offset=(0.0, 0.1275, 0.0055), limits=(0.0, TOILET_SEAT_UP),
+                        initial=TOILET_SEAT_UP, friction_torque=0.0, rgba=(0.57, 0.57, 0.57),
+                        mass=0.178)
+    seat = scene.spec.body(f"{name}_seat")
+    scene.spec.joint(joint).damping[0] = 0.002
+    _site(seat, f"{name}_seat_center", (0.0, 0.1275, 0.0055))
+    _site(parent, f"{name}_hinge", TOILET_HINGE)
+    for part in ("bowl", "cistern"):
+        scene.exclude(f"{name}_seat", f"{name}_{part}")
+    return joint
+
+
+FRIDGE_RGBA = (0.85, 0.85, 1.0)
+FRIDGE_HINGE = (0.303, -0.171)  # both doors, root frame (x, y); vertical axes
+FRIDGE_TOP_OPEN = 0.6981  # rad, 40 degrees as the model saves it
+
+
+def fridge(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "fridge") -> tuple[str, str]:
+    """close_fridge's fridge, front towards the root's -x: a static cabinet
+    (five panels and three shelves, x[0.304, 0.550], y +-0.173, 0.954 m tall)
+    and two doors hinged on the right (-y) front edge about +z, positive
+    opening: the top door starts open at FRIDGE_TOP_OPEN and is held only by
+    RLBench's 0.052 N m motor, the bottom one is closed and stiff (2.64 N m).
+    Bodies `<name>_base`, `<name>_door_top`, `<name>_door_bottom`; sites
+    `<name>_hinge` (at the top door's hinge) and `<name>_door_top_center`.
+    Returns the (top, bottom) joint names."""
+    base = parent.add_body(name=f"{name}_base", pos=[0.427, 0.0, 0.476])
+    panel(base, (0.005, 0.173, 0.477), (0.118, 0, 0), FRIDGE_RGBA)  # back
+    for sy in (-1, 1):
+        panel(base, (0.123, 0.005, 0.477), (0, sy * 0.168, 0), FRIDGE_RGBA)  # sides
+    for z in (-0.472, 0.473):
+        panel(base, (0.123, 0.173, 0.005), (0, 0, z), FRIDGE_RGBA)  # floor, roof
+    panel(base, (0.123, 0.163, 0.005), (0, 0, -0.262), FRIDGE_RGBA)  # divider
+    for x, half_x, z in ((0.452, 0.0955, 0.677), (0.434, 0.115, 0.375), (0.434, 0.115, 0.035)):
+        panel(base, (half_x, 0.163, 0.005), (x - 0.427, 0, z - 0.476), (1.0, 1.0, 1.0))  # shelves
+    doors = []
+    for level, z, half_z, z_off, initial, torque, mass in (
+            ("top", 0.670, 0.2725, 0.0055, FRIDGE_TOP_OPEN, 0.0522, 0.0852),
+            ("bottom", 0.213, 0.1795, 0.0, 0.0, 2.64, 0.056)):
+        joint = hinged_door(scene, parent, f"{name}_door_{level}",
+                            hinge_pos=(*FRIDGE_HINGE, z), axis=(0, 0, 1),
+                            panel_half=(0.0255, 0.172, half_z), panel_offset=(-0.0255, 0.171, z_off),
+                            limits=(0.0, 1.571), initial=initial, friction_torque=torque,
+                            rgba=(1.0, 1.0, 1.0), mass=mass)
+        door = scene.spec.body(f"{name}_door_{level}")
+        # A vertical bar handle on the outer face near the free edge.
+        rod(door, (-0.065, 0.30, z_off - 0.1), (-0.065, 0.30, z_off + 0.1), 0.008, (0.6, 0.6, 0.6))
+        scene.exclude(f"{name}_door_{level}", f"{name}_base")
+        doors.append(joint)
+    scene.exclude(f"{name}_door_top", f"{name}_door_bottom")
+    _site(scene.spec.body(f"{name}_door_top"), f"{name}_door_top_center", (-0.0255, 0.171, 0.0055))
+    _site(parent, f"{name}_hinge", (*FRIDGE_HINGE, 0.670))
+    return doors[0], doors[1]
