@@ -44,6 +44,8 @@ def met(name: str, obs: Observation, variation: int = 0) -> np.ndarray:
     ("put_rubbish_in_bin", 1, 0, "put rubbish in bin"),
     ("phone_on_base", 1, 0, "put the phone on the base"),
     ("put_knife_on_chopping_board", 1, 0, "put the knife on the chopping board"),
+    ("put_toilet_roll_on_stand", 1, 0, "put toilet roll on stand"),
+    ("put_umbrella_in_umbrella_stand", 1, 0, "put umbrella in umbrella stand"),
 ])
 def test_variations_and_first_description(name, count, variation, first):
     task = get_task(name)
@@ -87,6 +89,8 @@ def test_phone_descriptions_fix_the_hone_typo():
 @pytest.mark.parametrize("name, obj", [
     ("phone_on_base", "phone"),
     ("put_knife_on_chopping_board", "knife"),
+    ("put_toilet_roll_on_stand", "toilet_roll"),
+    ("put_umbrella_in_umbrella_stand", "umbrella_probe"),
 ])
 def test_detected_in_volume_only_once_released(name, obj):
     """Success needs the object in the volume and nothing in the gripper."""
@@ -98,3 +102,40 @@ def test_detected_in_volume_only_once_released(name, obj):
     assert not met(name, moved(obs, obj, inside, attached=held)).any()
     beside = inside + jnp.array([0.0, 0.0, 0.1])
     assert not met(name, moved(obs, obj, beside)).any()
+
+
+def test_toilet_roll_and_stand_sampled_on_their_own_planes():
+    """Box (with the roll) and stand each sit on their RLBench spawn plane,
+    on either side of the root's x axis, with independent yaws."""
+    env = reset("put_toilet_roll_on_stand", worlds=6)
+    obs = env.initial_obs
+
+    def local_y(o, frame):
+        from agnostos_mjx.math3d import quat_conj, quat_rotate
+        return quat_rotate(quat_conj(o.quat("roll_root")), o.pos(frame) - o.pos("roll_root"))[1]
+
+    assert (np.asarray(jax.vmap(lambda o: local_y(o, "toilet_roll_box"))(obs)) > 0.02).all()
+    assert (np.asarray(jax.vmap(lambda o: local_y(o, "stand"))(obs)) < -0.0).all()
+    roll_z = np.asarray(obs.pos("toilet_roll"))[:, 2] - np.asarray(obs.pos("roll_root"))[:, 2]
+    np.testing.assert_allclose(roll_z, 0.132, atol=0.005)  # resting on the 0.1 m box
+
+
+def test_umbrella_descriptions_split_the_run_together_strings():
+    """RLBench's list misses two commas; the four intended strings are used."""
+    descriptions = get_task("put_umbrella_in_umbrella_stand").descriptions(0)
+    assert descriptions == [
+        "put umbrella in umbrella stand", "pick up the umbrella and drop it in its stand",
+        "use the handle to lift the umbrella and place it in its holder",
+        "set the umbrella down inside the umbrella stand"]
+    assert not any("standpick" in d or "holderset" in d for d in descriptions)
+
+
+def test_umbrella_rests_level_across_the_stand():
+    """The umbrella must lie still on the rim at reset: the expert plans from that pose."""
+    env = reset("put_umbrella_in_umbrella_stand")
+    from agnostos_mjx.math3d import quat_rotate
+
+    axis = np.asarray(quat_rotate(env.initial_obs.quat("umbrella"), jnp.array([0.0, 0.0, 1.0])))
+    assert np.abs(axis[:, 2]).max() < 0.02
+    height = np.asarray(env.initial_obs.pos("umbrella"))[:, 2] - 0.752
+    np.testing.assert_allclose(height, 0.214, atol=0.004)

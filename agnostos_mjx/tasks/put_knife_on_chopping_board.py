@@ -7,7 +7,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from agnostos_mjx.math3d import yaw_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -15,11 +14,12 @@ from agnostos_mjx.tasks.base import (
     in_frame,
     key_actions,
     place_root,
-    sample_on_plane,
 )
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     free_object,
+    held_by_weld_only,
+    place_on_boundary,
     placed,
     solid,
     to_world,
@@ -99,17 +99,15 @@ class PutKnifeOnChoppingBoard(Task):
                        pos=[0, 0, handle_z], rgba=[0.1, 0.1, 0.1, 1.0], mass=0.06)
         solid(knife, (0.0015, 0.011, KNIFE_HALF_LENGTH - handle / 2),
               (0, 0, -handle / 2), STEEL, 0.04)
-        for part in ("hand", "left_finger", "right_finger"):
-            scene.exclude(part, "knife")
+        held_by_weld_only(scene, "knife")
         knife.add_site(name="knife_handle", pos=[0, 0, HANDLE_Z], size=[0.004, 0, 0],
                        rgba=[0, 0, 0, 0], group=4)
 
     def sample(self, key, variation) -> Placement:
         k_root, k_block = jax.random.split(key)
         pos, quat = place_root(k_root, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
-        xy, yaw = sample_on_plane(k_block, BLOCK_HALF, jnp.pi, plane_center=BOUNDARY_CENTER,
-                                  plane_half=BOUNDARY_HALF)
-        block = to_world(pos, quat, jnp.array([xy[0], xy[1], 0.0]), yaw_quat(yaw))
+        block = place_on_boundary(k_block, (pos, quat), BOUNDARY_CENTER, BOUNDARY_HALF,
+                                  BLOCK_HALF)
         knife = to_world(*block, jnp.array([SLOT_X, 0.0, KNIFE_CENTER_Z]))
         return Placement(bodies={"board_root": (pos, quat), "knife_block": block, "knife": knife})
 

@@ -9,12 +9,14 @@ episode.py) and a volume is an invisible site read by `conditions.Detected`.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
 from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.base import sample_on_plane
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
@@ -32,6 +34,15 @@ def free_object(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
     return body
 
 
+def held_by_weld_only(scene: SceneBuilder, body: str) -> None:
+    """Let the gripper pass through a graspable, so only the grasp weld holds
+    it (RLBench parents a grasped object to the gripper).  For long, thin
+    objects held near one end: pad friction would otherwise keep them tilted
+    against the weld after a jolt."""
+    for part in ("hand", "left_finger", "right_finger"):
+        scene.exclude(part, body)
+
+
 def solid(body: mujoco.MjsBody, half, pos, rgba, mass: float, name: str = "",
           quat=IDENTITY) -> mujoco.MjsGeom:
     """A colliding box with an explicit mass (default densities make toy-like
@@ -42,21 +53,26 @@ def solid(body: mujoco.MjsBody, half, pos, rgba, mass: float, name: str = "",
 
 
 def open_container(body: mujoco.MjsBody, name: str, pos, inner_radius: float, height: float,
-                   rgba, sides: int = 4, wall: float = 0.006, floor: float = 0.006) -> None:
-    """An open-top container (bin, umbrella stand, pot) of `sides` flat walls
+                   rgba, sides: int = 4, wall: float = 0.006,
+                   floor: float = 0.006) -> list[mujoco.MjsGeom]:
+    """An open-top container (bin, umbrella stand) of `sides` flat walls
     around a regular polygon of inscribed radius `inner_radius`, standing on
-    its floor at `pos`."""
+    its floor at `pos`; with `floor=0` a bare tube (a toilet roll).  Returns
+    the geoms (to set masses on a free body)."""
     x, y, z = pos
     half_side = (inner_radius + wall) * np.tan(np.pi / sides) + 1e-4
-    panel(body, (inner_radius + wall, inner_radius + wall, floor / 2), (x, y, z + floor / 2), rgba,
-          name=f"{name}_floor")
+    geoms = []
+    if floor > 0:
+        geoms.append(panel(body, (inner_radius + wall, inner_radius + wall, floor / 2),
+                           (x, y, z + floor / 2), rgba, name=f"{name}_floor"))
     for k in range(sides):
         angle = 2 * np.pi * k / sides
         r = inner_radius + wall / 2
         quat = np.asarray(yaw_quat(np.float64(angle)))
-        panel(body, (wall / 2, half_side, height / 2),
-              (x + r * np.cos(angle), y + r * np.sin(angle), z + height / 2), rgba,
-              name=f"{name}_wall{k}", quat=tuple(quat))
+        geoms.append(panel(body, (wall / 2, half_side, height / 2),
+                           (x + r * np.cos(angle), y + r * np.sin(angle), z + height / 2), rgba,
+                           name=f"{name}_wall{k}", quat=tuple(quat)))
+    return geoms
 
 
 def volume(body: mujoco.MjsBody, name: str, center, half) -> tuple[float, float, float]:
@@ -72,6 +88,18 @@ def to_world(pos, quat, local_pos, local_quat=IDENTITY) -> tuple[jnp.ndarray, jn
     """World pose of a pose given in the frame (pos, quat)."""
     local_pos = jnp.asarray(local_pos, jnp.float32)
     return pos + quat_rotate(quat, local_pos), quat_mul(quat, jnp.asarray(local_quat, jnp.float32))
+
+
+def place_on_boundary(key: jax.Array, root: tuple, plane_center, plane_half, half_extents,
+                      offset=(0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """RLBench's SpawnBoundary for an object on a spawn plane of its task
+    root: any yaw, its footprint (centred `offset` from its own origin)
+    inside the plane.  Returns the object's world pose."""
+    xy, yaw = sample_on_plane(key, half_extents, jnp.pi, plane_center=plane_center,
+                              plane_half=plane_half)
+    quat = yaw_quat(yaw)
+    local = jnp.concatenate([xy, jnp.zeros(1)]) - quat_rotate(quat, jnp.array([*offset, 0.0]))
+    return to_world(*root, local, quat)
 
 
 def yaw_of(quat) -> jnp.ndarray:
