@@ -18,6 +18,8 @@ DESCRIPTIONS = [
     ("beat_the_buzz", 1, 0, 0, "beat the buzz"),
     ("beat_the_buzz", 1, 0, 6, "move the ring from end of the pole to the other whilst "
                                "maintaining separation between them"),
+    ("basketball_in_hoop", 1, 0, 0, "put the ball in the hoop"),
+    ("basketball_in_hoop", 1, 0, 5, "place the basket ball through the hoop"),
 ]
 
 
@@ -78,3 +80,28 @@ def test_beat_the_buzz_holding_at_the_end_is_not_success():
     assert (env.outcome == Outcome.RUNNING).all()
     env = _step(ep, env, actions, last)
     assert (env.outcome == Outcome.SUCCESS).all()
+
+
+@_needs("basketball_in_hoop")
+def test_basketball_dropped_beside_the_hoop_misses():
+    """The ball must fall through the rim: released 15 cm to the side of it,
+    it lands on the table outside the volume under the rim."""
+    ep, env, actions = _reset("basketball_in_hoop")
+    for k in range(3):  # via-point, above the ball, grasp
+        env = _step(ep, env, actions, k)
+    assert env.attached.all()
+    env = _step(ep, env, actions, 3)  # lift
+    beside = np.array(actions.pos[:, 4]) - 0.15 * _root_axis(env, "basketball_root", 0)
+    for k in (4, 5):
+        env = _step(ep, env, actions, k, pos=beside + (k - 4) * np.array([0.0, 0.0, 0.1]))
+    assert not env.attached.any()
+    assert (env.outcome == Outcome.RUNNING).all()
+    ball_z = np.asarray(env.obs.pos("ball"))[:, 2]
+    assert (ball_z < 0.752 + 0.2).all(), "the released ball falls"
+
+
+def _root_axis(env, frame: str, axis: int) -> np.ndarray:
+    """World direction of a frame's x, y or z axis, per world."""
+    from agnostos_mjx.math3d import quat_rotate
+
+    return np.asarray(quat_rotate(np.asarray(env.obs.quat(frame), np.float64), np.eye(3)[axis]))
