@@ -20,6 +20,8 @@ DESCRIPTIONS = [
                                "maintaining separation between them"),
     ("basketball_in_hoop", 1, 0, 0, "put the ball in the hoop"),
     ("basketball_in_hoop", 1, 0, 5, "place the basket ball through the hoop"),
+    ("scoop_with_spatula", 1, 0, 0, "scoop up the cube and lift it with the spatula"),
+    ("scoop_with_spatula", 1, 0, 5, "pick up the block using the spatula"),
 ]
 
 
@@ -98,6 +100,29 @@ def test_basketball_dropped_beside_the_hoop_misses():
     assert (env.outcome == Outcome.RUNNING).all()
     ball_z = np.asarray(env.obs.pos("ball"))[:, 2]
     assert (ball_z < 0.752 + 0.2).all(), "the released ball falls"
+
+
+@_needs("scoop_with_spatula")
+def test_scoop_lifts_the_cube_on_the_blade_and_needs_the_grasp():
+    """Pushing slides the blade under the cube (it is not shoved away); lifting
+    without holding the spatula (closing beside the handle) is no success."""
+    ep, env, actions = _reset("scoop_with_spatula")
+    cube0 = np.asarray(env.obs.pos("scoop_cube")).copy()
+    for k in range(3):  # above the handle, grasp, push
+        env = _step(ep, env, actions, k)
+    cube = np.asarray(env.obs.pos("scoop_cube"))
+    assert np.linalg.norm(cube[:, :2] - cube0[:, :2], axis=1).max() < 0.06  # blade: 15 cm
+    assert (cube[:, 2] > cube0[:, 2] + 0.0005).all(), "the cube sits on the blade"
+    env = _step(ep, env, actions, 3)
+    assert (env.outcome == Outcome.SUCCESS).all()
+
+    ep, env, actions = _reset("scoop_with_spatula")
+    beside = np.array(actions.pos[:, 1]) + np.array([0.0, 0.0, 0.05])
+    env = _step(ep, env, actions, 1, pos=beside)  # closes in the air above the handle
+    assert not env.attached.any()
+    for k in (2, 3):
+        env = _step(ep, env, actions, k)
+    assert (env.outcome == Outcome.RUNNING).all()
 
 
 def _root_axis(env, frame: str, axis: int) -> np.ndarray:
