@@ -22,6 +22,9 @@ DESCRIPTIONS = [
     ("basketball_in_hoop", 1, 0, 5, "place the basket ball through the hoop"),
     ("scoop_with_spatula", 1, 0, 0, "scoop up the cube and lift it with the spatula"),
     ("scoop_with_spatula", 1, 0, 5, "pick up the block using the spatula"),
+    ("straighten_rope", 1, 0, 0, "straighten rope"),
+    # the original's typo "is is" is kept: the strings are verbatim, not the instruction
+    ("straighten_rope", 1, 0, 3, "pull each end of the rope until is is straight"),
 ]
 
 
@@ -123,6 +126,37 @@ def test_scoop_lifts_the_cube_on_the_blade_and_needs_the_grasp():
     for k in (2, 3):
         env = _step(ep, env, actions, k)
     assert (env.outcome == Outcome.RUNNING).all()
+
+
+@_needs("straighten_rope")
+def test_rope_head_alone_is_not_enough_and_the_chain_holds():
+    """Dragging only the head onto its patch is no success (both ends must
+    be detected); the dragged rope stays one chain of 18 links."""
+    ep, env, actions = _reset("straighten_rope")
+    for k in range(4, 8):  # the head's four actions only
+        env = _step(ep, env, actions, k)
+    assert (env.outcome == Outcome.RUNNING).all()
+    task = get_task("straighten_rope")
+    head = np.asarray(env.obs.pos(task.objects["rope head"]))
+    target = np.asarray(env.obs.pos("rope_success_head"))
+    assert np.linalg.norm(head[:, :2] - target[:, :2], axis=1).max() < 0.05
+    data = mujoco_data(ep, env, 0)
+    links = np.array([data.body(f"rope_{i}").xpos for i in range(18)])
+    gaps = np.linalg.norm(np.diff(links, axis=0), axis=1)
+    assert ((gaps > 0.019) & (gaps < 0.027)).all(), gaps  # links ~0.023 m apart
+
+
+def mujoco_data(ep, env, world: int):
+    """An MjData holding one world's state, kinematics computed."""
+    import mujoco
+
+    m = ep.scene.model
+    data = mujoco.MjData(m)
+    data.qpos[:] = env.physics.qpos[world]
+    data.mocap_pos[:] = env.physics.mocap_pos[world]
+    data.mocap_quat[:] = env.physics.mocap_quat[world]
+    mujoco.mj_kinematics(m, data)
+    return data
 
 
 def _root_axis(env, frame: str, axis: int) -> np.ndarray:
