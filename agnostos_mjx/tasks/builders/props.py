@@ -122,3 +122,72 @@ def ball(scene: SceneBuilder, name: str, radius: float, mass: float, rgba=WHITE)
                   rgba=[*rgba, 1.0], mass=mass, contype=contype, conaffinity=conaffinity,
                   group=2, condim=6, friction=[1.0, 0.005, 0.0005])
     return body
+
+
+# ---- scoop_with_spatula ----------------------------------------------------------------------
+def spatula(scene: SceneBuilder, name: str, *, blade_half=(0.06, 0.065, 0.0015),
+            blade_pitch: float = 0.09, blade_center=(0.0, -0.154, -0.029),
+            handle_half=(0.007, 0.05, 0.005), mass: float = 0.069,
+            rgba=(0.71, 0.72, 0.70)) -> mujoco.MjsBody:
+    """A spatula whose body origin is the middle of its handle (where it is
+    grasped): a box handle along +y, a neck sloping down to a thin blade
+    toward -y whose front edge is its lowest point (a ramp for what it
+    scoops).  It is gravity compensated and does not touch the table (it
+    hovers where RLBench's model rests it): the front edge may run a hair
+    below the table top and so slide under objects resting there."""
+    body = free_body(scene, name, damping=0.05, gravcomp=1.0)
+    scene.exclude(name, "world")
+    handle = panel(body, handle_half, (0.0, 0.0, 0.0), rgba, name=f"{name}_handle")
+    bx, by, bz = blade_center
+    quat = (np.cos(blade_pitch / 2), np.sin(blade_pitch / 2), 0.0, 0.0)  # front edge down
+    blade = panel(body, blade_half, blade_center, rgba, name=f"{name}_blade", quat=quat)
+    back = (bx, by + blade_half[1] * np.cos(blade_pitch), bz + blade_half[1] * np.sin(blade_pitch))
+    neck = capsule(body, back, (0.0, -handle_half[1], 0.0), 0.004, rgba, name=f"{name}_neck")
+    for geom, share in ((handle, 0.3), (blade, 0.5), (neck, 0.2)):
+        geom.mass = share * mass
+    return body
+
+
+# ---- straighten_rope -------------------------------------------------------------------------
+# Rope links collide with the table (contype 4), the robot (1) and other
+# objects (2), but not with each other, which keeps the contact count small.
+ROPE_COLLISION = (2, 5)
+
+
+def rope(scene: SceneBuilder, name: str, points, *, radius: float = 0.005,
+         masses=None, rgba=(1.0, 0.25, 0.25), damping: float = 0.002,
+         armature: float = 1e-5) -> list[str]:
+    """A rope lying on the table along the 2-D polyline `points` (metres, in
+    the frame the sampler later places the first link in): one capsule link
+    per segment, each a child of the previous one on a ball joint at their
+    shared point, the first on a free joint.  Link frames have x along the
+    segment and z up.  Returns the link body names from first to last."""
+    pts = np.asarray(points, float)
+    masses = masses if masses is not None else [0.025] * (len(pts) - 1)
+    names, parent, parent_pose = [], scene.world, (np.zeros(3), 0.0)
+    for i, (a, b) in enumerate(zip(pts[:-1], pts[1:])):
+        d = b - a
+        half, yaw = np.linalg.norm(d) / 2, np.arctan2(d[1], d[0])
+        center = np.array([*(a + b) / 2, radius])
+        link = f"{name}_{i}"
+        # Pose relative to the parent link (the first link's pose is sampled).
+        p_center, p_yaw = parent_pose
+        c, s = np.cos(-p_yaw), np.sin(-p_yaw)
+        rel = center - p_center
+        rel = (c * rel[0] - s * rel[1], s * rel[0] + c * rel[1], rel[2])
+        dyaw = yaw - p_yaw
+        body = parent.add_body(name=link, pos=list(rel) if i else [0, 0, 0],
+                               quat=[np.cos(dyaw / 2), 0, 0, np.sin(dyaw / 2)] if i else [1, 0, 0, 0])
+        if i == 0:
+            body.add_freejoint(name=f"{link}_free")
+        else:
+            body.add_joint(name=f"{link}_ball", type=mujoco.mjtJoint.mjJNT_BALL, pos=[-half, 0, 0],
+                           damping=damping, armature=armature)
+        shade = 0.75 if i == len(pts) - 2 else 1.0  # the last link (the head) darker
+        body.add_geom(name=f"{link}_geom", type=G.mjGEOM_CAPSULE, size=[radius, half - radius, 0],
+                      quat=[np.sqrt(0.5), 0, np.sqrt(0.5), 0], rgba=[*np.multiply(rgba, shade), 1],
+                      mass=masses[i], contype=ROPE_COLLISION[0], conaffinity=ROPE_COLLISION[1],
+                      group=2, friction=[0.6, 0.005, 0.0001])
+        names.append(link)
+        parent, parent_pose = body, (center, yaw)
+    return names
