@@ -10,7 +10,7 @@ front frame) and returns memory indices, most similar first.  Modes:
   instructions, a model-free lexical baseline;
 * dynamics-model features (``lang``, ``vis.in``, ``vis.out`` and ``+``
   combinations, default ``lang+vis.out``), cosine over L2-normalised parts,
-  or the original's raw dot product with ``metric="dot"``.
+  or the original's raw dot product with ``metric="dot"`` (dynamics_selector.py).
 """
 
 from __future__ import annotations
@@ -77,24 +77,6 @@ class TextSelector:
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
         return [top_k(self._vectors @ text_vector(q.instruction), k) for q in queries]
-
-
-def combine(features: dict[str, np.ndarray], mode: str, normalise: bool) -> np.ndarray:
-    """Concatenate the parts named in `mode` ("lang+vis.out"), each L2-normalised
-    when `normalise` (cosine similarity); raw for the original's dot product."""
-    parts = mode.split("+")
-    unknown = [p for p in parts if p not in FEATURE_PARTS]
-    if unknown:
-        raise ValueError(f"unknown feature part(s) {unknown}; use {', '.join(FEATURE_PARTS)}")
-    out = []
-    for p in parts:
-        if p not in features:
-            raise KeyError(f"feature {p!r} missing (have {', '.join(features)})")
-        f = np.asarray(features[p], np.float32)
-        if normalise:
-            f = f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-8)
-        out.append(f)
-    return np.concatenate(out, -1)
 
 
 def make_selector(mode: str, memory: DemoMemory, **kwargs) -> Selector:
