@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar, warnings-only logging (the table is still printed)")
     llm = p.add_argument_group("X-ICM and retrieval")
     llm.add_argument("--llm-url", default=None,
-                     help="OpenAI-compatible base URL, e.g. http://localhost:8000/v1 "
+                     help="OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or "
+                          "'vllm:' for an in-process vLLM engine (extra 'vllm') "
                           "(default: $AGNOSTOS_LLM_URL); the key comes from "
                           "$AGNOSTOS_LLM_API_KEY or $OPENAI_API_KEY")
     llm.add_argument("--llm-model", default=None,

@@ -204,3 +204,20 @@ def test_bad_answers_and_dead_requests_end_episodes_with_reasons(memory_file, tm
         records = [json.loads(line) for line in (out / "episodes.jsonl").open()]
         expected = "bad_llm_output" if reason == "garbage" else "llm_error"
         assert [r["outcome"] for r in records] == [expected] * 2
+
+
+def test_vllm_engine_without_vllm_is_a_clear_error(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_vllm(name, *args, **kwargs):
+        if name == "vllm":
+            raise ImportError("no vllm")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_vllm)
+    from agnostos_mjx.llm.vllm_engine import VLLMEngine
+
+    with pytest.raises(LLMConfigError, match="needs vLLM"):
+        VLLMEngine(LLMConfig(url="vllm:", model="Qwen/Qwen2.5-7B-Instruct"))

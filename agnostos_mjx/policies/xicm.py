@@ -59,7 +59,12 @@ class XICMPolicy(PlanningPolicy):
             if config is None:
                 raise LLMConfigError("X-ICM needs an LLM: pass --llm-url and --llm-model or set "
                                      "AGNOSTOS_LLM_URL and AGNOSTOS_LLM_MODEL")
-            client = ChatClient(config)
+            if config.url.startswith("vllm:"):
+                from agnostos_mjx.llm.vllm_engine import VLLMEngine
+
+                client = VLLMEngine(config)
+            else:
+                client = ChatClient(config)
             client.preflight()
         self.client = client
         self.memory = DemoMemory.load(memory or default_memory_path())
