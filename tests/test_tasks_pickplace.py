@@ -46,6 +46,8 @@ def met(name: str, obs: Observation, variation: int = 0) -> np.ndarray:
     ("put_knife_on_chopping_board", 1, 0, "put the knife on the chopping board"),
     ("put_toilet_roll_on_stand", 1, 0, "put toilet roll on stand"),
     ("put_umbrella_in_umbrella_stand", 1, 0, "put umbrella in umbrella stand"),
+    ("put_books_on_bookshelf", 3, 0, "put 1 books on bookshelf"),
+    ("put_books_on_bookshelf", 3, 2, "put 3 books on bookshelf"),
 ])
 def test_variations_and_first_description(name, count, variation, first):
     task = get_task(name)
@@ -139,3 +141,26 @@ def test_umbrella_rests_level_across_the_stand():
     assert np.abs(axis[:, 2]).max() < 0.02
     height = np.asarray(env.initial_obs.pos("umbrella"))[:, 2] - 0.752
     np.testing.assert_allclose(height, 0.214, atol=0.004)
+
+
+def test_books_descriptions_count_books():
+    assert get_task("put_books_on_bookshelf").descriptions(1) == [
+        "put 2 books on bookshelf", "pick up 2 books and place them on the top shelf",
+        "stack 2 books up on the top shelf"]
+
+
+@pytest.mark.parametrize("variation, on_shelf, expected", [
+    (0, ("book2",), True),
+    (0, ("book0",), False),  # the first book of RLBench's order is book2
+    (1, ("book2",), False),
+    (1, ("book2", "book1"), True),
+    (2, ("book2", "book1"), False),
+    (2, ("book2", "book1", "book0"), True),
+])
+def test_books_success_needs_the_first_n_of_the_order(variation, on_shelf, expected):
+    obs = reset("put_books_on_bookshelf", variation).initial_obs
+    assert not met("put_books_on_bookshelf", obs, variation).any()
+    shelf = jax.vmap(lambda o: o.pos("success"))(obs)
+    for book in on_shelf:
+        obs = moved(obs, book, shelf)
+    assert (met("put_books_on_bookshelf", obs, variation) == expected).all()

@@ -75,6 +75,25 @@ def open_container(body: mujoco.MjsBody, name: str, pos, inner_radius: float, he
     return geoms
 
 
+def shelf_unit(body: mujoco.MjsBody, name: str, pos, half, shelf_top: float, height: float,
+               rgba, board: float = 0.012, wall: float = 0.008) -> None:
+    """A shelf unit open at the front (+y) and, above its shelf board (top
+    face at `shelf_top`), open at the top: sides, back, bottom and shelf
+    boards.  Adds a site `name` at the middle of the shelf board."""
+    x, y, z = pos
+    hx, hy = half
+    panel(body, (hx, hy, board / 2), (x, y, z + board / 2), rgba, name=f"{name}_bottom")
+    panel(body, (hx - wall, hy, board / 2), (x, y, z + shelf_top - board / 2), rgba,
+          name=f"{name}_shelf")
+    for side in (-1, 1):
+        panel(body, (wall / 2, hy, height / 2), (x + side * (hx - wall / 2), y, z + height / 2),
+              rgba, name=f"{name}_side{(side + 1) // 2}")
+    panel(body, (hx, wall / 2, height / 2), (x, y - hy + wall / 2, z + height / 2), rgba,
+          name=f"{name}_back")
+    body.add_site(name=name, pos=[x, y, z + shelf_top], size=[0.005, 0, 0], rgba=[0, 0, 0, 0],
+                  group=4)
+
+
 def volume(body: mujoco.MjsBody, name: str, center, half) -> tuple[float, float, float]:
     """An invisible box sensor volume (RLBench proximity sensor) as a site;
     returns its half extents for `Detected`."""
