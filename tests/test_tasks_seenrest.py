@@ -181,3 +181,41 @@ def test_wine_in_its_slot_and_released(variation, slot_x):
     held = Observation(laid.data, laid.layout, jnp.ones(1, bool))
     assert not met(task.success(jnp.int32(variation)), start, held)
     assert not any(met(task.success(jnp.int32(v)), start) for v in range(3))
+
+
+# ---- place_shape_in_shape_sorter -------------------------------------------------------------
+SORTER = (0.0, -0.15)  # sorter centre, root frame
+LID_TOP = 0.143
+
+
+@needs("place_shape_in_shape_sorter")
+def test_shape_sorter_cube_drops_through_its_hole_only():
+    name = "place_shape_in_shape_sorter"
+    task = get_task(name)
+    start = posed(name)
+    above_hole = (SORTER[0] - 0.049, SORTER[1] + 0.049, LID_TOP + 0.03)
+    dropped = posed(name, free={"cube": above_hole}, steps=300)
+    assert float(dropped.pos("cube")[2]) < TABLE_Z + 0.03  # fell onto the floor inside
+    assert [met(task.success(jnp.int32(v)), start, dropped) for v in range(5)] == [
+        True, False, False, False, False]
+    # Over solid lid, the cube stays on top and does not count.
+    on_lid = posed(name, free={"cube": (SORTER[0] + 0.06, SORTER[1], LID_TOP + 0.03)}, steps=300)
+    assert float(on_lid.pos("cube")[2]) > TABLE_Z + LID_TOP
+    assert not met(task.success(jnp.int32(0)), start, on_lid)
+
+
+# ---- put_groceries_in_cupboard -----------------------------------------------------------
+@needs("put_groceries_in_cupboard")
+def test_groceries_on_the_bottom_shelf_count_once_released():
+    name = "put_groceries_in_cupboard"
+    task = get_task(name)
+    start = posed(name)
+    shelved = posed(name, free={"soup": (0.10, 0.0, 0.015 + 0.035 + 0.005)}, steps=200)
+    soup = 3
+    assert [met(task.success(jnp.int32(v)), start, shelved) for v in range(9)] == [
+        v == soup for v in range(9)]
+    held = Observation(shelved.data, shelved.layout, jnp.zeros(9, bool).at[soup].set(True))
+    assert not met(task.success(jnp.int32(soup)), start, held)
+    # On the shelf above the bottom compartment it does not count.
+    upper = posed(name, free={"soup": (0.10, 0.0, 0.27 + 0.035 + 0.005)}, steps=200)
+    assert not met(task.success(jnp.int32(soup)), start, upper)

@@ -1,0 +1,150 @@
+"""place_shape_in_shape_sorter (seen): drop one of five shapes through its hole in the sorter."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from agnostos_mjx.conditions import Detected, Select
+from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.base import (
+    Placement,
+    Split,
+    Task,
+    in_frame,
+    key_actions,
+    place_root,
+    sample_on_plane,
+)
+from agnostos_mjx.tasks.builders.furniture import sensor_volume, shape_sorter, sorter_shape
+
+ROOT = "shape_sorter_root"
+SORTER_XY = (0.0, -0.15)  # root frame, as in RLBench's (x2 scaled) PerAct model
+LID_TOP = 0.143
+
+
+class Shape(NamedTuple):
+    name: str  # body name
+    words: str  # as the language says it
+    rgba: tuple[float, float, float]
+    # Centre relative to the sorter and half sizes: the shape's footprint + 8 mm.
+    hole: tuple[float, float, float, float]
+    period: float  # yaw symmetry the hole needs (0: any yaw passes)
+    half_height: float  # the builder's; centre height when lying on the table
+
+
+SHAPES = (
+    Shape("cube", "cube", (0.0, 0.85, 1.0), (-0.049, 0.049, 0.029, 0.029), jnp.pi / 2, 0.021),
+    Shape("cylinder", "cylinder", (1.0, 0.41, 1.0), (-0.050, -0.048, 0.031, 0.031), 0.0,
+          0.021),
+    Shape("triangular_prism", "triangular prism", (1.0, 0.7, 0.7),
+          (0.050, 0.055, 0.031, 0.028), jnp.pi, 0.0195),
+    Shape("star", "star", (1.0, 0.99, 0.0), (0.0, 0.001, 0.028, 0.028), 0.0, 0.015),
+    Shape("moon", "moon", (0.62, 0.99, 0.60), (0.059, -0.052, 0.030, 0.024), jnp.pi, 0.012),
+)
+NAMES = tuple(s.name for s in SHAPES)
+# RLBench's `boundary` spawn plane (0.421 x 0.301 m at root (0, 0.125)).
+BOUNDARY_CENTER, BOUNDARY_HALF = (0.0, 0.125), (0.2105, 0.1505)
+FOOTPRINT = (0.03, 0.03)  # shapes' half footprint for spawn overlap tests
+VOLUME_HALF = (0.08, 0.08, 0.05)  # RLBench's `success`: 0.16 x 0.16, 0.10 m high
+DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along the frame's y
+CARRY = 0.25  # carrying height above the table, clear of the 0.143 m high sorter
+ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
+
+
+def _nearest(angle, ref, period: float):
+    """The angle equal to `angle` modulo `period` nearest `ref` (ref itself if period is 0)."""
+    if period == 0.0:
+        return ref
+    return ref + (angle - ref) - period * jnp.round((angle - ref) / period)
+
+
+def _down(yaw):
+    return quat_mul(yaw_quat(yaw), DOWN)
+
+
+def _natural_yaw(pos):
+    """The wrist yaw the arm reaches a point with least twist: along the arm."""
+    return jnp.arctan2(pos[1] - ARM_BASE_XY[1], pos[0] - ARM_BASE_XY[0])
+
+
+class PlaceShapeInShapeSorter(Task):
+    name = "place_shape_in_shape_sorter"
+    split = Split.SEEN
+    num_variations = 5
+    objects = {"cube": "cube", "shape sorter": "shape_sorter"}
+    frames = (ROOT, "success") + NAMES[1:]
+    graspables = NAMES
+    graspable_radius = (0.012,) * 5
+    notes = ("Shapes are built from boxes (the prism from three slabs, the cylinder as an "
+             "octagonal prism; the star and the moon collide through a small box, like "
+             "RLBench's proxies, and show rays and a crescent of boxes); the lid is a "
+             "box plate with a rectangular hole per shape, at RLBench's drop points. The shapes "
+             "weigh 0.1 kg each instead of RLBench's 0.07-6.6 kg: CoppeliaSim's attach makes "
+             "a carried object kinematic, our weld makes the arm carry its mass. The sorter "
+             "stands on the table (RLBench's reaches 4.6 cm below it). The expert carries the "
+             "shape at 0.25 m and turns it to match its hole (cube, prism, moon).")
+
+    def descriptions(self, variation: int) -> list[str]:
+        s = SHAPES[variation].words
+        return [f"put the {s} in the shape sorter", f"pick up the {s} and put it in the sorter",
+                f"place the {s} into its slot in the shape sorter",
+                f"slot the {s} into the shape sorter"]
+
+    def build(self, scene) -> None:
+        root = scene.mocap(ROOT)
+        holder = root.add_body(name="shape_sorter_frame", pos=[*SORTER_XY, 0.0])
+        shape_sorter(holder, "shape_sorter", [s.hole for s in SHAPES], height=LID_TOP)
+        sensor_volume(holder, "success", VOLUME_HALF, (0.0, 0.0, VOLUME_HALF[2] - 0.001))
+        for s in SHAPES:
+            assert sorter_shape(scene, s.name, s.name, s.rgba) == s.half_height
+
+    def sample(self, key, variation) -> Placement:
+        k_root, k_shapes = jax.random.split(key)
+        pos, quat = place_root(k_root, (0.211, 0.263), jnp.pi, offset=(0.0, 0.0125))
+        bodies, placed = {ROOT: (pos, quat)}, []
+        for s, k in zip(SHAPES, jax.random.split(k_shapes, len(SHAPES))):
+            xy, yaw = sample_on_plane(k, FOOTPRINT, jnp.pi, plane_center=BOUNDARY_CENTER,
+                                      plane_half=BOUNDARY_HALF, others=tuple(placed),
+                                      min_distance=0.05)
+            placed.append((xy, yaw, jnp.asarray(FOOTPRINT)))
+            local = jnp.array([xy[0], xy[1], s.half_height])
+            bodies[s.name] = (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))
+        return Placement(bodies=bodies)
+
+    def success(self, variation):
+        return Select(tuple(Detected(n, "success", VOLUME_HALF, radius=0.01) for n in NAMES),
+                      variation)
+
+    def expert(self, obs, variation):
+        shape = jnp.stack([obs.pos(n) for n in NAMES])[variation]
+        q = jnp.stack([obs.quat(n) for n in NAMES])[variation]
+        shape_yaw = 2.0 * jnp.arctan2(q[3], q[0])  # shapes lie flat: yaw only
+        root_q = obs.quat(ROOT)
+        root_yaw = 2.0 * jnp.arctan2(root_q[3], root_q[0])
+        holes = jnp.asarray([[SORTER_XY[0] + s.hole[0], SORTER_XY[1] + s.hole[1]]
+                             for s in SHAPES])
+        half = jnp.asarray([s.half_height for s in SHAPES])[variation]
+        hole = in_frame(obs, ROOT, jnp.concatenate([holes[variation], jnp.zeros(1)]))
+        # Grasp with the least wrist twist the shape's symmetry allows, then
+        # turn it so it lines up with its hole (the grasp keeps the relative yaw).
+        grasp_yaw, drop_yaw = _natural_yaw(shape), _natural_yaw(hole)
+        for v, s in enumerate(SHAPES):
+            g = _nearest(shape_yaw, _natural_yaw(shape), s.period)
+            d = _nearest(g + root_yaw - shape_yaw, _natural_yaw(hole), s.period)
+            grasp_yaw = jnp.where(variation == v, g, grasp_yaw)
+            drop_yaw = jnp.where(variation == v, d, drop_yaw)
+        table = obs.pos(ROOT)[2]
+        at = lambda p, z: p.at[2].set(table + z)  # noqa: E731
+        return key_actions([
+            (shape + jnp.array([0.0, 0.0, 0.075]), _down(grasp_yaw), 1.0),  # above (wp0)
+            (shape, _down(grasp_yaw), 0.0),  # grasp (wp1)
+            (at(shape, CARRY), _down(grasp_yaw), 0.0),  # lift (wp2)
+            (at(hole, CARRY), _down(drop_yaw), 0.0),  # above the hole (wp3)
+            (at(hole, LID_TOP + half + 0.012), _down(drop_yaw), 1.0),  # at the hole, drop (wp4)
+        ])
+
+
+TASK = PlaceShapeInShapeSorter()

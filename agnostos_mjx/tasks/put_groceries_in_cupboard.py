@@ -1,0 +1,157 @@
+"""put_groceries_in_cupboard (seen): pick one of nine groceries and put it in the cupboard."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
+from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.base import (
+    TABLE_Z,
+    Placement,
+    Split,
+    Task,
+    in_frame,
+    key_actions,
+    place_root,
+    sample_on_plane,
+)
+from agnostos_mjx.tasks.builders.furniture import cupboard, grocery, sensor_volume
+
+
+class Grocery(NamedTuple):
+    name: str  # body name (RLBench's, spaces as underscores)
+    words: str  # as the language says it
+    size: tuple[float, float, float]  # full size; cans: (diameter, diameter, height)
+    rgba: tuple[float, float, float]
+    round_: bool = False
+
+
+GROCERIES = (
+    Grocery("crackers", "crackers", (0.075, 0.03, 0.10), (0.85, 0.2, 0.1)),
+    Grocery("chocolate_jello", "chocolate jello", (0.05, 0.035, 0.045), (0.45, 0.25, 0.1)),
+    Grocery("strawberry_jello", "strawberry jello", (0.055, 0.04, 0.045), (0.95, 0.4, 0.5)),
+    Grocery("soup", "soup", (0.05, 0.05, 0.07), (0.8, 0.1, 0.1), True),
+    Grocery("tuna", "tuna", (0.06, 0.06, 0.035), (0.2, 0.4, 0.7), True),
+    Grocery("spam", "spam", (0.06, 0.035, 0.05), (0.2, 0.3, 0.6)),
+    Grocery("coffee", "coffee", (0.06, 0.06, 0.08), (0.15, 0.2, 0.4), True),
+    Grocery("mustard", "mustard", (0.055, 0.035, 0.10), (1.0, 0.85, 0.1)),
+    Grocery("sugar", "sugar", (0.06, 0.03, 0.09), (0.95, 0.95, 0.8)),
+)
+NAMES = tuple(g.name for g in GROCERIES)
+ROOT = "cupboard_root"  # RLBench's `boundary_root` proxy
+FLOOR, CLEAR = 0.015, 0.2375  # the cupboard builder's bottom compartment (floor, clear height)
+DEPTH, WIDTH = 0.20, 0.36
+VOLUME_HALF = (DEPTH / 2 - 0.015, WIDTH / 2 - 0.015, CLEAR / 2)
+GRASP_BELOW_TOP = 0.02  # the tip 2 cm below the top: the pads hold the top 6 cm
+# Groceries spawn in front of the opening (root frame), 0.14 m clear of it.
+SPAWN_CENTER, SPAWN_HALF = (-0.31, 0.0), (0.17, 0.30)
+# Root footprint for placement: the cupboard and the near part of the spawn area
+# (the whole scene does not fit our inferred workspace; see notes).
+ROOT_CENTER, ROOT_HALF = (-0.08, 0.0), (0.20, 0.25)
+DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along the frame's y
+ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
+
+
+def _grasp_height(g: Grocery) -> float:
+    """Grasp point above the item's centre: near its top, never below the centre."""
+    return max(g.size[2] / 2 - GRASP_BELOW_TOP, 0.0)
+
+
+def _natural_yaw(pos):
+    return jnp.arctan2(pos[1] - ARM_BASE_XY[1], pos[0] - ARM_BASE_XY[0])
+
+
+def _down(yaw):
+    return quat_mul(yaw_quat(yaw), DOWN)
+
+
+class PutGroceriesInCupboard(Task):
+    name = "put_groceries_in_cupboard"
+    split = Split.SEEN
+    num_variations = 9
+    objects = {"cupboard": "cupboard", "cracker": "crackers"}
+    frames = (ROOT, "success") + NAMES[1:]
+    graspables = NAMES
+    grasp_points = tuple(f"{n}_grasp_point" for n in NAMES)
+    graspable_radius = (0.012,) * 9
+    notes = ("RLBench's scene model is not documented: this layout is designed (unverified). A "
+             "white open cupboard (0.20 x 0.36 x 0.50 m, open towards the root's -x) with a "
+             "bottom compartment (the `success` volume) and a shelf; nine upright groceries "
+             "built from boxes and octagonal cans in YCB-like colours, about half YCB size. "
+             "RLBench's code samples the groceries over the whole `workspace` (min distance "
+             "0.1 m, any yaw); we sample them (same distance, any yaw) on a 0.34 x 0.60 m area "
+             "in front of the opening, since a straight-line controller cannot route around "
+             "the cupboard. The root is placed with yaw +-1 rad using a footprint of the "
+             "cupboard and the near part of that area; unreachable scenes are resampled. "
+             "The expert grasps from above and slides the item into "
+             "the bottom compartment at its floor height; only the hand and fingers collide "
+             "(the arm is visual), so the forearm may show through the shelf.")
+
+    def descriptions(self, variation: int) -> list[str]:
+        g = GROCERIES[variation].words
+        return [f"put the {g} in the cupboard", f"pick up the {g} and place it in the cupboard",
+                f"move the {g} to the bottom shelf", f"put away the {g} in the cupboard"]
+
+    def build(self, scene) -> None:
+        root = scene.mocap(ROOT)
+        floor, clear = cupboard(root, "cupboard", depth=DEPTH, width=WIDTH)
+        assert (floor, round(clear, 6)) == (FLOOR, CLEAR)
+        sensor_volume(root, "success", VOLUME_HALF, (DEPTH / 2, 0.0, FLOOR + CLEAR / 2))
+        for g in GROCERIES:
+            body = grocery(scene, g.name, g.size, g.rgba, g.round_)
+            body.add_site(name=f"{g.name}_grasp_point", pos=[0.0, 0.0, _grasp_height(g)],
+                          size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=4)
+
+    def sample(self, key, variation) -> Placement:
+        k_root, k_items = jax.random.split(key)
+        pos, quat = place_root(k_root, ROOT_HALF, 1.0, offset=ROOT_CENTER)
+        bodies, placed = {ROOT: (pos, quat)}, []
+        for g, k in zip(GROCERIES, jax.random.split(k_items, len(GROCERIES))):
+            half = (g.size[0] / 2, g.size[1] / 2)
+            xy, yaw = sample_on_plane(k, half, jnp.pi, plane_center=SPAWN_CENTER,
+                                      plane_half=SPAWN_HALF, others=tuple(placed),
+                                      min_distance=0.1, tries=256)
+            placed.append((xy, yaw, jnp.asarray(half)))
+            local = jnp.array([xy[0], xy[1], g.size[2] / 2])
+            bodies[g.name] = (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))
+        return Placement(bodies=bodies)
+
+    def success(self, variation):
+        inside = tuple(Detected(n, "success", VOLUME_HALF, radius=0.01) for n in NAMES)
+        return all_of([Select(inside, variation), NothingGrasped()])
+
+    def expert(self, obs, variation):
+        grasp = jnp.stack([obs.pos(f"{n}_grasp_point") for n in NAMES])[variation]
+        q = jnp.stack([obs.quat(n) for n in NAMES])[variation]
+        item_yaw = 2.0 * jnp.arctan2(q[3], q[0])  # upright: yaw only
+        # Boxes are gripped across their thin side (y): a half turn is the same
+        # grasp; cans in any yaw.  Choose the least wrist twist.
+        natural = _natural_yaw(grasp)
+        boxed = ~jnp.asarray([g.round_ for g in GROCERIES])[variation]
+        grasp_yaw = jnp.where(boxed, natural + jnp.mod(item_yaw - natural + jnp.pi / 2, jnp.pi)
+                              - jnp.pi / 2, natural)
+        # Height of the grasp point above the item's bottom.
+        hold = jnp.asarray([g.size[2] / 2 + _grasp_height(g) for g in GROCERIES])[variation]
+        inside = in_frame(obs, ROOT, (DEPTH / 2 - 0.01, 0.0, FLOOR + hold + 0.01))
+        front = in_frame(obs, ROOT, (-0.06, 0.0, FLOOR + hold + 0.01))
+        root_q = obs.quat(ROOT)
+        put_yaw = 2.0 * jnp.arctan2(root_q[3], root_q[0])  # fingers across the opening
+        put_yaw = _natural_yaw(inside) + jnp.mod(put_yaw - _natural_yaw(inside) + jnp.pi / 2,
+                                                 jnp.pi) - jnp.pi / 2
+        lift = TABLE_Z + 0.13 + hold  # the item's bottom above the other groceries
+        return key_actions([
+            (grasp + jnp.array([0.0, 0.0, 0.08]), _down(grasp_yaw), 1.0),  # above the item
+            (grasp, _down(grasp_yaw), 0.0),  # grasp (wp1 = the grasp point)
+            (grasp.at[2].set(lift), _down(grasp_yaw), 0.0),  # lift
+            (front.at[2].set(lift), _down(put_yaw), 0.0),  # in front of the cupboard
+            (front, _down(put_yaw), 0.0),  # down to the compartment's floor height
+            (inside, _down(put_yaw), 1.0),  # slide in, release
+            (front, _down(put_yaw), 1.0),  # retreat
+        ])
+
+
+TASK = PutGroceriesInCupboard()
