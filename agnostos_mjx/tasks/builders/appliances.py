@@ -28,6 +28,9 @@ GRILL_HALF_Y = 0.276
 GRILL_RIM_Z = 0.293
 GRATE_Z = 0.276
 GRILL_LID_HINGE = (0.319, -0.116, 0.293)
+# RLBench places the grill through its `grill_root` plane (0.325 x 0.455 m at
+# x = 0.125), smaller than the grill itself: (half extents, centre) for place_root.
+GRILL_BOUNDARY_HALF, GRILL_BOUNDARY_CENTER = (0.1625, 0.2275), (0.125, 0.0)
 
 
 def _site(body: mujoco.MjsBody, name: str, pos) -> None:
