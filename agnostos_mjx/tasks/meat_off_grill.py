@@ -39,10 +39,8 @@ HOVER, LIFT = 0.1, 0.15
 
 def _chicken(body: mujoco.MjsBody) -> None:
     """A drumstick along x: a meaty capsule and a bone end (visual)."""
-    meat = body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.022, 0.03, 0],
-                         quat=[0.7071068, 0, 0.7071068, 0], rgba=[0.85, 0.6, 0.35, 1],
-                         contype=2, conaffinity=3, group=2, mass=0.1)
-    meat.name = "chicken_meat"
+    rod(body, (-0.03, 0, 0), (0.03, 0, 0), 0.022, (0.85, 0.6, 0.35), collide=True,
+        name="chicken_meat").mass = 0.1
     rod(body, (0.03, 0, 0), (0.075, 0, 0), 0.007, (0.95, 0.93, 0.85))
 
 
