@@ -70,7 +70,7 @@ class CloseFridge(Task):
     name = "close_fridge"
     split = Split.LEVEL1
     objects = {"fridge base": "fridge_base", "fridge top door": "fridge_door_top_center",
-               "fridge bottom door": "fridge_door_bottom"}
+               "fridge bottom door": "fridge_door_bottom_center"}
     frames = ("fridge_root",)
     joints = ("fridge_door_top_joint", "fridge_door_bottom_joint")
     notes = ("Primitive fridge (panels). RLBench's two waypoints sweep from outside the open "

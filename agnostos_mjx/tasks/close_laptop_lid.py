@@ -31,9 +31,10 @@ FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.2, 0.156), (-0.014, -0.068)
 
 
 def _polar(angle: float, radius: float) -> tuple[float, float, float]:
-    """Root-frame point at `radius` from the hinge, `angle` from upright towards -y."""
-    x, y, z = LAPTOP_HINGE
-    return (x - 0.009, y - radius * math.sin(angle), z + radius * math.cos(angle))
+    """Root-frame point at `radius` from the hinge, `angle` from upright
+    towards -y, in RLBench's waypoint plane x = -0.039."""
+    _, y, z = LAPTOP_HINGE
+    return (-0.039, y - radius * math.sin(angle), z + radius * math.cos(angle))
 
 
 class CloseLaptopLid(Task):

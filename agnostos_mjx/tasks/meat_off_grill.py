@@ -19,7 +19,13 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.appliances import GRATE_Z, GRILL_X, grill
+from agnostos_mjx.tasks.builders.appliances import (
+    GRATE_Z,
+    GRILL_BOUNDARY_CENTER,
+    GRILL_BOUNDARY_HALF,
+    GRILL_X,
+    grill,
+)
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 MEATS = ("chicken", "steak")
@@ -27,18 +33,14 @@ GRILL_CX = (GRILL_X[0] + GRILL_X[1]) / 2
 MEAT_Y = (-0.1, 0.1)  # on the grate, root frame
 # The "beside the grill" sensor: a box on the table in front of the grill.
 SUCCESS_POS, SUCCESS_HALF = (-0.05, 0.0, 0.05), (0.1, 0.2, 0.05)
-# Footprint: grill x[0.114, 0.321] plus the sensor x[-0.15, 0.05], y +-0.276.
-FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.2355, 0.276), (0.0855, 0.0)
 DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # fingers along the meat's y (its short side)
 HOVER, LIFT = 0.1, 0.15
 
 
 def _chicken(body: mujoco.MjsBody) -> None:
     """A drumstick along x: a meaty capsule and a bone end (visual)."""
-    meat = body.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.022, 0.03, 0],
-                         quat=[0.7071068, 0, 0.7071068, 0], rgba=[0.85, 0.6, 0.35, 1],
-                         contype=2, conaffinity=3, group=2, mass=0.1)
-    meat.name = "chicken_meat"
+    rod(body, (-0.03, 0, 0), (0.03, 0, 0), 0.022, (0.85, 0.6, 0.35), collide=True,
+        name="chicken_meat").mass = 0.1
     rod(body, (0.03, 0, 0), (0.075, 0, 0), 0.007, (0.95, 0.93, 0.85))
 
 
@@ -74,7 +76,10 @@ class MeatOffGrill(Task):
     notes = ("Scene layout undocumented in the spec: designed here. The grill of open_grill "
              "without its lid; chicken (drumstick) and steak lie on the grate, 0.2 m apart; the "
              "'success' sensor is a 0.2 x 0.4 x 0.1 m box on the table in front of the grill. "
-             "Expert: top-down grasp, lift, carry to the front, release 3 cm above the table (RLBench's waypoints are undocumented).")
+             "The root is placed through open_grill's grill_root proxy with any yaw (RLBench's "
+             "default). Expert: top-down grasp, lift, carry to the front, release 3 cm above "
+             "the table (RLBench's waypoints are undocumented). As in X-ICM's name map, the "
+             "text lists the chicken and the grill, also in the steak variation.")
 
     def descriptions(self, variation: int) -> list[str]:
         m = MEATS[variation]
@@ -92,7 +97,7 @@ class MeatOffGrill(Task):
             shape(body)
 
     def sample(self, key, variation) -> Placement:
-        pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
+        pos, quat = place_root(key, GRILL_BOUNDARY_HALF, jnp.pi, offset=GRILL_BOUNDARY_CENTER)
         bodies = {"meat_off_grill_root": (pos, quat)}
         for name, y, half_h in zip(MEATS, MEAT_Y, (0.022, 0.01)):
             local = jnp.array([GRILL_CX, y, GRATE_Z + half_h + 0.001])

@@ -7,7 +7,12 @@ import jax.numpy as jnp
 from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.appliances import grill, grill_lid
+from agnostos_mjx.tasks.builders.appliances import (
+    GRILL_BOUNDARY_CENTER,
+    GRILL_BOUNDARY_HALF,
+    grill,
+    grill_lid,
+)
 
 # Gripper horizontal, approaching the handle along the root's +x, fingers
 # closing vertically around the bar.
@@ -45,8 +50,7 @@ class OpenGrill(Task):
         grill_lid(scene, root)
 
     def sample(self, key, variation) -> Placement:
-        # RLBench places the `grill_root` plane (0.325 x 0.455 m at x = 0.125) with yaw +-pi/2.
-        pos, quat = place_root(key, (0.1625, 0.2275), jnp.pi / 2, offset=(0.125, 0.0))
+        pos, quat = place_root(key, GRILL_BOUNDARY_HALF, jnp.pi / 2, offset=GRILL_BOUNDARY_CENTER)
         return Placement(bodies={"grill_root": (pos, quat)})
 
     def success(self, variation):

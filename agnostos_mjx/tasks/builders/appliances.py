@@ -3,8 +3,9 @@
 Each builder lays its piece out in the parent frame at the positions of the
 RLBench scene model (spec section of the task that uses it), so a task only
 places the root.  Moving parts reuse `hinged_door`; the builders add what a
-plain panel lacks (handles, rims) and sites where observers and experts need
-a point: `<name>_handle`, `<name>_hinge`, visual centres.
+plain panel lacks (handles, rims, tilted or free-swinging parts) and sites at
+visual centres, where X-ICM's text places an object whose body frame sits on
+a hinge.
 """
 
 from __future__ import annotations
@@ -21,12 +22,15 @@ GRILL_LID_RGBA = (0.4, 0.4, 0.4)
 GRATE_RGBA = (0.59, 0.59, 0.59)
 HANDLE_RGBA = (0.5, 0.5, 0.5)
 # The barbecue of open_grill (root frame): firebox x[0.114, 0.321], y +-0.276,
-# rim at z 0.293, grate at z 0.273, lid hinged on the back edge over y < 0.03.
+# rim at z 0.293, grate top at z 0.276, lid hinged on the back edge over y < 0.03.
 GRILL_X = (0.114, 0.321)
 GRILL_HALF_Y = 0.276
 GRILL_RIM_Z = 0.293
 GRATE_Z = 0.276
 GRILL_LID_HINGE = (0.319, -0.116, 0.293)
+# RLBench places the grill through its `grill_root` plane (0.325 x 0.455 m at
+# x = 0.125), smaller than the grill itself: (half extents, centre) for place_root.
+GRILL_BOUNDARY_HALF, GRILL_BOUNDARY_CENTER = (0.1625, 0.2275), (0.125, 0.0)
 
 
 def _site(body: mujoco.MjsBody, name: str, pos) -> None:
@@ -64,7 +68,8 @@ def grill(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill") -> m
     return body
 
 
-def grill_lid(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill_lid") -> str:
+def grill_lid(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill_lid",
+              grill_name: str = "grill") -> str:
     """The hinged cover of open_grill over one half of the grate: hinge on the
     back edge about +y (positive opens), a motor of 1 N m at zero speed that
     holds it where it is left, and a bar handle 5 cm in front of its front
@@ -88,10 +93,9 @@ def grill_lid(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill_li
     panel(handle, (0.007, 0.04, 0.007), (0, 0, 0), HANDLE_RGBA).mass = 0.02
     _site(lid, f"{name}_center", (-0.1005, 0.0, 0.0505))
     _site(parent, f"{name}_hinge", hinge)
-    scene.exclude(name, "grill")
-    scene.exclude(f"{name}_handle", "grill")
+    scene.exclude(name, grill_name)
+    scene.exclude(f"{name}_handle", grill_name)
     return joint
-
 
 
 LAPTOP_HINGE = (-0.03, 0.033, 0.115)
@@ -104,8 +108,9 @@ def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") ->
     rear edge about +x; joint 0 = open and leaning back, positive closes.
     The lid passes through the base (no lid-base contact) so that it comes
     to rest on its 105-degree limit rather than on the keyboard at 103,
-    just above the 1.79 rad success threshold.  Sites `<name>_lid_center`,
-    `<name>_hinge`.  Returns the joint name."""
+    just above the 1.79 rad success threshold.  Bodies `<name>_holder`,
+    `<name>_base`, `<name>_lid`; site `<name>_lid_center`.  Returns the joint
+    name."""
     holder = parent.add_body(name=f"{name}_holder", pos=[-0.014, -0.074, 0.049])
     panel(holder, (0.2, 0.15, 0.05), (0, 0, 0), (0.31, 0.19, 0.15))
     base = parent.add_body(name=f"{name}_base", pos=[-0.029, -0.093, 0.106])
@@ -124,7 +129,6 @@ def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") ->
     panel(lid, (0.155, 0.0005, 0.1), (0.003, -0.0005, 0.13), (0.1, 0.12, 0.2),
           collide=False)  # screen
     _site(lid, f"{name}_lid_center", (0.003, 0.0, 0.1225))
-    _site(parent, f"{name}_hinge", LAPTOP_HINGE)
     scene.exclude(f"{name}_lid", f"{name}_base")
     scene.exclude(f"{name}_lid", f"{name}_holder")
     return joint
@@ -140,13 +144,13 @@ def toilet(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "toilet") ->
     the bowl, positive raises it, starting up at TOILET_SEAT_UP.  The seat
     has no contact with the toilet and comes to rest on its limits, so down
     means exactly 0.  Bodies `<name>_bowl`, `<name>_cistern`, `<name>_seat`;
-    sites `<name>_seat_center`, `<name>_hinge`.  Returns the joint name."""
-    bowl = parent.add_body(name=f"{name}_bowl", pos=[-0.005, 0.045, 0.0])
-    panel(bowl, (0.06, 0.08, 0.075), (0, -0.01, 0.075))  # pedestal
-    panel(bowl, (0.1, 0.145, 0.04), (0, 0.0, 0.19))  # bowl
-    panel(bowl, (0.09, 0.13, 0.0015), (0, 0.005, 0.2315), (0.3, 0.5, 0.7),
+    site `<name>_seat_center`.  Returns the joint name."""
+    bowl = parent.add_body(name=f"{name}_bowl", pos=[-0.005, 0.045, 0.2])
+    panel(bowl, (0.06, 0.08, 0.075), (0, -0.01, -0.125))  # pedestal
+    panel(bowl, (0.1, 0.145, 0.04), (0, 0.0, -0.01))  # bowl
+    panel(bowl, (0.09, 0.13, 0.0015), (0, 0.005, 0.0315), (0.3, 0.5, 0.7),
           collide=False)  # water
-    panel(bowl, (0.1, 0.02, 0.015), (0, -0.125, 0.245))  # back joint to the cistern
+    panel(bowl, (0.1, 0.02, 0.015), (0, -0.125, 0.045))  # back joint to the cistern
     cistern = parent.add_body(name=f"{name}_cistern", pos=[-0.004, -0.128, 0.362])
     panel(cistern, (0.1, 0.048, 0.104), (0, 0, 0))
     panel(cistern, (0.015, 0.01, 0.004), (0.06, 0.0, 0.106), (0.7, 0.7, 0.7),
@@ -159,7 +163,6 @@ def toilet(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "toilet") ->
     seat = scene.spec.body(f"{name}_seat")
     scene.spec.joint(joint).damping[0] = 0.002
     _site(seat, f"{name}_seat_center", (0.0, 0.1275, 0.0055))
-    _site(parent, f"{name}_hinge", TOILET_HINGE)
     for part in ("bowl", "cistern"):
         scene.exclude(f"{name}_seat", f"{name}_{part}")
     return joint
@@ -172,13 +175,12 @@ FRIDGE_TOP_OPEN = 0.6981  # rad, 40 degrees as the model saves it
 
 def fridge(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "fridge") -> tuple[str, str]:
     """close_fridge's fridge, front towards the root's -x: a static cabinet
-    (five panels and three shelves, x[0.304, 0.550], y +-0.173, 0.954 m tall)
+    (panels and three shelves, x[0.304, 0.550], y +-0.173, 0.954 m tall)
     and two doors hinged on the right (-y) front edge about +z, positive
     opening: the top door starts open at FRIDGE_TOP_OPEN and is held only by
     RLBench's 0.052 N m motor, the bottom one is closed and stiff (2.64 N m).
     Bodies `<name>_base`, `<name>_door_top`, `<name>_door_bottom`; sites
-    `<name>_hinge` (at the top door's hinge) and `<name>_door_top_center`.
-    Returns the (top, bottom) joint names."""
+    `<name>_door_<level>_center`.  Returns the (top, bottom) joint names."""
     base = parent.add_body(name=f"{name}_base", pos=[0.427, 0.0, 0.476])
     panel(base, (0.005, 0.173, 0.477), (0.118, 0, 0), FRIDGE_RGBA)  # back
     for sy in (-1, 1):
@@ -200,9 +202,8 @@ def fridge(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "fridge") ->
         door = scene.spec.body(f"{name}_door_{level}")
         # A vertical bar handle on the outer face near the free edge.
         rod(door, (-0.065, 0.30, z_off - 0.1), (-0.065, 0.30, z_off + 0.1), 0.008, (0.6, 0.6, 0.6))
+        _site(door, f"{name}_door_{level}_center", (-0.0255, 0.171, z_off))
         scene.exclude(f"{name}_door_{level}", f"{name}_base")
         doors.append(joint)
     scene.exclude(f"{name}_door_top", f"{name}_door_bottom")
-    _site(scene.spec.body(f"{name}_door_top"), f"{name}_door_top_center", (-0.0255, 0.171, 0.0055))
-    _site(parent, f"{name}_hinge", (*FRIDGE_HINGE, 0.670))
     return doors[0], doors[1]
