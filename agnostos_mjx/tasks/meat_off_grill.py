@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import jax.numpy as jnp
 import mujoco
 
-from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
+from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
@@ -46,22 +43,6 @@ def _chicken(body: mujoco.MjsBody) -> None:
 
 def _steak(body: mujoco.MjsBody) -> None:
     panel(body, (0.05, 0.035, 0.01), (0, 0, 0), (0.55, 0.12, 0.1), name="steak_meat").mass = 0.1
-
-
-@dataclass(frozen=True)
-class _Chosen(Condition):
-    """The condition of `conditions` picked by a traced index (the variation)."""
-
-    conditions: tuple[Condition, ...]
-    index: Any
-
-    def init(self, obs0):
-        return tuple(c.init(obs0) for c in self.conditions)
-
-    def step(self, carry, obs):
-        out = [c.step(k, obs) for c, k in zip(self.conditions, carry)]
-        met = jnp.stack([m for _, m in out], -1)
-        return tuple(k for k, _ in out), jnp.take(met, self.index, axis=-1)
 
 
 class MeatOffGrill(Task):
@@ -106,7 +87,7 @@ class MeatOffGrill(Task):
 
     def success(self, variation):
         detected = tuple(Detected(m, "meat_off_grill_success", SUCCESS_HALF) for m in MEATS)
-        return all_of([_Chosen(detected, variation), NothingGrasped()])
+        return all_of([Select(detected, variation), NothingGrasped()])
 
     def expert(self, obs, variation):
         meat = jnp.stack([obs.pos(m) for m in MEATS])[variation]
