@@ -12,18 +12,18 @@ mkdir -p /tmp/agnostos "$OUT"
 case "$1" in
   oracle-native)
     for split in seen unseen; do
-      /usr/bin/time -f "%e s wall" python3 -m agnostos_mjx.eval --policy oracle --tasks $split \
+      t0=$SECONDS; python3 -m agnostos_mjx.eval --policy oracle --tasks $split \
         --variations all --backend native --batch 75 --quiet --out /tmp/agnostos/oracle_$split \
-        2>&1 | tail -60
+        2>&1 | tail -60; echo "wall $((SECONDS - t0)) s"
       tar -C /tmp/agnostos -czf "$OUT/oracle_$split.tgz" oracle_$split
     done ;;
   oracle-warp)
-    /usr/bin/time -f "%e s wall" python3 -m agnostos_mjx.eval --policy oracle --tasks "$2" \
-      --variations all --backend warp --batch 75 --quiet --out /tmp/agnostos/warp_$3 2>&1 | tail -30
+    t0=$SECONDS; python3 -m agnostos_mjx.eval --policy oracle --tasks "$2" \
+      --variations all --backend warp --batch 75 --quiet --out /tmp/agnostos/warp_$3 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
     tar -C /tmp/agnostos -czf "$OUT/warp_$3.tgz" warp_$3 ;;
   bank)
     tasks=$(python3 -c "from agnostos_mjx.tasks import list_tasks; print(','.join(list_tasks('seen')))")
-    /usr/bin/time -f "%e s wall" python3 -m agnostos_mjx.data.generate --out /tmp/agnostos/bank \
-      --tasks "$tasks" --demos "$2" --batch 200 --backend native --quiet 2>&1 | tail -30
+    t0=$SECONDS; python3 -m agnostos_mjx.data.generate --out /tmp/agnostos/bank \
+      --tasks "$tasks" --demos "$2" --batch 200 --backend native --quiet 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
     cp /tmp/agnostos/bank/report.md /tmp/agnostos/bank/manifest.json "$OUT"/ ;;
 esac
