@@ -59,6 +59,34 @@ FOOTPRINT = (0.03, 0.03)  # shapes' half footprint for spawn overlap tests
 VOLUME_HALF = (0.08, 0.08, 0.05)  # RLBench's `success`: 0.16 x 0.16, 0.10 m high
 CARRY = 0.25  # carrying height above the table, clear of the 0.143 m high sorter
 
+FINGER_REACH = 0.05  # open fingers' pads from the tip, along the finger axis
+PAD_CLEARANCE = 0.045  # pad centre to a neighbour's centre
+HAND_REACH = (0.05, 0.075, 0.1)  # points of the hand along the finger axis
+SORTER_KEEPOUT = 0.089 + 0.03  # the sorter's half size plus half the hand's width
+
+
+def _grasp_yaw(pos, yaw, period: float, others, sorter, sorter_yaw):
+    """A grasp yaw whose open pads miss the neighbours and whose hand misses
+    the sorter, least wrist twist first.  Candidates are quarter turns for
+    shapes with a hole orientation (the fingers may hold them either way;
+    the drop turns them by the same relative yaw), eighth turns for shapes
+    any yaw suits.  If none is clear, the one with the most pad clearance."""
+    base = nearest_yaw(yaw, arm_yaw(pos), jnp.pi / 2 if period else 0.0)
+    step, ks = (jnp.pi / 2, (0, -1, 1)) if period else (jnp.pi / 4, (0, -1, 1, -2, 2))
+    candidates = jnp.stack([base + k * step for k in ks])
+    finger = jnp.stack([-jnp.sin(candidates), jnp.cos(candidates)], -1)  # (C, 2)
+    pads = pos[:2] + FINGER_REACH * jnp.stack([finger, -finger], 1)  # (C, 2, 2)
+    gap = jnp.linalg.norm(pads[:, :, None] - others[None, None], axis=-1).min(axis=(1, 2))
+    reach = jnp.asarray(HAND_REACH + tuple(-r for r in HAND_REACH))
+    hand = pos[:2] + reach[None, :, None] * finger[:, None]  # (C, R, 2)
+    c, s = jnp.cos(sorter_yaw), jnp.sin(sorter_yaw)
+    d = hand - sorter[:2]
+    local = jnp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+    hits_sorter = jnp.all(jnp.abs(local) < SORTER_KEEPOUT, -1).any(-1)
+    clear = (gap > PAD_CLEARANCE) & ~hits_sorter
+    best = jnp.where(clear.any(), jnp.argmax(clear), jnp.argmax(gap - hits_sorter))
+    return candidates[best]
+
 
 class PlaceShapeInShapeSorter(Task):
     name = "place_shape_in_shape_sorter"
@@ -74,8 +102,10 @@ class PlaceShapeInShapeSorter(Task):
              "box plate with a rectangular hole per shape, at RLBench's drop points. The shapes "
              "weigh 0.1 kg each instead of RLBench's 0.07-6.6 kg: CoppeliaSim's attach makes "
              "a carried object kinematic, our weld makes the arm carry its mass. The sorter "
-             "stands on the table (RLBench's reaches 4.6 cm below it). The expert carries the "
-             "shape at 0.25 m and turns it to match its hole (cube, prism, moon).")
+             "stands on the table (RLBench's reaches 4.6 cm below it). The expert picks a "
+             "grasp yaw whose open fingers miss the neighbouring shapes and whose hand misses "
+             "the sorter (RLBench's planner avoids them), carries the shape at 0.25 m and "
+             "turns it to match its hole (cube, prism, moon).")
 
     def descriptions(self, variation: int) -> list[str]:
         s = SHAPES[variation].words
@@ -116,11 +146,16 @@ class PlaceShapeInShapeSorter(Task):
                              for s in SHAPES])
         half = jnp.asarray([s.half_height for s in SHAPES])[variation]
         hole = in_frame(obs, ROOT, jnp.concatenate([holes[variation], jnp.zeros(1)]))
-        # Grasp with the least wrist twist the shape's symmetry allows, then
-        # turn it so it lines up with its hole (the grasp keeps the relative yaw).
+        sorter = obs.pos("shape_sorter")
+        others = jnp.stack([obs.pos(n)[:2] for n in NAMES])
+        others = jnp.where((jnp.arange(len(NAMES)) == variation)[:, None], 1e3, others)
+        # Grasp with the least wrist twist while the open fingers miss the
+        # neighbours (RLBench spawns them 5 cm apart) and the hand misses the
+        # sorter, then turn the shape to line up with its hole (the grasp
+        # keeps the relative yaw).
         grasp_yaw, drop_yaw = arm_yaw(shape), arm_yaw(hole)
         for v, s in enumerate(SHAPES):
-            g = nearest_yaw(shape_yaw, arm_yaw(shape), s.period)
+            g = _grasp_yaw(shape, shape_yaw, s.period, others, sorter, root_yaw)
             d = nearest_yaw(g + root_yaw - shape_yaw, arm_yaw(hole), s.period)
             grasp_yaw = jnp.where(variation == v, g, grasp_yaw)
             drop_yaw = jnp.where(variation == v, d, drop_yaw)
