@@ -15,7 +15,12 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.furniture import sensor_volume, wine_bottle, wine_rack
+from agnostos_mjx.tasks.builders.furniture import (
+    grasp_site,
+    sensor_volume,
+    wine_bottle,
+    wine_rack,
+)
 
 LOCATIONS = ("middle", "left", "right")
 SLOT_X = (0.051, 0.170, -0.065)  # RLBench's success_<location> sensors, root frame
@@ -61,9 +66,7 @@ class PlaceWineAtRackLocation(Task):
         wine_rack(scene, root, "rack", SLOT_X)
         for loc, x in zip(LOCATIONS, SLOT_X):
             sensor_volume(root, f"success_{loc}", VOLUME_HALF, (x, 0.275, SLOT_Z))
-        bottle = wine_bottle(scene)
-        bottle.add_site(name="wine_bottle_grasp", pos=[0.0, 0.0, NECK], size=[0.005, 0, 0],
-                        rgba=[0, 1, 0, 0], group=4)
+        grasp_site(wine_bottle(scene), "wine_bottle_grasp", (0.0, 0.0, NECK))
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, (0.12, 0.22), jnp.pi / 4, offset=(0.054, 0.04))

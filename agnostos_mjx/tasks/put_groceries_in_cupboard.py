@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     Placement,
@@ -19,7 +19,16 @@ from agnostos_mjx.tasks.base import (
     place_root,
     sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.furniture import cupboard, grocery, sensor_volume
+from agnostos_mjx.tasks.builders.furniture import (
+    arm_yaw,
+    cupboard,
+    down_quat,
+    grasp_site,
+    grocery,
+    nearest_yaw,
+    sensor_volume,
+    yaw_of,
+)
 
 
 class Grocery(NamedTuple):
@@ -52,21 +61,11 @@ SPAWN_CENTER, SPAWN_HALF = (-0.31, 0.0), (0.17, 0.30)
 # Root footprint for placement: the cupboard and the near part of the spawn area
 # (the whole scene does not fit our inferred workspace; see notes).
 ROOT_CENTER, ROOT_HALF = (-0.08, 0.0), (0.20, 0.25)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along the frame's y
-ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
 
 
 def _grasp_height(g: Grocery) -> float:
     """Grasp point above the item's centre: near its top, never below the centre."""
     return max(g.size[2] / 2 - GRASP_BELOW_TOP, 0.0)
-
-
-def _natural_yaw(pos):
-    return jnp.arctan2(pos[1] - ARM_BASE_XY[1], pos[0] - ARM_BASE_XY[0])
-
-
-def _down(yaw):
-    return quat_mul(yaw_quat(yaw), DOWN)
 
 
 class PutGroceriesInCupboard(Task):
@@ -103,8 +102,7 @@ class PutGroceriesInCupboard(Task):
         sensor_volume(root, "success", VOLUME_HALF, (DEPTH / 2, 0.0, FLOOR + CLEAR / 2))
         for g in GROCERIES:
             body = grocery(scene, g.name, g.size, g.rgba, g.round_)
-            body.add_site(name=f"{g.name}_grasp_point", pos=[0.0, 0.0, _grasp_height(g)],
-                          size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=4)
+            grasp_site(body, f"{g.name}_grasp_point", (0.0, 0.0, _grasp_height(g)))
 
     def sample(self, key, variation) -> Placement:
         k_root, k_items = jax.random.split(key)
@@ -127,30 +125,26 @@ class PutGroceriesInCupboard(Task):
     def expert(self, obs, variation):
         grasp = jnp.stack([obs.pos(f"{n}_grasp_point") for n in NAMES])[variation]
         q = jnp.stack([obs.quat(n) for n in NAMES])[variation]
-        item_yaw = 2.0 * jnp.arctan2(q[3], q[0])  # upright: yaw only
-        # Boxes are gripped across their thin side (y): a half turn is the same
-        # grasp; cans in any yaw.  Choose the least wrist twist.
-        natural = _natural_yaw(grasp)
+        # Boxes are gripped across their thin side (y), a half turn being the
+        # same grasp; cans in any yaw.  Choose the least wrist twist.
         boxed = ~jnp.asarray([g.round_ for g in GROCERIES])[variation]
-        grasp_yaw = jnp.where(boxed, natural + jnp.mod(item_yaw - natural + jnp.pi / 2, jnp.pi)
-                              - jnp.pi / 2, natural)
+        grasp_yaw = jnp.where(boxed, nearest_yaw(yaw_of(q), arm_yaw(grasp), jnp.pi),
+                              arm_yaw(grasp))
         # Height of the grasp point above the item's bottom.
         hold = jnp.asarray([g.size[2] / 2 + _grasp_height(g) for g in GROCERIES])[variation]
         inside = in_frame(obs, ROOT, (DEPTH / 2 - 0.01, 0.0, FLOOR + hold + 0.01))
         front = in_frame(obs, ROOT, (-0.06, 0.0, FLOOR + hold + 0.01))
-        root_q = obs.quat(ROOT)
-        put_yaw = 2.0 * jnp.arctan2(root_q[3], root_q[0])  # fingers across the opening
-        put_yaw = _natural_yaw(inside) + jnp.mod(put_yaw - _natural_yaw(inside) + jnp.pi / 2,
-                                                 jnp.pi) - jnp.pi / 2
+        # Fingers across the opening (along the root's y), hand clear of the sides.
+        put_yaw = nearest_yaw(yaw_of(obs.quat(ROOT)), arm_yaw(inside), jnp.pi)
         lift = TABLE_Z + 0.13 + hold  # the item's bottom above the other groceries
         return key_actions([
-            (grasp + jnp.array([0.0, 0.0, 0.08]), _down(grasp_yaw), 1.0),  # above the item
-            (grasp, _down(grasp_yaw), 0.0),  # grasp (wp1 = the grasp point)
-            (grasp.at[2].set(lift), _down(grasp_yaw), 0.0),  # lift
-            (front.at[2].set(lift), _down(put_yaw), 0.0),  # in front of the cupboard
-            (front, _down(put_yaw), 0.0),  # down to the compartment's floor height
-            (inside, _down(put_yaw), 1.0),  # slide in, release
-            (front, _down(put_yaw), 1.0),  # retreat
+            (grasp + jnp.array([0.0, 0.0, 0.08]), down_quat(grasp_yaw), 1.0),  # above the item
+            (grasp, down_quat(grasp_yaw), 0.0),  # grasp (wp1 = the grasp point)
+            (grasp.at[2].set(lift), down_quat(grasp_yaw), 0.0),  # lift
+            (front.at[2].set(lift), down_quat(put_yaw), 0.0),  # in front of the cupboard
+            (front, down_quat(put_yaw), 0.0),  # down to the compartment's floor height
+            (inside, down_quat(put_yaw), 1.0),  # slide in, release
+            (front, down_quat(put_yaw), 1.0),  # retreat
         ])
 
 

@@ -5,19 +5,18 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.furniture import two_handle_tap
+from agnostos_mjx.tasks.builders.furniture import (
+    arm_yaw,
+    down_quat,
+    nearest_yaw,
+    two_handle_tap,
+    yaw_of,
+)
 
 SIDES = ("left", "right")
 ROOT = "turn_tap_root"
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along world y
 TURN = jnp.deg2rad(105.0)  # past RLBench's 1.57 rad threshold with margin
-ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
-
-
-def _wrap(a):
-    return jnp.mod(a + jnp.pi, 2.0 * jnp.pi) - jnp.pi
 
 
 class TurnTap(Task):
@@ -56,15 +55,14 @@ class TurnTap(Task):
     def expert(self, obs, variation):
         grasp = jnp.stack([obs.pos(f"tap_{s}_grasp") for s in SIDES])[variation]
         quat = jnp.stack([obs.quat(f"tap_{s}") for s in SIDES])[variation]
-        bar_yaw = 2.0 * jnp.arctan2(quat[3], quat[0])  # the handles only turn about z
-        # The bar is symmetric: grasp it with the wrist yaw nearest the arm's
-        # natural yaw there, and turn back towards that yaw, away from the
-        # wrist's joint limits.
-        natural = jnp.arctan2(grasp[1] - ARM_BASE_XY[1], grasp[0] - ARM_BASE_XY[0])
-        start = natural + _wrap(2.0 * (bar_yaw - natural)) / 2.0
+        # The bar is symmetric: grasp it (fingers across it) with the wrist yaw
+        # nearest the arm's natural yaw there, and turn back towards that yaw,
+        # away from the wrist's joint limits.
+        natural = arm_yaw(grasp)
+        start = nearest_yaw(yaw_of(quat), natural, jnp.pi)
         end = start - jnp.sign(start - natural + 1e-6) * TURN
         above = grasp + jnp.array([0.0, 0.0, 0.08])
-        q0, q1 = quat_mul(yaw_quat(start), DOWN), quat_mul(yaw_quat(end), DOWN)
+        q0, q1 = down_quat(start), down_quat(end)
         return key_actions([
             (above, q0, 1.0),  # above the handle
             (grasp, q0, 0.0),  # at the bar, close: the handle is attached
