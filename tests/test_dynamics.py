@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
+import types
 from dataclasses import replace
 
 import jax
@@ -249,6 +251,8 @@ def test_index_cache_and_leave_one_out(pipe, pairs, tmp_path, monkeypatch):
     index = build_index(pipe, bank, path, pipe.identity)
     loaded = FeatureIndex.load(path)
     assert loaded.fingerprint == index.fingerprint and list(loaded.tasks) == bank.tasks
+    t0 = bank.tasks[0]
+    assert list(index.positions[index.tasks == t0]) == list(range(bank.tasks.count(t0)))
     for part in index.features:
         np.testing.assert_array_equal(loaded.features[part], index.features[part])
     monkeypatch.setattr(
@@ -298,7 +302,23 @@ def test_cli_help_explains_every_flag():
     )
 
 
-def test_frame_pairs_from_records_and_split(pairs):
+def test_frame_pairs_from_bank_records_and_split(pairs, monkeypatch):
+    class Demo:  # the bank's record: frames[camera] = (first, last)
+        def __init__(self, i: int):
+            self.frames = {"front": (pairs.first[i], pairs.last[i])}
+            self.instruction, self.task = pairs.instructions[i], pairs.tasks[i]
+
+    assert FramePairs.from_records(Demo(i) for i in range(3)).instructions == pairs.instructions[:3]
+
+    class DemoBank:
+        def __init__(self, root):
+            pass
+
+        def frame_pairs(self, camera):
+            return pairs.first, pairs.last, pairs.instructions, pairs.tasks
+
+    monkeypatch.setitem(sys.modules, "agnostos_mjx.data", types.SimpleNamespace(DemoBank=DemoBank))
+    assert FramePairs.from_bank("bank").tasks == pairs.tasks
     records = [
         {
             "first_frame": pairs.first[i],
@@ -313,3 +333,16 @@ def test_frame_pairs_from_records_and_split(pairs):
     assert len(fp) == 5 and fp.tasks == pairs.tasks[:5]
     train, held = pairs.split(4)
     assert len(train) == 9 and held.instructions == [pairs.instructions[i] for i in (3, 7, 11)]
+
+
+def test_sample_grid_png(pairs, tmp_path):
+    from PIL import Image
+
+    from agnostos_mjx.train.common import save_grid
+
+    path = save_grid(tmp_path / "g.png", [pairs.first[:2], pairs.last[:2]], ["first", "last"])
+    grid = np.asarray(Image.open(path).convert("RGB"))
+    assert grid.shape == (2 * 130, 2 * 130, 3)
+    np.testing.assert_array_equal(grid[:128, 130:258], pairs.last[0])
+    (tmp_path / "file").write_text("")  # a file where the folder should be: warn, go on
+    assert save_grid(tmp_path / "file" / "g.png", [pairs.first[:1]], []) is None

@@ -27,7 +27,7 @@ class AutoencoderConfig:
     """KL autoencoder: 128x128x3 frames <-> 16x16x4 latents."""
 
     channels: tuple[int, ...] = _f(
-        (64, 128, 256, 256), "channels per resolution level (4 levels: 128, 64, 32, 16 px)"
+        (32, 64, 128, 256), "channels per resolution level (4 levels: 128, 64, 32, 16 px)"
     )
     blocks: int = _f(1, "residual blocks per level")
     groups: int = _f(32, "GroupNorm groups (must divide every channel count)")
@@ -103,8 +103,9 @@ UNET_QUICK = UNetConfig(channels=(16, 32), blocks=1, attention=(False, True), he
 DIFFUSION_DEFAULT = DiffusionConfig()
 # Fewer DDIM steps keep CPU tests fast; the schedule and guidance stay the real ones.
 DIFFUSION_QUICK = DiffusionConfig(sample_steps=8)
-AE_TRAIN_DEFAULT = TrainConfig(steps=8_000, batch_size=32, lr=2e-4, warmup=300)
-DYN_TRAIN_DEFAULT = TrainConfig(steps=20_000, batch_size=64, lr=2e-4, warmup=500)
+# Sized for ~3,600 demos on one H100/H200 (see train/README.md): ~22 AE epochs, ~270 UNet epochs.
+AE_TRAIN_DEFAULT = TrainConfig(steps=6_000, batch_size=32, lr=2e-4, warmup=300)
+DYN_TRAIN_DEFAULT = TrainConfig(steps=15_000, batch_size=64, lr=2e-4, warmup=500)
 TRAIN_QUICK = TrainConfig(
     steps=20, batch_size=4, lr=1e-3, warmup=0, log_every=5, sample_every=0, ckpt_every=10
 )

@@ -61,13 +61,32 @@ class FramePairs:
         return self.subset(np.flatnonzero(~held)), self.subset(np.flatnonzero(held))
 
     @classmethod
-    def from_records(cls, records: Iterable[Any]) -> FramePairs:
-        """Build from records with `first`/`first_frame`, `last`/`last_frame`,
-        `instruction` and `task`/`task_name`, as attributes or mapping keys."""
+    def from_bank(cls, root: str | Path, camera: str = "front") -> FramePairs:
+        """All demos of a demonstration bank directory (agnostos_mjx.data), task by task."""
+        from agnostos_mjx.data import DemoBank  # the bank is optional for this package
+
+        first, last, instructions, tasks = DemoBank(root).frame_pairs(camera)
+        return cls(
+            np.asarray(first, np.uint8), np.asarray(last, np.uint8), list(instructions), list(tasks)
+        )
+
+    @classmethod
+    def from_records(cls, records: Iterable[Any], camera: str = "front") -> FramePairs:
+        """Build from records (attributes or mapping keys): `instruction`, `task`
+        (or `task_name`), and the frames as `frames[camera] = (first, last)` (the
+        bank's Demo) or as `first`/`first_frame` and `last`/`last_frame`."""
         first, last, instr, tasks = [], [], [], []
         for r in records:
-            first.append(np.asarray(_get(r, "first", "first_frame", "first_rgb"), np.uint8))
-            last.append(np.asarray(_get(r, "last", "last_frame", "last_rgb"), np.uint8))
+            frames = _get(r, "frames", default={})
+            if camera in frames:
+                f, g = frames[camera]
+            else:
+                f, g = (
+                    _get(r, "first", "first_frame", "first_rgb"),
+                    _get(r, "last", "last_frame", "last_rgb"),
+                )
+            first.append(np.asarray(f, np.uint8))
+            last.append(np.asarray(g, np.uint8))
             instr.append(str(_get(r, "instruction", "lang_goal")))
             tasks.append(str(_get(r, "task", "task_name")))
         if not first:
@@ -98,13 +117,18 @@ class FramePairs:
             )
 
 
-def _get(record: Any, *names: str) -> Any:
+_REQUIRED = object()
+
+
+def _get(record: Any, *names: str, default: Any = _REQUIRED) -> Any:
     for name in names:
         if isinstance(record, Mapping) and name in record:
             return record[name]
-        if hasattr(record, name):
+        if not isinstance(record, Mapping) and hasattr(record, name):
             return getattr(record, name)
-    raise KeyError(f"record has none of {names}: {type(record).__name__}")
+    if default is _REQUIRED:
+        raise KeyError(f"record has none of {names}: {type(record).__name__}")
+    return default
 
 
 # ---- synthetic stand-in ----

@@ -108,7 +108,8 @@ def select(
 
 @dataclass(frozen=True)
 class FeatureIndex:
-    """Features of every demo in a bank plus its metadata, saved as one .npz."""
+    """Features of every demo in a bank plus its metadata, saved as one .npz.
+    Row r is demo `positions[r]` of task `tasks[r]` (DemoBank.demo(task, position))."""
 
     features: dict[str, np.ndarray]
     tasks: np.ndarray
@@ -117,6 +118,16 @@ class FeatureIndex:
 
     def __len__(self) -> int:
         return len(self.tasks)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Position of each row among the rows of its task (bank order is task, then demo)."""
+        seen: dict[str, int] = {}
+        out = np.empty(len(self.tasks), np.int64)
+        for r, t in enumerate(self.tasks):
+            out[r] = seen.get(t, 0)
+            seen[t] = out[r] + 1
+        return out
 
     def select(self, query: dict[str, np.ndarray], **kw: Any) -> np.ndarray:
         return select(query, self.features, **kw)

@@ -42,6 +42,7 @@ def dynamics_meta(
     d = to_dict(diffusion)
     return {
         "kind": DYN_KIND,
+        "diffusion": to_dict(diffusion),  # sampling defaults for Pipeline.load
         "model": {
             "text": to_dict(text),
             "unet": to_dict(unet),
@@ -113,7 +114,7 @@ class Pipeline:
         meta = _meta(run, DYN_KIND)
         m = meta["model"]
         text, unet = from_dict(TextConfig, m["text"]), from_dict(UNetConfig, m["unet"])
-        diffusion = replace(DiffusionConfig(), **{k: m[k] for k in _MODEL_FIELDS}, **sampling)
+        diffusion = replace(from_dict(DiffusionConfig, meta["diffusion"]), **sampling)
         ae_run = ae_run or meta["autoencoder_dir"]
         ae, ae_cfg = load_autoencoder(ae_run)
         if to_dict(ae_cfg) != m["autoencoder"]:

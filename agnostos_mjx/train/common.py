@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import struct
 import sys
 import time
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -163,61 +165,74 @@ class _progress:
 
 
 def add_data_flags(parser: argparse.ArgumentParser) -> None:
-    g = parser.add_argument_group("data")
+    g = parser.add_argument_group("data (one of --bank, --data, --synthetic)")
     g.add_argument(
-        "--data",
+        "--bank",
         type=Path,
-        help="FramePairs .npz (FramePairs.from_records(bank).save(path)); or use --synthetic",
+        help="demonstration bank directory (python -m agnostos_mjx.data.generate)",
+    )
+    g.add_argument(
+        "--camera",
+        default="front",
+        help="bank camera whose frames to use (default front, as X-ICM)",
+    )
+    g.add_argument(
+        "--data", type=Path, help="a FramePairs .npz (FramePairs.save) instead of a bank"
     )
     g.add_argument(
         "--synthetic",
         type=int,
         metavar="N",
-        help="train on N synthetic moving-square demos instead",
+        help="N synthetic moving-square demos instead (smoke tests)",
     )
-    g.add_argument("--quick", action="store_true", help="tiny widths and 20 steps: a CPU smoke run")
     g.add_argument(
-        "--no-progress", action="store_true", help="no progress bar (logs still go to log.jsonl)"
+        "--quick", action="store_true", help="tiny widths, 20 steps, 8 DDIM steps: a CPU smoke run"
+    )
+    g.add_argument(
+        "--no-progress", action="store_true", help="no progress bar (losses still go to log.jsonl)"
     )
 
 
 def load_data(args: argparse.Namespace) -> FramePairs:
+    if args.bank is not None:
+        return FramePairs.from_bank(args.bank, args.camera)
     if args.data is not None:
         if not args.data.exists():
             raise SystemExit(f"--data {args.data}: no such file")
         return FramePairs.load(args.data)
     if args.synthetic:
         return synthetic(args.synthetic)
-    raise SystemExit("give --data PATH.npz or --synthetic N")
+    raise SystemExit("give --bank DIR, --data PATH.npz or --synthetic N")
 
 
-def save_grid(path: Path, rows: list[np.ndarray], titles: list[str]) -> Path | None:
-    """Save uint8 image rows (each (N,H,W,3)) as one PNG grid, a column per row.
-    PIL first, matplotlib second; without either, warn and skip."""
-    cols = [
-        np.concatenate(list(r), axis=0) for r in rows
-    ]  # each column: N images stacked vertically
-    grid = np.concatenate(
-        [np.pad(c, ((0, 0), (0, 2), (0, 0)), constant_values=255) for c in cols], axis=1
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
+def save_grid(path: Path, columns: list[np.ndarray], titles: list[str]) -> Path | None:
+    """Save uint8 image sets (each (N,H,W,3)) as one PNG grid, one column per set,
+    with the titles in a .txt beside it.  A failed write warns instead of stopping training."""
+    gap = ((0, 2), (0, 2), (0, 0))  # white lines between images
+    cols = [np.concatenate([np.pad(im, gap, constant_values=255) for im in c]) for c in columns]
     try:
-        from PIL import Image
-
-        Image.fromarray(grid).save(path)
-    except ImportError:
-        try:
-            import matplotlib
-
-            matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
-
-            plt.imsave(path, grid)
-        except ImportError:
-            print(
-                f"no PIL or matplotlib: sample grid {path} skipped ({' | '.join(titles)})",
-                file=sys.stderr,
-            )
-            return None
-    (path.with_suffix(".txt")).write_text(" | ".join(titles) + "\n")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(png_bytes(np.concatenate(cols, axis=1)))
+        path.with_suffix(".txt").write_text(" | ".join(titles) + "\n")
+    except OSError as err:
+        print(f"sample grid {path} not written: {err}", file=sys.stderr)
+        return None
     return path
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """Encode an (H, W, 3) uint8 image as PNG with numpy + zlib only (no PIL needed)."""
+    h, w, _ = rgb.shape
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rgb.reshape(h, 3 * w)], axis=1)  # filter 0
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8-bit RGB
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw.tobytes()))
+        + chunk(b"IEND", b"")
+    )
