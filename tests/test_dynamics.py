@@ -27,6 +27,7 @@ from agnostos_mjx.dynamics.config import (
 from agnostos_mjx.dynamics.data import FramePairs, synthetic
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, diffusion_loss
 from agnostos_mjx.dynamics.features import (
+    DemoSelector,
     FeatureIndex,
     build_index,
     extract,
@@ -35,6 +36,7 @@ from agnostos_mjx.dynamics.features import (
     select,
     similarity,
 )
+from agnostos_mjx.dynamics.layers import abstract, create
 from agnostos_mjx.dynamics.pipeline import Pipeline, load_autoencoder
 from agnostos_mjx.dynamics.text import tokenize
 from agnostos_mjx.train import autoencoder as ae_cli
@@ -86,7 +88,7 @@ def _losses_before_after(model: nnx.Module, loss_fn, batch) -> tuple[float, floa
 
 
 def test_one_step_lowers_autoencoder_loss(pairs):
-    model = Autoencoder(AE_QUICK, rngs=nnx.Rngs(0))
+    model = create(lambda: Autoencoder(AE_QUICK, rngs=nnx.Rngs(0)))
     before, after = _losses_before_after(
         model, lambda m, b, k: autoencoder_loss(m, b, k, 1e-4), pairs.first[:4]
     )
@@ -94,7 +96,7 @@ def test_one_step_lowers_autoencoder_loss(pairs):
 
 
 def test_one_step_lowers_diffusion_loss():
-    model = DynamicsModel(TEXT_QUICK, UNET_QUICK, rngs=nnx.Rngs(0))
+    model = create(lambda: DynamicsModel(TEXT_QUICK, UNET_QUICK, rngs=nnx.Rngs(0)))
     z = np.random.default_rng(0).normal(size=(2, 4, 16, 16, 4)).astype(np.float32)
     ids, mask = tokenize(["push the red block left"] * 4, TEXT_QUICK.max_len)
     before, after = _losses_before_after(
@@ -113,8 +115,8 @@ def test_training_writes_log_checkpoints_and_samples(ae_run, dyn_run):
 
 
 def test_checkpoint_round_trip(tmp_path):
-    a = Autoencoder(AE_QUICK, rngs=nnx.Rngs(0))
-    b = Autoencoder(AE_QUICK, rngs=nnx.Rngs(1))
+    a = create(lambda: Autoencoder(AE_QUICK, rngs=nnx.Rngs(0)))
+    b = abstract(lambda: Autoencoder(AE_QUICK, rngs=nnx.Rngs(1)))
     ckpts = Checkpoints(tmp_path / "checkpoints")
     ckpts.save(7, {"params": nnx.state(a)}, {"kind": "x", "model": {"n": 1}})
     trees, meta = ckpts.restore({"params": nnx.state(b)}, {"kind": "x", "model": {"n": 1}})
@@ -160,7 +162,7 @@ def test_incompatible_checkpoint_names_what_mismatched(tmp_path, pairs, ae_run):
     # Same metadata, other shapes: the parameter is named.
     ckpts = Checkpoints(run / "checkpoints")
     meta = ckpts.meta()
-    template = {"params": nnx.state(Autoencoder(wider, rngs=nnx.Rngs(0)))}
+    template = {"params": nnx.state(abstract(lambda: Autoencoder(wider, rngs=nnx.Rngs(0))))}
     with pytest.raises(CheckpointError, match=r"params\.decoder\.conv_in\.kernel.*: shape"):
         ckpts.restore(template, {"kind": meta["kind"], "model": meta["model"]})
 
@@ -261,6 +263,10 @@ def test_index_cache_and_leave_one_out(pipe, pairs, tmp_path, monkeypatch):
     assert build_index(pipe, bank, path, pipe.identity).fingerprint == index.fingerprint
     for mode in ("random", "lang+vis.out"):
         assert 0.0 <= leave_one_out_same_task(index, mode, k=3) <= 1.0
+    monkeypatch.undo()
+    chosen = DemoSelector(pipe, index, k=3)(bank.first[4], bank.instructions[4])
+    assert chosen[0] == (bank.tasks[4], int(index.positions[4]))  # a demo is its own best match
+    assert len(DemoSelector(None, index, mode="random", k=3)(bank.first[0], "x")) == 3
     np.savez(tmp_path / "old.npz", version=0)
     with pytest.raises(ValueError, match="version 0"):
         FeatureIndex.load(tmp_path / "old.npz")

@@ -85,6 +85,18 @@ class Checkpoints:
         step = self._step(step)
         return self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
 
+    def check(self, expect: dict[str, Any], step: int | None = None) -> dict[str, Any]:
+        """The checkpoint's metadata; CheckpointError listing every field that differs from `expect`."""
+        step = self._step(step)
+        meta = self.meta(step)
+        problems = diff({k: meta.get(k, "<missing>") for k in expect}, expect)
+        if problems:
+            where = self.directory / str(step)
+            raise CheckpointError(
+                f"checkpoint {where} is incompatible:\n  " + "\n  ".join(problems)
+            )
+        return meta
+
     def restore(
         self, templates: dict[str, Any], expect: dict[str, Any], step: int | None = None
     ) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -93,13 +105,7 @@ class Checkpoints:
         `expect` holds metadata that must match (e.g. {"kind": ..., "model": config});
         any difference raises CheckpointError listing the fields."""
         step = self._step(step)
-        meta = self.meta(step)
-        problems = diff({k: meta.get(k, "<missing>") for k in expect}, expect)
-        if problems:
-            raise CheckpointError(
-                f"checkpoint {self.directory / str(step)} is incompatible:\n  "
-                + "\n  ".join(problems)
-            )
+        meta = self.check(expect, step)
         arrays = self.manager.restore(
             step, args=ocp.args.Composite(arrays=ocp.args.StandardRestore())
         ).arrays

@@ -136,31 +136,28 @@ def diff(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> li
 # ---- CLI: one flag per config field, named `--<group>-<field>` or `--<field>` ----
 
 
-def add_flags(parser: argparse.ArgumentParser, group: str, cls: type) -> None:
-    """Add one flag per field of `cls`; defaults are None so presets decide."""
+def _bool(s: str) -> bool:
+    return s.lower() in ("1", "true", "yes")
+
+
+def add_flags(parser: argparse.ArgumentParser, group: str, default: Any, quick: Any) -> None:
+    """Add one flag per field of the config `default` (a preset instance); the
+    help shows the default and the --quick values.  Flags default to None, so
+    `apply_flags` changes only what was given."""
+    cls = type(default)
     g = parser.add_argument_group(f"{group} ({cls.__name__})", cls.__doc__)
     for f in fields(cls):
-        name = (
-            f"--{group}-{f.name}".replace("_", "-")
-            if group != "train"
-            else f"--{f.name}".replace("_", "-")
-        )
-        default = f.default
-        kind = type(default)
-        help = f"{f.metadata['help']} (default {default!r})".replace("%", "%%")
-        kw: dict[str, Any] = {"default": None, "help": help}
-        if kind is tuple:
-            kw.update(
-                nargs="+",
-                type=(lambda s: s.lower() in ("1", "true", "yes"))
-                if isinstance(default[0], bool)
-                else type(default[0]),
-            )
-        elif kind is bool:
-            kw.update(type=lambda s: s.lower() in ("1", "true", "yes"))
+        flag = f"--{f.name}" if group == "train" else f"--{group}-{f.name}"
+        value, quick_value = getattr(default, f.name), getattr(quick, f.name)
+        help = f"{f.metadata['help']} (default {value!r}; --quick {quick_value!r})"
+        kw: dict[str, Any] = {"default": None, "help": help.replace("%", "%%")}
+        if isinstance(value, tuple):
+            kw.update(nargs="+", type=_bool if isinstance(value[0], bool) else type(value[0]))
         else:
-            kw.update(type=kind)
-        g.add_argument(name, dest=f"{group}__{f.name}", **kw)
+            kw.update(type=_bool if isinstance(value, bool) else type(value))
+        g.add_argument(
+            flag.replace("_", "-"), dest=f"{group}__{f.name}", metavar=f.name.upper(), **kw
+        )
 
 
 def apply_flags(args: argparse.Namespace, group: str, cfg: Any) -> Any:

@@ -186,6 +186,28 @@ def build_index(
     return index
 
 
+@dataclass
+class DemoSelector:
+    """What the X-ICM policy calls: the K bank demos for a query (first frame +
+    instruction) as (task, position) pairs, most similar first."""
+
+    pipeline: Pipeline | None  # unused (may be None) in mode "random"
+    index: FeatureIndex
+    mode: str = DEFAULT_MODE
+    k: int = DEFAULT_K
+    metric: str = "cosine"
+    seed: int = 0  # for mode "random"; pass the evaluation seed (the original fixed it at 42)
+
+    def __call__(self, first_frame: np.ndarray, instruction: str) -> list[tuple[str, int]]:
+        parts = parse_mode(self.mode)
+        query = {} if not parts else extract(self.pipeline, first_frame[None], [instruction], parts)
+        rows = self.index.select(
+            query, mode=self.mode, k=self.k, metric=self.metric, seed=self.seed
+        )
+        positions = self.index.positions
+        return [(str(self.index.tasks[r]), int(positions[r])) for r in rows]
+
+
 def leave_one_out_same_task(
     index: FeatureIndex,
     mode: str = DEFAULT_MODE,

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 import jax
 import jax.numpy as jnp
 from flax import nnx
@@ -78,3 +81,17 @@ def sinusoidal(t: jax.Array, dim: int) -> jax.Array:
     freqs = jnp.exp(-jnp.log(10_000.0) * jnp.arange(half) / half)
     args = t.astype(jnp.float32)[:, None] * freqs[None, :]
     return jnp.concatenate([jnp.sin(args), jnp.cos(args)], axis=-1)
+
+
+M = TypeVar("M", bound=nnx.Module)
+
+
+def create(build: Callable[[], M]) -> M:
+    """Run a module constructor under one jit: one compile (cached on disk) instead
+    of hundreds of small eager initialiser ops, which dominate start-up on CPU."""
+    return nnx.jit(build)()
+
+
+def abstract(build: Callable[[], M]) -> M:
+    """The module's structure and shapes without computing any weights (to restore into)."""
+    return nnx.eval_shape(build)

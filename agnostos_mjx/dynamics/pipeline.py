@@ -26,6 +26,7 @@ from agnostos_mjx.dynamics.config import (
     to_dict,
 )
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, ddim_sample
+from agnostos_mjx.dynamics.layers import abstract
 from agnostos_mjx.dynamics.text import tokenize
 
 AE_KIND, DYN_KIND = "autoencoder", "dynamics"
@@ -56,7 +57,7 @@ def load_autoencoder(run: str | Path) -> tuple[Autoencoder, AutoencoderConfig]:
     """The autoencoder of a run directory, built from the config in its checkpoint."""
     meta = _meta(run, AE_KIND)
     cfg = from_dict(AutoencoderConfig, meta["model"]["autoencoder"])
-    model = Autoencoder(cfg, rngs=nnx.Rngs(0))
+    model = abstract(lambda: Autoencoder(cfg, rngs=nnx.Rngs(0)))
     return load_params(run, model, {"kind": AE_KIND, "model": meta["model"]}), cfg
 
 
@@ -121,9 +122,8 @@ class Pipeline:
             raise CheckpointError(
                 f"autoencoder at {ae_run} has another config than the one {run} was trained on"
             )
-        model = load_params(
-            run, DynamicsModel(text, unet, rngs=nnx.Rngs(0)), {"kind": DYN_KIND, "model": m}
-        )
+        model = abstract(lambda: DynamicsModel(text, unet, rngs=nnx.Rngs(0)))
+        model = load_params(run, model, {"kind": DYN_KIND, "model": m})
         identity = f"{Path(run).absolute()}@{meta['step']}|{to_dict(diffusion)}"
         return cls(ae, meta["latent_scale"], model, text, diffusion, chunk, identity)
 

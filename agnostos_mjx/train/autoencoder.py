@@ -1,6 +1,6 @@
 """Stage 1: train the KL autoencoder on first and last frames of the training demos.
 
-python -m agnostos_mjx.train.autoencoder --data bank.npz --out runs/ae
+python -m agnostos_mjx.train.autoencoder --bank BANK --out runs/ae
 python -m agnostos_mjx.train.autoencoder --synthetic 64 --quick --out /tmp/ae
 """
 
@@ -48,9 +48,8 @@ def train_autoencoder(
             ["frame", "reconstruction"],
         )
 
-    model = Autoencoder(cfg, rngs=nnx.Rngs(tcfg.seed))
     return train(
-        model,
+        lambda: Autoencoder(cfg, rngs=nnx.Rngs(tcfg.seed)),
         lambda m, batch, key: autoencoder_loss(m, batch, key, cfg.kl_weight),
         lambda idx: frames[idx],
         len(frames),
@@ -75,8 +74,8 @@ def parser() -> argparse.ArgumentParser:
         help="run directory: checkpoints/, log.jsonl, samples/, config.json; resumes if it holds checkpoints",
     )
     add_data_flags(p)
-    add_flags(p, "ae", AutoencoderConfig)
-    add_flags(p, "train", TrainConfig)
+    add_flags(p, "ae", AE_DEFAULT, AE_QUICK)
+    add_flags(p, "train", AE_TRAIN_DEFAULT, TRAIN_QUICK)
     return p
 
 

@@ -23,6 +23,7 @@ from flax import nnx
 from agnostos_mjx.dynamics.checkpoint import Checkpoints
 from agnostos_mjx.dynamics.config import TrainConfig, to_dict
 from agnostos_mjx.dynamics.data import FramePairs, synthetic
+from agnostos_mjx.dynamics.layers import abstract, create
 
 LossFn = Callable[[nnx.Module, Any, jax.Array], jax.Array]  # (model, batch, key) -> scalar
 
@@ -62,7 +63,7 @@ def make_step(
 
 
 def train(
-    model: nnx.Module,
+    build: Callable[[], nnx.Module],
     loss_fn: LossFn,
     get_batch: Callable[[np.ndarray], Any],
     n_train: int,
@@ -72,23 +73,27 @@ def train(
     sample: Callable[[nnx.Module, int], None] | None = None,
     progress: bool = True,
 ) -> nnx.Module:
-    """Train a copy of `model` for `cfg.steps` steps and return it.
+    """Train the module `build()` makes for `cfg.steps` steps and return it.
 
     `get_batch(indices)` gathers a batch of host arrays (passed to the jitted step
     as arguments, so the data set is never baked into the compiled program);
-    `loss_fn(model, batch, key)` scores it.  Resumes from `out/checkpoints` when it holds a step; the
-    checkpoint's kind and model config must equal `meta`'s."""
+    `loss_fn(model, batch, key)` scores it.  Resumes from `out/checkpoints` when it
+    holds a step, after checking that its kind and model config equal `meta`'s."""
     out.mkdir(parents=True, exist_ok=True)
-    graphdef, params = nnx.split(model)
     tx = optimizer(cfg)
-    opt_state = tx.init(params)
     ckpts = Checkpoints(out / "checkpoints")
-    start = 0
-    if ckpts.latest_step() is not None:
+    start = ckpts.latest_step() or 0
+    if start:
         expect = {k: meta[k] for k in ("kind", "model")}
-        trees, _ = ckpts.restore({"params": params, "opt_state": opt_state}, expect)
-        params, opt_state, start = trees["params"], trees["opt_state"], ckpts.latest_step()
+        ckpts.check(expect)  # before building anything: a mismatch fails at once
+        graphdef, params = nnx.split(abstract(build))
+        templates = {"params": params, "opt_state": jax.eval_shape(tx.init, params)}
+        trees, _ = ckpts.restore(templates, expect)
+        params, opt_state = trees["params"], trees["opt_state"]
         print(f"resuming {out} from step {start}", file=sys.stderr)
+    else:
+        graphdef, params = nnx.split(create(build))
+        opt_state = tx.init(params)
     _truncate_log(out / "log.jsonl", start)
     (out / "config.json").write_text(json.dumps({**meta, "train": to_dict(cfg)}, indent=2))
 

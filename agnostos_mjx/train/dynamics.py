@@ -2,7 +2,7 @@
 space of a trained autoencoder: predict each demo's last frame from its first
 frame and instruction.
 
-    python -m agnostos_mjx.train.dynamics --data bank.npz --ae runs/ae --out runs/dyn
+    python -m agnostos_mjx.train.dynamics --bank BANK --ae runs/ae --out runs/dyn
     python -m agnostos_mjx.train.dynamics --synthetic 64 --quick --ae /tmp/ae --out /tmp/dyn
 """
 
@@ -74,9 +74,8 @@ def train_dynamics(
             ["first frame", "predicted last", "true last"] + shown.instructions,
         )
 
-    model = DynamicsModel(text, unet, rngs=nnx.Rngs(tcfg.seed))
     trained = train(
-        model,
+        lambda: DynamicsModel(text, unet, rngs=nnx.Rngs(tcfg.seed)),
         lambda m, b, key: diffusion_loss(m, diffusion, *b, key),
         lambda idx: (z_first[idx], z_last[idx], ids[idx], mask[idx]),
         len(z_first),
@@ -108,10 +107,10 @@ def parser() -> argparse.ArgumentParser:
         help="run directory of a trained autoencoder (python -m agnostos_mjx.train.autoencoder)",
     )
     add_data_flags(p)
-    add_flags(p, "text", TextConfig)
-    add_flags(p, "unet", UNetConfig)
-    add_flags(p, "diffusion", DiffusionConfig)
-    add_flags(p, "train", TrainConfig)
+    add_flags(p, "text", TEXT_DEFAULT, TEXT_QUICK)
+    add_flags(p, "unet", UNET_DEFAULT, UNET_QUICK)
+    add_flags(p, "diffusion", DIFFUSION_DEFAULT, DIFFUSION_QUICK)
+    add_flags(p, "train", DYN_TRAIN_DEFAULT, TRAIN_QUICK)
     return p
 
 

@@ -6,7 +6,7 @@
 (b) Selection: leave-one-out over the whole bank, the mean fraction of each
     demo's top-K (K = 18) that come from its own task, per selection mode.
 
-    python -m agnostos_mjx.train.evaluate --run runs/dyn --data bank.npz
+    python -m agnostos_mjx.train.evaluate --run runs/dyn --bank BANK
 """
 
 from __future__ import annotations
