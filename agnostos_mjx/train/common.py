@@ -169,7 +169,8 @@ class _progress:
 # ---- data and CLI pieces shared by the entry points ----
 
 
-def add_data_flags(parser: argparse.ArgumentParser) -> None:
+def add_data_flags(parser: argparse.ArgumentParser, training: bool = True) -> None:
+    """--bank / --data / --synthetic (and, for training, --quick and --no-progress)."""
     g = parser.add_argument_group("data (one of --bank, --data, --synthetic)")
     g.add_argument(
         "--bank",
@@ -190,6 +191,9 @@ def add_data_flags(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="N synthetic moving-square demos instead (smoke tests)",
     )
+    if not training:
+        return
+    g = parser.add_argument_group("run")
     g.add_argument(
         "--quick", action="store_true", help="tiny widths, 20 steps, 8 DDIM steps: a CPU smoke run"
     )

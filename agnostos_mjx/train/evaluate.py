@@ -114,7 +114,7 @@ def parser() -> argparse.ArgumentParser:
         type=Path,
         help="autoencoder run directory (default: the one the dynamics run recorded)",
     )
-    add_data_flags(p)
+    add_data_flags(p, training=False)
     p.add_argument(
         "--holdout-every",
         type=int,
