@@ -87,6 +87,12 @@ def test_variation_count(name, count):
                         "pick up and set the cups down into the orange cup",
                         "create a stack of cups with the orange cup as its base",
                         "keeping the orange cup on the table, stack the other two onto it"]),
+    ("put_money_in_safe", 0, ["put the money away in the safe on the bottom shelf",
+                              "leave the money on the bottom shelf on the safe",
+                              "place the stack of bank notes on the bottom shelf of the safe"]),
+    ("put_money_in_safe", 2, ["put the money away in the safe on the top shelf",
+                              "leave the money on the top shelf on the safe",
+                              "place the stack of bank notes on the top shelf of the safe"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     if not is_implemented(name):
@@ -164,3 +170,17 @@ def test_stack_cups_base_cup_takes_the_variation_colour():
         for k in (1, 2, 3):
             rgb = env.geom_rgba[w, ep.scene.model.geom(f"cup{k}_side0").id, :3]
             assert np.allclose(rgb, COLORS[v][1]) == (k == 2)
+
+
+# ---- put_money_in_safe -----------------------------------------------------------------------
+@needs("put_money_in_safe")
+def test_put_money_in_safe_only_the_named_shelf_counts():
+    assert "shelf" not in get_task("put_money_in_safe").objects  # X-ICM's name for the safe
+    obs0 = reset_obs("put_money_in_safe", 1)
+    on = [np.asarray(obs0.pos(f"success_detector{k}")) + np.array([0.0, 0.0, 0.011])
+          for k in range(3)]  # money resting on shelf k
+    assert met("put_money_in_safe", 1, obs0, moved(obs0, "dollar_stack", on[1]))
+    assert not met("put_money_in_safe", 1, obs0, moved(obs0, "dollar_stack", on[0]))
+    assert not met("put_money_in_safe", 1, obs0, moved(obs0, "dollar_stack", on[2]))
+    assert not met("put_money_in_safe", 1, obs0,
+                   moved(obs0, "dollar_stack", on[1], attached=[True]))

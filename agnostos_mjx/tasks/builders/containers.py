@@ -21,7 +21,8 @@ import numpy as np
 
 from agnostos_mjx.conditions import AnyOf, Condition, Detected
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
-from agnostos_mjx.tasks.base import sample_on_plane
+from agnostos_mjx.tasks.base import TABLE_Z, WORKSPACE_CENTER, WORKSPACE_HALF, sample_on_plane
+from agnostos_mjx.tasks.builders.articulated import hinged_door
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
 from agnostos_mjx.world import OBJECT_COLLISION
 
@@ -49,6 +50,26 @@ def spawn_on_root_plane(key: jax.Array, root: tuple[jnp.ndarray, jnp.ndarray], c
         local = jnp.array([xy[0], xy[1], height])
         poses.append((root_pos + quat_rotate(root_quat, local), quat_mul(root_quat, yaw_quat(yaw))))
     return poses
+
+
+def place_root_between(key: jax.Array, half_extents: tuple[float, float], yaw_min: float,
+                       yaw_max: float, offset=(0.0, 0.0), tries: int = 64,
+                       ) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """`place_root` for a yaw range not centred on zero (RLBench's
+    base_rotation_bounds, e.g. 0..pi/2): the first of `tries` candidates whose
+    yawed footprint (centred at `offset` in the root frame) fits the workspace."""
+    k_xy, k_yaw = jax.random.split(key)
+    center = jnp.asarray(WORKSPACE_CENTER)
+    half = jnp.asarray(WORKSPACE_HALF)
+    xy = center + jax.random.uniform(k_xy, (tries, 2), minval=-half, maxval=half)
+    yaw = jax.random.uniform(k_yaw, (tries,), minval=yaw_min, maxval=yaw_max)
+    c, s = jnp.abs(jnp.cos(yaw)), jnp.abs(jnp.sin(yaw))
+    reach = jnp.stack([c * half_extents[0] + s * half_extents[1],
+                       s * half_extents[0] + c * half_extents[1]], -1)
+    first = jnp.argmax(jnp.all(jnp.abs(xy - center) <= half - reach, -1))
+    quat = yaw_quat(yaw[first])
+    origin = jnp.concatenate([xy[first], jnp.array([TABLE_Z])])
+    return origin - quat_rotate(quat, jnp.array([*offset, 0.0])), quat
 
 
 def detected_one_of(pairs: Sequence[tuple[str, str]], index, half_extents, radius: float,
@@ -228,8 +249,48 @@ def cup(body: mujoco.MjsBody, name: str, *, bottom_radius: float = 0.032,
         geom.mass = mass / (sides + 1)
 
 
+# ---- safe ----------------------------------------------------------------------------------
+SAFE_HALF = (0.155, 0.118, 0.2475)  # width (x), depth (y, open front at +y), height
+SAFE_WALL = 0.015
+SAFE_SHELVES = (0.02, 0.165, 0.32)  # shelf top surfaces above the safe's bottom
+MONEY_HALF = (0.0265, 0.0625, 0.016)
+
+
+def safe(scene, parent: mujoco.MjsBody, name: str, pos, yaw: float, *,
+         door_angle: float = 2.9, rgba=(0.8, 0.8, 0.8)) -> mujoco.MjsBody:
+    """A safe 0.31 x 0.236 x 0.495 m open at its front (+y), with a floor and
+    two shelves (tops at SAFE_SHELVES) and its door swung open on a passive
+    hinge at the front right edge (`<name>_joint`, held by friction).  Returns
+    the static body, origin at the safe's centre."""
+    hx, hy, hz = SAFE_HALF
+    t = SAFE_WALL
+    body = parent.add_body(name=name, pos=list(pos),
+                           quat=list(np.asarray(yaw_quat(np.float64(yaw)))))
+    floor_half = (SAFE_SHELVES[0] / 2)
+    panel(body, (hx, hy, floor_half), (0, 0, -hz + floor_half), rgba)  # floor
+    panel(body, (hx, hy, t / 2), (0, 0, hz - t / 2), rgba)  # roof
+    panel(body, (hx, t / 2, hz), (0, -hy + t / 2, 0), rgba)  # back
+    for sx in (-1, 1):
+        panel(body, (t / 2, hy, hz), (sx * (hx - t / 2), 0, 0), rgba)
+    for top in SAFE_SHELVES[1:]:
+        panel(body, (hx - t, hy - t / 2, 0.005), (0, t / 2, -hz + top - 0.005), rgba)
+    hinged_door(scene, body, f"{name}_door", hinge_pos=(hx, hy, 0.0), axis=(0, 0, -1),
+                panel_half=(0.145, 0.005, 0.2255), panel_offset=(-0.145, 0.005, 0.0),
+                limits=(-np.pi, np.pi), initial=door_angle, friction_torque=5.0, rgba=rgba)
+    scene.exclude(name, f"{name}_door")
+    return body
+
+
+def money_stack(body: mujoco.MjsBody, name: str, *, mass: float = 0.5) -> None:
+    """A banded stack of bank notes 0.053 x 0.125 x 0.032 m (a free graspable)."""
+    panel(body, MONEY_HALF, (0, 0, 0), (0.8, 0.86, 0.75), name=f"{name}_notes").mass = mass
+    panel(body, (MONEY_HALF[0] + 0.0005, 0.01, MONEY_HALF[2] + 0.0005), (0, 0, 0),
+          (0.77, 0.81, 0.9), collide=False, name=f"{name}_band")
+
+
 __all__ = [
-    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
+    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "MONEY_HALF", "SAFE_HALF", "SAFE_SHELVES",
+    "money_stack", "place_root_between", "safe", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
     "detected_one_of", "down_quat", "jar", "jar_lid", "lamp_with_socket", "light_bulb",
     "open_box", "open_box_geoms", "other_color", "spawn_on_root_plane", "square_yaw",
 ]
