@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import mujoco
+import numpy as np
 
 from agnostos_mjx.conditions import NothingGrasped, all_of
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
@@ -30,11 +31,12 @@ DETECTOR_Y = -0.012
 MONEY_PLANE_HALF = (0.1115, 0.1415)  # dollar_stack_boundary on the safe's roof
 MONEY_RADIUS = 0.068  # the stack's half diagonal: fits the plane at any yaw
 GRIP_ABOVE = 0.0  # tip at the money's centre when grasping
-# RLBench turns the root by 0..pi/2; beyond 0.4 pi the safe faces the robot
-# so squarely that our level insertion must reach down next to the robot's
-# base, where the arm cannot follow a straight line.
-MAX_ROOT_YAW = 0.4 * jnp.pi
-IN_FRONT = 0.10  # stand-off in front of the safe's face
+IN_FRONT = 0.075  # stand-off in front of the safe's face: the money's front end clears it
+# What must fit the workspace: the safe's box, turned by SAFE_YAW in the root
+# frame (with the open door the footprint would never fit our inferred
+# workspace, and the sampler would fall back to unchecked placements).
+SAFE_FOOTPRINT = (np.cos(SAFE_YAW) * SAFE_HALF[0] + np.sin(SAFE_YAW) * SAFE_HALF[1],
+                  np.sin(SAFE_YAW) * SAFE_HALF[0] + np.cos(SAFE_YAW) * SAFE_HALF[1])
 
 
 class PutMoneyInSafe(Task):
@@ -54,9 +56,12 @@ class PutMoneyInSafe(Task):
              "expert grasps the stack top-down across its width, turns it in the air to "
              "face the safe and slides it in level (the hand fits a shelf's 0.145 m slot), "
              "with via-points in front of the safe instead of the planner. The money's "
-             "yaw (0..pi/2) follows RLBench (kept a half diagonal inside its plane); the "
-             "root's yaw is 0..0.4 pi instead of 0..pi/2: beyond, the safe faces the robot "
-             "and the level insertion at the bottom shelf is out of the arm's reach.")
+             "yaw (0..pi/2) and the root's yaw (0..pi/2) follow RLBench; the root is "
+             "placed so that the safe's box (not the swung-open door, which would never "
+             "fit our inferred workspace) lies in the workspace. When the safe faces the "
+             "robot from close by, the bottom shelf is at the elbow's limit and the "
+             "expert occasionally fails there (RLBench's planner would resample such "
+             "scenes).")
 
     def descriptions(self, variation: int) -> list[str]:
         s = SHELVES[variation]
@@ -78,9 +83,8 @@ class PutMoneyInSafe(Task):
 
     def sample(self, key, variation) -> Placement:
         k_root, k_money = jax.random.split(key)
-        # Footprint in the root frame: the safe and its open door.
-        root_pos, root_quat = place_root_between(k_root, (0.34, 0.165), 0.0, MAX_ROOT_YAW,
-                                                 offset=(0.108, -0.25))
+        root_pos, root_quat = place_root_between(k_root, SAFE_FOOTPRINT, 0.0, jnp.pi / 2,
+                                                 offset=SAFE_AT[:2])
         safe_quat = quat_mul(root_quat, yaw_quat(jnp.asarray(SAFE_YAW)))
         xy, yaw = sample_on_plane(k_money, (MONEY_RADIUS, MONEY_RADIUS), jnp.pi / 4,
                                   plane_center=(0.0, 0.0), plane_half=MONEY_PLANE_HALF)
@@ -112,7 +116,7 @@ class PutMoneyInSafe(Task):
             shelf + hold)
         entrance = in_frame(obs, "safe_body", (0.0, SAFE_HALF[1] + 0.03, 0.0)).at[2].add(
             shelf + hold)
-        high = front.at[2].set(obs.pos("safe_body")[2] + SAFE_HALF[2] + 0.12)
+        high = front.at[2].set(obs.pos("safe_body")[2] + SAFE_HALF[2] + 0.06)
         grasp = money + jnp.array([0.0, 0.0, GRIP_ABOVE])
         up = jnp.array([0.0, 0.0, 0.12])
         return key_actions([
