@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.observables import Observation
 from agnostos_mjx.tasks import get_task, list_tasks
 
 TASKS = list_tasks()
@@ -78,3 +79,25 @@ def test_out_of_range_variation_raises(name):
         ep.reset(keys, [0, n])
     with pytest.raises(ValueError):
         ep.reset(keys, [-1, 0])
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_every_variation_resets_with_success_false(name):
+    """All variations exist and reset: one world per variation index."""
+    import jax.numpy as jnp
+
+    task = get_task(name)
+    ep = episodes(name)
+    n = task.num_variations
+    variations = np.arange(n)
+    env = ep.reset(jax.random.split(jax.random.PRNGKey(3), n), variations, placement_tries=2)
+    assert (env.outcome == Outcome.RUNNING).all()
+    for v in range(n):
+        assert task.descriptions(v), f"{name} v{v} has no description"
+    def success_now(data, v):
+        obs = Observation(data, env.obs.layout, jnp.zeros(len(task.graspables), bool))
+        cond = task.success(v)
+        return cond.step(cond.init(obs), obs)[1]
+
+    met = np.asarray(jax.vmap(success_now)(jnp.asarray(env.obs.data), jnp.asarray(variations)))
+    assert not met.any(), f"{name}: success holds at reset for variations {np.nonzero(met)[0]}"

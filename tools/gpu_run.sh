@@ -3,6 +3,7 @@
 #   bash tools/gpu_run.sh oracle-native      oracle reports of every implemented task, native CPU
 #   bash tools/gpu_run.sh oracle-warp TASKS  oracle on TASKS with the warp backend
 #   bash tools/gpu_run.sh bank DEMOS         the seen-task bank (native physics, EGL rendering)
+#   bash tools/gpu_run.sh default BACKEND     the main job (python -m agnostos_mjx.eval --batch 75)
 # Outputs go to $OUT (what comes back) and /tmp/agnostos (kept while the machine is warm).
 set -e
 export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl
@@ -26,4 +27,9 @@ case "$1" in
     t0=$SECONDS; python3 -m agnostos_mjx.data.generate --out /tmp/agnostos/bank \
       --tasks "$tasks" --demos "$2" --batch 200 --backend native --quiet 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
     cp /tmp/agnostos/bank/report.md /tmp/agnostos/bank/manifest.json "$OUT"/ ;;
+  default)
+    t0=$SECONDS; python3 -m agnostos_mjx.eval --batch 75 --backend "$2" --resume --quiet \
+      --compare "X-ICM 7B" --out /tmp/agnostos/default_$2 2>&1 | grep -v "solver iterations\|warn_overflow" | tail -45
+    echo "wall $((SECONDS - t0)) s"
+    tar -C /tmp/agnostos -czf "$OUT/default_$2.tgz" default_$2 ;;
 esac
