@@ -23,6 +23,7 @@ from agnostos_mjx.tasks.builders.appliances import (
     GRILL_X,
     grill,
 )
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 MEATS = ("chicken", "steak")
@@ -73,9 +74,7 @@ class MeatOffGrill(Task):
         root.add_site(name="meat_off_grill_success", pos=list(SUCCESS_POS), size=[0.005, 0, 0],
                       rgba=[0, 1, 0, 0], group=4)
         for name, y, shape in zip(MEATS, MEAT_Y, (_chicken, _steak)):
-            body = scene.world.add_body(name=name, pos=[0.25 + GRILL_CX, y, 1.2])
-            body.add_freejoint()
-            shape(body)
+            shape(free_body(scene, name, pos=(0.25 + GRILL_CX, y, 1.2)))
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, GRILL_BOUNDARY_HALF, jnp.pi, offset=GRILL_BOUNDARY_CENTER)

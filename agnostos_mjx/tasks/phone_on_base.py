@@ -5,9 +5,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
-    free_object,
     placed,
     solid,
     to_world,
@@ -56,7 +56,7 @@ class PhoneOnBase(Task):
         base.add_site(name="phone_case_center", pos=[0, 0, 0.037], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
         volume(base, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        phone = free_object(scene, "phone")
+        phone = free_body(scene, "phone")
         for sx in (-1, 1):  # earpiece and mouthpiece
             solid(phone, (0.025, 0.03, 0.033), (sx * 0.109, 0, -0.003), WHITE, 0.09)
         solid(phone, (0.085, 0.022, 0.015), (0, 0, 0.015), WHITE, 0.091)  # grip bar

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
-    free_object,
     shelf_unit,
     solid,
     to_world,
@@ -61,7 +61,7 @@ class PutBooksOnBookshelf(Task):
         shelf_unit(root, "bookshelf", (0.0, SHELF_Y, 0.0), SHELF_HALF, SHELF_TOP, SIDE_HEIGHT, WOOD)
         volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         for k, rgb in enumerate(BOOK_COLORS):
-            book = free_object(scene, f"book{k}")
+            book = free_body(scene, f"book{k}")
             solid(book, BOOK_HALF, (0, 0, 0), rgb, 0.15)
             book.add_site(name=f"book{k}_grip", pos=[0, 0, BOOK_HALF[2] - GRIP_BELOW_TOP],
                           size=[0.004, 0, 0], rgba=[0, 0, 0, 0], group=4)

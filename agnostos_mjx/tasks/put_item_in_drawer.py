@@ -17,7 +17,8 @@ from agnostos_mjx.tasks.base import (
     sample_on_plane,
 )
 from agnostos_mjx.tasks.builders.articulated import drawer_chest
-from agnostos_mjx.tasks.builders.furniture import free_box, sensor_volume
+from agnostos_mjx.tasks.builders.common import free_box
+from agnostos_mjx.tasks.builders.furniture import sensor_volume
 
 LEVELS = ("bottom", "middle", "top")
 ROOT = "put_item_in_drawer_root"

@@ -15,9 +15,9 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
-    free_object,
     held_by_weld_only,
     place_on_boundary,
     placed,
@@ -92,7 +92,7 @@ class PutKnifeOnChoppingBoard(Task):
             panel(block, (sx, (hy - sy) / 2, BLOCK_TOP / 2),
                   (SLOT_X, side * (hy + sy) / 2, BLOCK_TOP / 2), WOOD_DARK)
         panel(block, (sx, sy, SLOT_FLOOR / 2), (SLOT_X, 0, SLOT_FLOOR / 2), WOOD_DARK)
-        knife = free_object(scene, "knife")
+        knife = free_body(scene, "knife")
         handle = 0.1
         handle_z = KNIFE_HALF_LENGTH - handle / 2
         knife.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.008, handle / 2 - 0.008, 0],

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
-    free_object,
     open_container,
     placed,
     solid,
@@ -59,7 +59,7 @@ class PutRubbishInBin(Task):
         root.add_site(name="bin_center", pos=[*BIN_XY, BIN_HEIGHT / 2], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
         volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        rubbish = free_object(scene, "rubbish")
+        rubbish = free_body(scene, "rubbish")
         solid(rubbish, RUBBISH_HALF, (0, 0, 0), PAPER, 0.42)
         for k, (dx, dy, r) in enumerate(((0.012, 0.01, 0.02), (-0.014, -0.008, 0.018))):
             rubbish.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[r, 0, 0],

@@ -8,9 +8,9 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
-    free_object,
     open_container,
     place_on_boundary,
     placed,
@@ -74,9 +74,9 @@ class PutToiletRollOnStand(Task):
         stand.add_site(name="holder", pos=[0, 0, SPINDLE_Z], size=[0.005, 0, 0],
                        rgba=[0, 0, 0, 0], group=4)
         volume(stand, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        box = free_object(scene, "toilet_roll_box")
+        box = free_body(scene, "toilet_roll_box")
         solid(box, (BOX_HALF,) * 3, (0, 0, 0), (0.85, 0.85, 0.85), 1.0)
-        roll = free_object(scene, "toilet_roll")
+        roll = free_body(scene, "toilet_roll")
         for geom in open_container(roll, "toilet_roll", (0, 0, -ROLL_HALF_LENGTH), ROLL_INNER,
                                    2 * ROLL_HALF_LENGTH, WHITE, sides=8, wall=ROLL_WALL, floor=0):
             geom.mass = 0.1 / 8

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
-    free_object,
     held_by_weld_only,
     open_container,
     placed,
@@ -66,7 +66,7 @@ class PutUmbrellaInUmbrellaStand(Task):
         root.add_site(name="stand_center", pos=[*STAND_XY, STAND_HEIGHT / 2], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
         volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        umbrella = free_object(scene, "umbrella")
+        umbrella = free_body(scene, "umbrella")
         # Collision: a square-section body (it must not roll off the rim) and
         # a thin ferrule; looks: capsules for the furled canopy and the handle.
         solid(umbrella, (0.014, 0.014, 0.0945), (0, 0, 0.0145), CANOPY, 0.045).rgba[3] = 0.0

@@ -11,23 +11,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
-
-
-def free_body(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
-    """A dynamic body on a free joint; its pose is set by the sampler
-    (Placement.bodies) and it is meant to be added to a task's graspables."""
-    body = scene.world.add_body(name=name)
-    body.add_freejoint()
-    return body
-
-
-def free_box(scene: SceneBuilder, name: str, half, rgba, mass: float) -> mujoco.MjsBody:
-    """A free cuboid of the given half sizes and mass (a block, a grocery box)."""
-    body = free_body(scene, name)
-    panel(body, half, (0.0, 0.0, 0.0), rgba, name=f"{name}_geom").mass = mass
-    return body
 
 
 def sensor_volume(body: mujoco.MjsBody, name: str, half, pos=(0.0, 0.0, 0.0)) -> str:
@@ -270,6 +256,6 @@ def grocery(scene: SceneBuilder, name: str, size, rgba, round_: bool = False,
     return body
 
 
-__all__ = ["CHROME", "CREAM", "WHITE", "WOOD", "cupboard", "disc", "free_body", "free_box",
+__all__ = ["CHROME", "CREAM", "WHITE", "WOOD", "cupboard", "disc",
            "grocery", "holed_plate", "octagonal_prism", "rod", "sensor_volume", "shape_sorter",
            "sorter_shape", "two_handle_tap", "wine_bottle", "wine_rack"]

@@ -26,14 +26,6 @@ IDENTITY = (1.0, 0.0, 0.0, 0.0)
 
 
 # ---- scene pieces -------------------------------------------------------------------------
-def free_object(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
-    """A body with a free joint (free bodies must hang off the world body);
-    the sampler gives it a world pose every episode."""
-    body = scene.world.add_body(name=name)
-    body.add_freejoint()
-    return body
-
-
 def held_by_weld_only(scene: SceneBuilder, body: str) -> None:
     """Let the gripper pass through a graspable, so only the grasp weld holds
     it (RLBench parents a grasped object to the gripper).  For long, thin

@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.math3d import quat_mul, quat_rotate
+from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
 
@@ -30,13 +31,6 @@ def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
     local_pos = jnp.asarray(local_pos, jnp.float32)
     return (root_pos + quat_rotate(root_quat, local_pos),
             quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
-
-
-def free_body(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
-    """A body on a free joint (a graspable object), placed by the sampler."""
-    body = scene.world.add_body(name=name)
-    body.add_freejoint()
-    return body
 
 
 def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:

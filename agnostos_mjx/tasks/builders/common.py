@@ -1,0 +1,49 @@
+"""Small helpers every builder family and task shares: free bodies, sensor
+volumes, poses given in a task root's frame, headings, top-down grasps, and
+spawning objects on a plane of the task root.
+
+Why these exist: RLBench carries objects by a kinematic attach and checks
+success with proximity-sensor volumes; here a graspable is a free body (held
+by a weld on close, see episode.py) and a volume is an invisible box site read
+by `conditions.Detected`.  MuJoCo free joints must hang off the world body, so
+a task creates its free bodies at the origin and its sampler places them in
+world coordinates by composing the task root's pose with a local one.
+"""
+
+from __future__ import annotations
+
+import mujoco
+
+from agnostos_mjx.tasks.builders.primitives import panel
+from agnostos_mjx.world import SceneBuilder
+
+
+# ---- free bodies ----------------------------------------------------------------------------
+def free_body(scene: SceneBuilder, name: str, *, pos=(0.0, 0.0, 0.0), joint: str = "",
+              damping: float = 0.0, gravcomp: float = 0.0) -> mujoco.MjsBody:
+    """A dynamic body on a free joint, parented to the world (free joints
+    cannot hang under a mocap root).  Its sampler sets its world pose every
+    episode, so `pos` only matters for the model's default state.  `joint`
+    names the free joint (unnamed by default); `damping` slows all six DoFs
+    (e.g. a light prop that must not bounce); `gravcomp` 1 makes it float."""
+    body = scene.world.add_body(name=name, pos=list(pos), gravcomp=gravcomp)
+    body.add_freejoint(name=joint).damping = [damping, 0.0, 0.0]
+    return body
+
+
+def free_box(scene: SceneBuilder, name: str, half, rgba, mass: float, *,
+             geom: str | None = None, friction: float | None = None,
+             pos=(0.0, 0.0, 0.0)) -> mujoco.MjsBody:
+    """A free cuboid of half sizes `half` and an explicit `mass` (RLBench's
+    dynamic, respondable cuboid: a block, a grocery box).  Its geom is called
+    `geom`, by default `name`, so samplers can recolour it by name;
+    `friction` overrides the sliding friction (default torsional/rolling)."""
+    body = free_body(scene, name, pos=pos)
+    box = panel(body, half, (0.0, 0.0, 0.0), rgba, name=name if geom is None else geom)
+    box.mass = mass
+    if friction is not None:
+        box.friction = [friction, 0.005, 0.0001]
+    return body
+
+
+__all__ = ["free_body", "free_box"]
