@@ -5,15 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body
-from agnostos_mjx.tasks.builders.household import (
-    down_grasp,
-    placed,
-    solid,
-    to_world,
-    volume,
-    yaw_of,
-)
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
+from agnostos_mjx.tasks.builders.household import down_grasp, placed, solid, to_world, yaw_of
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
 BASE_RGBA = (1.0, 0.27, 0.0)
@@ -55,7 +48,7 @@ class PhoneOnBase(Task):
         panel(base, (0.141, 0.004, rim), (0, 0.106, SLAB_TOP + rim), BASE_RGBA)  # lip
         base.add_site(name="phone_case_center", pos=[0, 0, 0.037], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
-        volume(base, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(base, "success", SUCCESS_CENTER, SUCCESS_HALF)
         phone = free_body(scene, "phone")
         for sx in (-1, 1):  # earpiece and mouthpiece
             solid(phone, (0.025, 0.03, 0.033), (sx * 0.109, 0, -0.003), WHITE, 0.09)

@@ -18,7 +18,8 @@ from agnostos_mjx.tasks.base import (
     place_root,
     sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.furniture import sensor_volume, shape_sorter, sorter_shape
+from agnostos_mjx.tasks.builders.common import sensor_volume
+from agnostos_mjx.tasks.builders.furniture import shape_sorter, sorter_shape
 
 ROOT = "shape_sorter_root"
 SORTER_XY = (0.0, -0.15)  # root frame, as in RLBench's (x2 scaled) PerAct model
@@ -97,7 +98,7 @@ class PlaceShapeInShapeSorter(Task):
         root = scene.mocap(ROOT)
         holder = root.add_body(name="shape_sorter_frame", pos=[*SORTER_XY, 0.0])
         shape_sorter(holder, "shape_sorter", [s.hole for s in SHAPES], height=LID_TOP)
-        sensor_volume(holder, "success", VOLUME_HALF, (0.0, 0.0, VOLUME_HALF[2] - 0.001))
+        sensor_volume(holder, "success", (0.0, 0.0, VOLUME_HALF[2] - 0.001), VOLUME_HALF)
         for s in SHAPES:
             assert sorter_shape(scene, s.name, s.name, s.rgba) == s.half_height
 

@@ -15,7 +15,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.furniture import sensor_volume, wine_bottle, wine_rack
+from agnostos_mjx.tasks.builders.common import sensor_volume
+from agnostos_mjx.tasks.builders.furniture import wine_bottle, wine_rack
 
 LOCATIONS = ("middle", "left", "right")
 SLOT_X = (0.051, 0.170, -0.065)  # RLBench's success_<location> sensors, root frame
@@ -60,7 +61,7 @@ class PlaceWineAtRackLocation(Task):
         root = scene.mocap(ROOT)
         wine_rack(scene, root, "rack", SLOT_X)
         for loc, x in zip(LOCATIONS, SLOT_X):
-            sensor_volume(root, f"success_{loc}", VOLUME_HALF, (x, 0.275, SLOT_Z))
+            sensor_volume(root, f"success_{loc}", (x, 0.275, SLOT_Z), VOLUME_HALF)
         bottle = wine_bottle(scene)
         bottle.add_site(name="wine_bottle_grasp", pos=[0.0, 0.0, NECK], size=[0.005, 0, 0],
                         rgba=[0, 1, 0, 0], group=4)

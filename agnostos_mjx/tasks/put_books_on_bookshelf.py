@@ -7,15 +7,8 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body
-from agnostos_mjx.tasks.builders.household import (
-    down_grasp,
-    shelf_unit,
-    solid,
-    to_world,
-    volume,
-    yaw_of,
-)
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
+from agnostos_mjx.tasks.builders.household import down_grasp, shelf_unit, solid, to_world, yaw_of
 
 WOOD = (0.55, 0.35, 0.2)
 BOOK_COLORS = ((0.6, 0.1, 0.1), (0.1, 0.3, 0.6), (0.2, 0.5, 0.2))
@@ -59,7 +52,7 @@ class PutBooksOnBookshelf(Task):
     def build(self, scene) -> None:
         root = scene.mocap("bookshelf_root")
         shelf_unit(root, "bookshelf", (0.0, SHELF_Y, 0.0), SHELF_HALF, SHELF_TOP, SIDE_HEIGHT, WOOD)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         for k, rgb in enumerate(BOOK_COLORS):
             book = free_body(scene, f"book{k}")
             solid(book, BOOK_HALF, (0, 0, 0), rgb, 0.15)

@@ -19,7 +19,8 @@ from agnostos_mjx.tasks.base import (
     place_root,
     sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.furniture import cupboard, grocery, sensor_volume
+from agnostos_mjx.tasks.builders.common import sensor_volume
+from agnostos_mjx.tasks.builders.furniture import cupboard, grocery
 
 
 class Grocery(NamedTuple):
@@ -100,7 +101,7 @@ class PutGroceriesInCupboard(Task):
         root = scene.mocap(ROOT)
         floor, clear = cupboard(root, "cupboard", depth=DEPTH, width=WIDTH)
         assert (floor, round(clear, 6)) == (FLOOR, CLEAR)
-        sensor_volume(root, "success", VOLUME_HALF, (DEPTH / 2, 0.0, FLOOR + CLEAR / 2))
+        sensor_volume(root, "success", (DEPTH / 2, 0.0, FLOOR + CLEAR / 2), VOLUME_HALF)
         for g in GROCERIES:
             body = grocery(scene, g.name, g.size, g.rgba, g.round_)
             body.add_site(name=f"{g.name}_grasp_point", pos=[0.0, 0.0, _grasp_height(g)],

@@ -15,7 +15,7 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     held_by_weld_only,
@@ -23,7 +23,6 @@ from agnostos_mjx.tasks.builders.household import (
     placed,
     solid,
     to_world,
-    volume,
 )
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
@@ -79,7 +78,7 @@ class PutKnifeOnChoppingBoard(Task):
         panel(root, BOARD_HALF, (*BOARD_CENTER, BOARD_HALF[2]), WHITE)
         root.add_site(name="chopping_board", pos=[*BOARD_CENTER, 2 * BOARD_HALF[2]],
                       size=[0.005, 0, 0], rgba=[0, 0, 0, 0], group=4)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         block = scene.mocap("knife_block")
         hx, hy = BLOCK_HALF
         sx, sy = SLOT_HALF

@@ -7,14 +7,13 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     open_container,
     placed,
     solid,
     to_world,
-    volume,
     yaw_of,
 )
 
@@ -58,7 +57,7 @@ class PutRubbishInBin(Task):
         open_container(root, "bin", (*BIN_XY, 0.0), BIN_INNER, BIN_HEIGHT, GREY)
         root.add_site(name="bin_center", pos=[*BIN_XY, BIN_HEIGHT / 2], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         rubbish = free_body(scene, "rubbish")
         solid(rubbish, RUBBISH_HALF, (0, 0, 0), PAPER, 0.42)
         for k, (dx, dy, r) in enumerate(((0.012, 0.01, 0.02), (-0.014, -0.008, 0.018))):

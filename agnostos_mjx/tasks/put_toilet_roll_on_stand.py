@@ -8,7 +8,7 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     open_container,
@@ -16,7 +16,6 @@ from agnostos_mjx.tasks.builders.household import (
     placed,
     solid,
     to_world,
-    volume,
     yaw_of,
 )
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
@@ -73,7 +72,7 @@ class PutToiletRollOnStand(Task):
         panel(stand, SPINDLE_HALF, (0, 0, SPINDLE_Z), LIGHT_GREY, name="holder_spindle")
         stand.add_site(name="holder", pos=[0, 0, SPINDLE_Z], size=[0.005, 0, 0],
                        rgba=[0, 0, 0, 0], group=4)
-        volume(stand, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(stand, "success", SUCCESS_CENTER, SUCCESS_HALF)
         box = free_body(scene, "toilet_roll_box")
         solid(box, (BOX_HALF,) * 3, (0, 0, 0), (0.85, 0.85, 0.85), 1.0)
         roll = free_body(scene, "toilet_roll")

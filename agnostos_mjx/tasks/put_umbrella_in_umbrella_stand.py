@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     held_by_weld_only,
@@ -15,7 +15,6 @@ from agnostos_mjx.tasks.builders.household import (
     placed,
     solid,
     to_world,
-    volume,
 )
 from agnostos_mjx.tasks.builders.primitives import rod
 
@@ -65,7 +64,7 @@ class PutUmbrellaInUmbrellaStand(Task):
         open_container(root, "stand", (*STAND_XY, 0.0), STAND_INNER, STAND_HEIGHT, GREY, sides=8)
         root.add_site(name="stand_center", pos=[*STAND_XY, STAND_HEIGHT / 2], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         umbrella = free_body(scene, "umbrella")
         # Collision: a square-section body (it must not roll off the rim) and
         # a thin ferrule; looks: capsules for the furled canopy and the handle.

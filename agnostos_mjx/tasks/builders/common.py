@@ -17,6 +17,10 @@ import mujoco
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
+IDENTITY = (1.0, 0.0, 0.0, 0.0)
+# Sites of this group are hidden by the default visualisation (groups 0-2 show).
+HIDDEN_GROUP = 4
+
 
 # ---- free bodies ----------------------------------------------------------------------------
 def free_body(scene: SceneBuilder, name: str, *, pos=(0.0, 0.0, 0.0), joint: str = "",
@@ -46,4 +50,17 @@ def free_box(scene: SceneBuilder, name: str, half, rgba, mass: float, *,
     return body
 
 
-__all__ = ["free_body", "free_box"]
+# ---- sensor volumes -------------------------------------------------------------------------
+def sensor_volume(body: mujoco.MjsBody, name: str, pos, half, *, quat=IDENTITY,
+                  rgba=(0.0, 1.0, 0.0, 0.0)) -> str:
+    """An invisible box site standing for an RLBench proximity-sensor volume,
+    centred at `pos` in `body`'s frame.  `Detected` reads its pose; pass it
+    the same `half` sizes.  Returns the site name (list it in a task's
+    observed frames).  Give `rgba` an alpha to see it in the MuJoCo viewer
+    (group 4 is hidden from rendered observations)."""
+    body.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), quat=list(quat),
+                  size=list(half), rgba=list(rgba), group=HIDDEN_GROUP)
+    return name
+
+
+__all__ = ["HIDDEN_GROUP", "IDENTITY", "free_body", "free_box", "sensor_volume"]

@@ -15,15 +15,6 @@ from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
 
-
-def sensor_volume(body: mujoco.MjsBody, name: str, half, pos=(0.0, 0.0, 0.0)) -> str:
-    """An invisible box site standing for an RLBench proximity sensor volume
-    (tested by conditions.Detected with the same half sizes)."""
-    body.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half), pos=list(pos),
-                  rgba=[0.0, 1.0, 0.0, 0.0], group=4)
-    return name
-
-
 CHROME = (0.75, 0.75, 0.78)
 
 
@@ -257,5 +248,5 @@ def grocery(scene: SceneBuilder, name: str, size, rgba, round_: bool = False,
 
 
 __all__ = ["CHROME", "CREAM", "WHITE", "WOOD", "cupboard", "disc",
-           "grocery", "holed_plate", "octagonal_prism", "rod", "sensor_volume", "shape_sorter",
+           "grocery", "holed_plate", "octagonal_prism", "rod", "shape_sorter",
            "sorter_shape", "two_handle_tap", "wine_bottle", "wine_rack"]

@@ -86,14 +86,6 @@ def shelf_unit(body: mujoco.MjsBody, name: str, pos, half, shelf_top: float, hei
                   group=4)
 
 
-def volume(body: mujoco.MjsBody, name: str, center, half) -> tuple[float, float, float]:
-    """An invisible box sensor volume (RLBench proximity sensor) as a site;
-    returns its half extents for `Detected`."""
-    body.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(center), size=list(half),
-                  rgba=[0, 1, 0, 0.2], group=4)
-    return tuple(half)
-
-
 # ---- poses ----------------------------------------------------------------------------------
 def to_world(pos, quat, local_pos, local_quat=IDENTITY) -> tuple[jnp.ndarray, jnp.ndarray]:
     """World pose of a pose given in the frame (pos, quat)."""

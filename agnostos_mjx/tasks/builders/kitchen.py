@@ -104,14 +104,6 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
     return lid_name, f"{lid_name}_grasp_point"
 
 
-def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
-    """An invisible box site standing for an RLBench proximity-sensor volume
-    (a `Detected` condition tests against it).  `pos` is the box centre."""
-    parent.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), size=list(half),
-                    rgba=[0, 1, 0, 0], group=4)
-    return name
-
-
 # ---- plugs and sockets (charger in a wall socket, USB stick in a computer) -----------------
 def socket_tube(parent: mujoco.MjsBody, front, inner_half: tuple[float, float], depth: float,
                 wall: float = 0.0015, rgba=GREY) -> None:
