@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
+from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -23,7 +23,7 @@ from agnostos_mjx.tasks.builders.appliances import (
     GRILL_X,
     grill,
 )
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 MEATS = ("chicken", "steak")
@@ -81,7 +81,7 @@ class MeatOffGrill(Task):
         bodies = {"meat_off_grill_root": (pos, quat)}
         for name, y, half_h in zip(MEATS, MEAT_Y, (0.022, 0.01)):
             local = jnp.array([GRILL_CX, y, GRATE_Z + half_h + 0.001])
-            bodies[name] = (pos + quat_rotate(quat, local), quat)
+            bodies[name] = pose_in_root(pos, quat, local)
         return Placement(bodies=bodies)
 
     def success(self, variation):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
-from agnostos_mjx.tasks.builders.household import down_grasp, placed, solid, to_world, yaw_of
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.household import down_grasp, placed, solid, yaw_of
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
 BASE_RGBA = (1.0, 0.27, 0.0)
@@ -58,7 +58,7 @@ class PhoneOnBase(Task):
         # No spawn boundaries: the root turns with any yaw, the handset lies beside the base.
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
         return Placement(bodies={"phone_case": (pos, quat),
-                                 "phone": to_world(pos, quat, PHONE_START)})
+                                 "phone": pose_in_root(pos, quat, PHONE_START)})
 
     def success(self, variation):
         return placed("phone", "success", SUCCESS_HALF)

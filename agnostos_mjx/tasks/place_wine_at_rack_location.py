@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
+from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -15,7 +15,7 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import sensor_volume
+from agnostos_mjx.tasks.builders.common import pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.furniture import wine_bottle, wine_rack
 
 LOCATIONS = ("middle", "left", "right")
@@ -68,8 +68,8 @@ class PlaceWineAtRackLocation(Task):
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, (0.12, 0.22), jnp.pi / 4, offset=(0.054, 0.04))
-        bottle = pos + quat_rotate(quat, jnp.asarray(BOTTLE_LOCAL))
-        return Placement(bodies={ROOT: (pos, quat), "wine_bottle": (bottle, quat)})
+        return Placement(bodies={ROOT: (pos, quat),
+                                 "wine_bottle": pose_in_root(pos, quat, BOTTLE_LOCAL)})
 
     def success(self, variation):
         slots = tuple(Detected("wine_bottle", f"success_{loc}", VOLUME_HALF, radius=0.02)

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
-from agnostos_mjx.tasks.builders.household import down_grasp, shelf_unit, solid, to_world, yaw_of
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.household import down_grasp, shelf_unit, solid, yaw_of
 
 WOOD = (0.55, 0.35, 0.2)
 BOOK_COLORS = ((0.6, 0.1, 0.1), (0.1, 0.3, 0.6), (0.2, 0.5, 0.2))
@@ -64,7 +64,7 @@ class PutBooksOnBookshelf(Task):
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi / 2, offset=FOOTPRINT_CENTER)
         bodies = {"bookshelf_root": (pos, quat)}
         for k, x in enumerate(BOOK_SLOTS_X):
-            bodies[f"book{k}"] = to_world(pos, quat, (x, BOOKS_Y, BOOK_HALF[2] + 0.001))
+            bodies[f"book{k}"] = pose_in_root(pos, quat, (x, BOOKS_Y, BOOK_HALF[2] + 0.001))
         return Placement(bodies=bodies)
 
     def success(self, variation):

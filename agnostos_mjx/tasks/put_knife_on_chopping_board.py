@@ -15,14 +15,13 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     held_by_weld_only,
     place_on_boundary,
     placed,
     solid,
-    to_world,
 )
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
@@ -107,7 +106,7 @@ class PutKnifeOnChoppingBoard(Task):
         pos, quat = place_root(k_root, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
         block = place_on_boundary(k_block, (pos, quat), BOUNDARY_CENTER, BOUNDARY_HALF,
                                   BLOCK_HALF)
-        knife = to_world(*block, jnp.array([SLOT_X, 0.0, KNIFE_CENTER_Z]))
+        knife = pose_in_root(*block, jnp.array([SLOT_X, 0.0, KNIFE_CENTER_Z]))
         return Placement(bodies={"board_root": (pos, quat), "knife_block": block, "knife": knife})
 
     def success(self, variation):

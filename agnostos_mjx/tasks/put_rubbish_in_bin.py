@@ -7,15 +7,8 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
-from agnostos_mjx.tasks.builders.household import (
-    down_grasp,
-    open_container,
-    placed,
-    solid,
-    to_world,
-    yaw_of,
-)
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.household import down_grasp, open_container, placed, solid, yaw_of
 
 GREY = (0.6, 0.6, 0.6)
 PAPER = (1.0, 1.0, 1.0)
@@ -85,7 +78,7 @@ class PutRubbishInBin(Task):
         heights = (RUBBISH_HALF[2], 0.0, 0.0)
         bodies = {"bin_root": (pos, quat)}
         for k, name in enumerate(("rubbish", "tomato1", "tomato2")):
-            bodies[name] = to_world(pos, quat, jnp.array([xy[k, 0], xy[k, 1], heights[k]]))
+            bodies[name] = pose_in_root(pos, quat, jnp.array([xy[k, 0], xy[k, 1], heights[k]]))
         return Placement(bodies=bodies)
 
     def success(self, variation):

@@ -8,14 +8,13 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     open_container,
     place_on_boundary,
     placed,
     solid,
-    to_world,
     yaw_of,
 )
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
@@ -89,7 +88,7 @@ class PutToiletRollOnStand(Task):
         return Placement(bodies={
             "roll_root": root,
             "toilet_roll_box": box,
-            "toilet_roll": to_world(*box, ROLL_ON_BOX, AXIS_ALONG_X),
+            "toilet_roll": pose_in_root(*box, ROLL_ON_BOX, AXIS_ALONG_X),
             "stand": place_on_boundary(k_stand, root, STAND_PLANE, PLANE_HALF, STAND_HALF,
                                        STAND_OFFSET),
         })

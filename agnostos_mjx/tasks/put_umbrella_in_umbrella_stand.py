@@ -7,14 +7,13 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
+from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
     down_grasp,
     held_by_weld_only,
     open_container,
     placed,
     solid,
-    to_world,
 )
 from agnostos_mjx.tasks.builders.primitives import rod
 
@@ -82,7 +81,7 @@ class PutUmbrellaInUmbrellaStand(Task):
         # No spawn boundaries: the root turns with any yaw.
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
         return Placement(bodies={"stand_root": (pos, quat),
-                                 "umbrella": to_world(pos, quat, UMBRELLA_START, ALONG_MINUS_Y)})
+                                 "umbrella": pose_in_root(pos, quat, UMBRELLA_START, ALONG_MINUS_Y)})
 
     def success(self, variation):
         return placed("umbrella_probe", "success", SUCCESS_HALF)

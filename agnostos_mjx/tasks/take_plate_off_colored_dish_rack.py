@@ -16,8 +16,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import sensor_volume
-from agnostos_mjx.tasks.builders.kitchen import dish_rack, plate, pose_in_root
+from agnostos_mjx.tasks.builders.common import pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import dish_rack, plate
 from agnostos_mjx.tasks.builders.primitives import panel
 
 SECTIONS = ("black", "red", "purple")

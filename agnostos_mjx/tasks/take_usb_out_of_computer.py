@@ -17,8 +17,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import sensor_volume
-from agnostos_mjx.tasks.builders.kitchen import desktop_computer, plug, pose_in_root
+from agnostos_mjx.tasks.builders.common import pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import desktop_computer, plug
 
 DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # fingers across the stick (root y)
 CASE_HALF = (0.15, 0.09, 0.17)

@@ -15,8 +15,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import sensor_volume
-from agnostos_mjx.tasks.builders.kitchen import DARK, plug, pose_in_root, wall_socket
+from agnostos_mjx.tasks.builders.common import pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import DARK, plug, wall_socket
 
 # Gripper pointing down, fingers across the charger (along the root's y).
 DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)

@@ -8,8 +8,8 @@ parts get a cylinder for looks and an inscribed box for contact.
 """
 
 from agnostos_mjx.tasks.builders.articulated import drawer_chest, hinged_door, push_button
-from agnostos_mjx.tasks.builders.common import free_body, free_box, sensor_volume
+from agnostos_mjx.tasks.builders.common import free_body, free_box, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 
 __all__ = ["WHITE", "WOOD", "disc", "drawer_chest", "free_body", "free_box", "hinged_door",
-           "panel", "push_button", "rod", "sensor_volume"]
+           "panel", "pose_in_root", "push_button", "rod", "sensor_volume"]

@@ -12,14 +12,17 @@ world coordinates by composing the task root's pose with a local one.
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import mujoco
 
+from agnostos_mjx.math3d import quat_mul, quat_rotate
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
 # Sites of this group are hidden by the default visualisation (groups 0-2 show).
 HIDDEN_GROUP = 4
+Pose = tuple[jnp.ndarray, jnp.ndarray]
 
 
 # ---- free bodies ----------------------------------------------------------------------------
@@ -63,4 +66,16 @@ def sensor_volume(body: mujoco.MjsBody, name: str, pos, half, *, quat=IDENTITY,
     return name
 
 
-__all__ = ["HIDDEN_GROUP", "IDENTITY", "free_body", "free_box", "sensor_volume"]
+# ---- poses ----------------------------------------------------------------------------------
+def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
+                 local_quat=IDENTITY) -> Pose:
+    """World pose of a pose (`local_pos`, `local_quat`) given in the frame
+    (`root_pos`, `root_quat`), e.g. a free body's resting pose in its task
+    root.  For an upright local pose of heading `yaw`, pass `yaw_quat(yaw)`."""
+    local_pos = jnp.asarray(local_pos, jnp.float32)
+    return (root_pos + quat_rotate(root_quat, local_pos),
+            quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
+
+
+__all__ = ["HIDDEN_GROUP", "IDENTITY", "Pose", "free_body", "free_box", "pose_in_root",
+           "sensor_volume"]

@@ -17,6 +17,7 @@ import numpy as np
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
 from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import sample_on_plane
+from agnostos_mjx.tasks.builders.common import pose_in_root
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
@@ -87,12 +88,6 @@ def shelf_unit(body: mujoco.MjsBody, name: str, pos, half, shelf_top: float, hei
 
 
 # ---- poses ----------------------------------------------------------------------------------
-def to_world(pos, quat, local_pos, local_quat=IDENTITY) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """World pose of a pose given in the frame (pos, quat)."""
-    local_pos = jnp.asarray(local_pos, jnp.float32)
-    return pos + quat_rotate(quat, local_pos), quat_mul(quat, jnp.asarray(local_quat, jnp.float32))
-
-
 def place_on_boundary(key: jax.Array, root: tuple, plane_center, plane_half, half_extents,
                       offset=(0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
     """RLBench's SpawnBoundary for an object on a spawn plane of its task
@@ -102,7 +97,7 @@ def place_on_boundary(key: jax.Array, root: tuple, plane_center, plane_half, hal
                               plane_half=plane_half)
     quat = yaw_quat(yaw)
     local = jnp.concatenate([xy, jnp.zeros(1)]) - quat_rotate(quat, jnp.array([*offset, 0.0]))
-    return to_world(*root, local, quat)
+    return pose_in_root(*root, local, quat)
 
 
 def yaw_of(quat) -> jnp.ndarray:

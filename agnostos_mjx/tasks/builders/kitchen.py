@@ -11,11 +11,9 @@ root.  Sensor volumes are box sites (`sensor_volume`) for `Detected`.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.math3d import quat_mul, quat_rotate
 from agnostos_mjx.tasks.builders.common import free_body
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
@@ -23,14 +21,6 @@ from agnostos_mjx.world import SceneBuilder
 STEEL = (0.75, 0.75, 0.75)
 GREY = (0.6, 0.6, 0.6)
 DARK = (0.15, 0.15, 0.15)
-
-
-def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
-                 local_quat=(1.0, 0.0, 0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """World pose of a free body whose pose in the task-root frame is known."""
-    local_pos = jnp.asarray(local_pos, jnp.float32)
-    return (root_pos + quat_rotate(root_quat, local_pos),
-            quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
 
 
 def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
