@@ -6,7 +6,6 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -23,7 +22,7 @@ from agnostos_mjx.tasks.builders.appliances import (
     GRILL_X,
     grill,
 )
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root
+from agnostos_mjx.tasks.builders.common import DOWN, free_body, pose_in_root
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 MEATS = ("chicken", "steak")
@@ -31,7 +30,6 @@ GRILL_CX = (GRILL_X[0] + GRILL_X[1]) / 2
 MEAT_Y = (-0.1, 0.1)  # on the grate, root frame
 # The "beside the grill" sensor: a box on the table in front of the grill.
 SUCCESS_POS, SUCCESS_HALF = (-0.05, 0.0, 0.05), (0.1, 0.2, 0.05)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # fingers along the meat's y (its short side)
 HOVER, LIFT = 0.1, 0.15
 
 

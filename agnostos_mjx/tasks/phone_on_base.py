@@ -5,8 +5,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.household import down_grasp, placed, solid, yaw_of
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
+from agnostos_mjx.tasks.builders.household import placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
 BASE_RGBA = (1.0, 0.27, 0.0)

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, Select
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -18,7 +18,7 @@ from agnostos_mjx.tasks.base import (
     place_root,
     sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.common import sensor_volume
+from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, sensor_volume
 from agnostos_mjx.tasks.builders.furniture import shape_sorter, sorter_shape
 
 ROOT = "shape_sorter_root"
@@ -50,9 +50,7 @@ NAMES = tuple(s.name for s in SHAPES)
 BOUNDARY_CENTER, BOUNDARY_HALF = (0.0, 0.125), (0.2105, 0.1505)
 FOOTPRINT = (0.03, 0.03)  # shapes' half footprint for spawn overlap tests
 VOLUME_HALF = (0.08, 0.08, 0.05)  # RLBench's `success`: 0.16 x 0.16, 0.10 m high
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along the frame's y
 CARRY = 0.25  # carrying height above the table, clear of the 0.143 m high sorter
-ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
 
 
 def _nearest(angle, ref, period: float):
@@ -60,15 +58,6 @@ def _nearest(angle, ref, period: float):
     if period == 0.0:
         return ref
     return ref + (angle - ref) - period * jnp.round((angle - ref) / period)
-
-
-def _down(yaw):
-    return quat_mul(yaw_quat(yaw), DOWN)
-
-
-def _natural_yaw(pos):
-    """The wrist yaw the arm reaches a point with least twist: along the arm."""
-    return jnp.arctan2(pos[1] - ARM_BASE_XY[1], pos[0] - ARM_BASE_XY[0])
 
 
 class PlaceShapeInShapeSorter(Task):
@@ -131,20 +120,21 @@ class PlaceShapeInShapeSorter(Task):
         hole = in_frame(obs, ROOT, jnp.concatenate([holes[variation], jnp.zeros(1)]))
         # Grasp with the least wrist twist the shape's symmetry allows, then
         # turn it so it lines up with its hole (the grasp keeps the relative yaw).
-        grasp_yaw, drop_yaw = _natural_yaw(shape), _natural_yaw(hole)
+        grasp_yaw, drop_yaw = natural_yaw(shape), natural_yaw(hole)
         for v, s in enumerate(SHAPES):
-            g = _nearest(shape_yaw, _natural_yaw(shape), s.period)
-            d = _nearest(g + root_yaw - shape_yaw, _natural_yaw(hole), s.period)
+            g = _nearest(shape_yaw, natural_yaw(shape), s.period)
+            d = _nearest(g + root_yaw - shape_yaw, natural_yaw(hole), s.period)
             grasp_yaw = jnp.where(variation == v, g, grasp_yaw)
             drop_yaw = jnp.where(variation == v, d, drop_yaw)
         table = obs.pos(ROOT)[2]
         at = lambda p, z: p.at[2].set(table + z)  # noqa: E731
+        grip, drop = down_grasp(grasp_yaw, wrap=False), down_grasp(drop_yaw, wrap=False)
         return key_actions([
-            (shape + jnp.array([0.0, 0.0, 0.075]), _down(grasp_yaw), 1.0),  # above (wp0)
-            (shape, _down(grasp_yaw), 0.0),  # grasp (wp1)
-            (at(shape, CARRY), _down(grasp_yaw), 0.0),  # lift (wp2)
-            (at(hole, CARRY), _down(drop_yaw), 0.0),  # above the hole (wp3)
-            (at(hole, LID_TOP + half + 0.012), _down(drop_yaw), 1.0),  # at the hole, drop (wp4)
+            (shape + jnp.array([0.0, 0.0, 0.075]), grip, 1.0),  # above (wp0)
+            (shape, grip, 0.0),  # grasp (wp1)
+            (at(shape, CARRY), grip, 0.0),  # lift (wp2)
+            (at(hole, CARRY), drop, 0.0),  # above the hole (wp3)
+            (at(hole, LID_TOP + half + 0.012), drop, 1.0),  # at the hole, drop (wp4)
         ])
 
 

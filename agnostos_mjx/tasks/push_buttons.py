@@ -9,7 +9,7 @@ import jax.numpy as jnp
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import JointMoved, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -20,6 +20,7 @@ from agnostos_mjx.tasks.base import (
     sample_on_plane,
 )
 from agnostos_mjx.tasks.builders import push_button
+from agnostos_mjx.tasks.builders.common import DOWN
 
 # The 18-colour list without red and lime; variation i uses permutation i // 3
 # of it and presses 1 + i % 3 buttons (only permutations 0-16 are reachable).
@@ -27,7 +28,6 @@ BUTTON_COLORS = tuple((n, c) for n, c in COLORS if n not in ("red", "lime"))
 PERMUTATIONS = tuple(itertools.islice(itertools.permutations(range(len(BUTTON_COLORS)), 3), 17))
 BOUNDARY_HALF = (0.258, 0.339)
 UNIT_HALF = (0.05, 0.05)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 HOVER, PRESS = 0.083 + 0.009, 0.016
 
 

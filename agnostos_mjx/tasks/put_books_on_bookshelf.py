@@ -7,8 +7,14 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.household import down_grasp, shelf_unit, solid, yaw_of
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
+from agnostos_mjx.tasks.builders.household import shelf_unit, solid
 
 WOOD = (0.55, 0.35, 0.2)
 BOOK_COLORS = ((0.6, 0.1, 0.1), (0.1, 0.3, 0.6), (0.2, 0.5, 0.2))

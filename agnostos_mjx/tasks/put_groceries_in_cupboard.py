@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     Placement,
@@ -19,7 +19,7 @@ from agnostos_mjx.tasks.base import (
     place_root,
     sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.common import sensor_volume
+from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, sensor_volume
 from agnostos_mjx.tasks.builders.furniture import cupboard, grocery
 
 
@@ -53,21 +53,11 @@ SPAWN_CENTER, SPAWN_HALF = (-0.31, 0.0), (0.17, 0.30)
 # Root footprint for placement: the cupboard and the near part of the spawn area
 # (the whole scene does not fit our inferred workspace; see notes).
 ROOT_CENTER, ROOT_HALF = (-0.08, 0.0), (0.20, 0.25)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along the frame's y
-ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
 
 
 def _grasp_height(g: Grocery) -> float:
     """Grasp point above the item's centre: near its top, never below the centre."""
     return max(g.size[2] / 2 - GRASP_BELOW_TOP, 0.0)
-
-
-def _natural_yaw(pos):
-    return jnp.arctan2(pos[1] - ARM_BASE_XY[1], pos[0] - ARM_BASE_XY[0])
-
-
-def _down(yaw):
-    return quat_mul(yaw_quat(yaw), DOWN)
 
 
 class PutGroceriesInCupboard(Task):
@@ -131,7 +121,7 @@ class PutGroceriesInCupboard(Task):
         item_yaw = 2.0 * jnp.arctan2(q[3], q[0])  # upright: yaw only
         # Boxes are gripped across their thin side (y): a half turn is the same
         # grasp; cans in any yaw.  Choose the least wrist twist.
-        natural = _natural_yaw(grasp)
+        natural = natural_yaw(grasp)
         boxed = ~jnp.asarray([g.round_ for g in GROCERIES])[variation]
         grasp_yaw = jnp.where(boxed, natural + jnp.mod(item_yaw - natural + jnp.pi / 2, jnp.pi)
                               - jnp.pi / 2, natural)
@@ -141,17 +131,18 @@ class PutGroceriesInCupboard(Task):
         front = in_frame(obs, ROOT, (-0.06, 0.0, FLOOR + hold + 0.01))
         root_q = obs.quat(ROOT)
         put_yaw = 2.0 * jnp.arctan2(root_q[3], root_q[0])  # fingers across the opening
-        put_yaw = _natural_yaw(inside) + jnp.mod(put_yaw - _natural_yaw(inside) + jnp.pi / 2,
+        put_yaw = natural_yaw(inside) + jnp.mod(put_yaw - natural_yaw(inside) + jnp.pi / 2,
                                                  jnp.pi) - jnp.pi / 2
         lift = TABLE_Z + 0.13 + hold  # the item's bottom above the other groceries
+        grip, put = down_grasp(grasp_yaw, wrap=False), down_grasp(put_yaw, wrap=False)
         return key_actions([
-            (grasp + jnp.array([0.0, 0.0, 0.08]), _down(grasp_yaw), 1.0),  # above the item
-            (grasp, _down(grasp_yaw), 0.0),  # grasp (wp1 = the grasp point)
-            (grasp.at[2].set(lift), _down(grasp_yaw), 0.0),  # lift
-            (front.at[2].set(lift), _down(put_yaw), 0.0),  # in front of the cupboard
-            (front, _down(put_yaw), 0.0),  # down to the compartment's floor height
-            (inside, _down(put_yaw), 1.0),  # slide in, release
-            (front, _down(put_yaw), 1.0),  # retreat
+            (grasp + jnp.array([0.0, 0.0, 0.08]), grip, 1.0),  # above the item
+            (grasp, grip, 0.0),  # grasp (wp1 = the grasp point)
+            (grasp.at[2].set(lift), grip, 0.0),  # lift
+            (front.at[2].set(lift), put, 0.0),  # in front of the cupboard
+            (front, put, 0.0),  # down to the compartment's floor height
+            (inside, put, 1.0),  # slide in, release
+            (front, put, 1.0),  # retreat
         ])
 
 

@@ -15,9 +15,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import down_grasp, free_body, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.household import (
-    down_grasp,
     held_by_weld_only,
     place_on_boundary,
     placed,

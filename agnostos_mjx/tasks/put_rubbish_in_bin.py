@@ -7,8 +7,14 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.household import down_grasp, open_container, placed, solid, yaw_of
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
+from agnostos_mjx.tasks.builders.household import open_container, placed, solid
 
 GREY = (0.6, 0.6, 0.6)
 PAPER = (1.0, 1.0, 1.0)

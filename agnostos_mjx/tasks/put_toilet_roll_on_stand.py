@@ -8,15 +8,14 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.household import (
+from agnostos_mjx.tasks.builders.common import (
     down_grasp,
-    open_container,
-    place_on_boundary,
-    placed,
-    solid,
+    free_body,
+    pose_in_root,
+    sensor_volume,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.household import open_container, place_on_boundary, placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
 
 LIGHT_GREY = (0.87, 0.87, 0.87)

@@ -7,14 +7,8 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import free_body, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.household import (
-    down_grasp,
-    held_by_weld_only,
-    open_container,
-    placed,
-    solid,
-)
+from agnostos_mjx.tasks.builders.common import down_grasp, free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.household import held_by_weld_only, open_container, placed, solid
 from agnostos_mjx.tasks.builders.primitives import rod
 
 GREY = (0.6, 0.6, 0.6)

@@ -5,15 +5,13 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw
 from agnostos_mjx.tasks.builders.furniture import two_handle_tap
 
 SIDES = ("left", "right")
 ROOT = "turn_tap_root"
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # pointing down, fingers along world y
 TURN = jnp.deg2rad(105.0)  # past RLBench's 1.57 rad threshold with margin
-ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
 
 
 def _wrap(a):
@@ -60,11 +58,11 @@ class TurnTap(Task):
         # The bar is symmetric: grasp it with the wrist yaw nearest the arm's
         # natural yaw there, and turn back towards that yaw, away from the
         # wrist's joint limits.
-        natural = jnp.arctan2(grasp[1] - ARM_BASE_XY[1], grasp[0] - ARM_BASE_XY[0])
+        natural = natural_yaw(grasp)
         start = natural + _wrap(2.0 * (bar_yaw - natural)) / 2.0
         end = start - jnp.sign(start - natural + 1e-6) * TURN
         above = grasp + jnp.array([0.0, 0.0, 0.08])
-        q0, q1 = quat_mul(yaw_quat(start), DOWN), quat_mul(yaw_quat(end), DOWN)
+        q0, q1 = down_grasp(start, wrap=False), down_grasp(end, wrap=False)
         return key_actions([
             (above, q0, 1.0),  # above the handle
             (grasp, q0, 0.0),  # at the bar, close: the handle is attached

@@ -8,8 +8,18 @@ parts get a cylinder for looks and an inscribed box for contact.
 """
 
 from agnostos_mjx.tasks.builders.articulated import drawer_chest, hinged_door, push_button
-from agnostos_mjx.tasks.builders.common import free_body, free_box, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import (
+    DOWN,
+    down_grasp,
+    free_body,
+    free_box,
+    natural_yaw,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 
-__all__ = ["WHITE", "WOOD", "disc", "drawer_chest", "free_body", "free_box", "hinged_door",
-           "panel", "pose_in_root", "push_button", "rod", "sensor_volume"]
+__all__ = ["DOWN", "WHITE", "WOOD", "disc", "down_grasp", "drawer_chest", "free_body", "free_box",
+           "hinged_door", "natural_yaw", "panel", "pose_in_root", "push_button", "rod",
+           "sensor_volume", "yaw_of"]

@@ -15,13 +15,19 @@ from __future__ import annotations
 import jax.numpy as jnp
 import mujoco
 
-from agnostos_mjx.math3d import quat_mul, quat_rotate
+from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
 # Sites of this group are hidden by the default visualisation (groups 0-2 show).
 HIDDEN_GROUP = 4
+# The gripper pointing down with its fingers closing along the y axis of the
+# frame it is composed with (the world's, or a root's via `frame_quat`).
+DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
+# Panda link0 on the table (spec section 2).
+ROBOT_BASE_XY = (-0.268, -0.006)
+
 Pose = tuple[jnp.ndarray, jnp.ndarray]
 
 
@@ -77,5 +83,35 @@ def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
             quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
 
 
-__all__ = ["HIDDEN_GROUP", "IDENTITY", "Pose", "free_body", "free_box", "pose_in_root",
-           "sensor_volume"]
+def yaw_of(quat) -> jnp.ndarray:
+    """Heading of a frame about the world z axis: the angle of its x axis
+    projected on the table (for an upright frame, its rotation about z)."""
+    w, x, y, z = (quat[..., i] for i in range(4))
+    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def down_grasp(yaw=0.0, pitch=0.0, *, wrap: bool = True) -> jnp.ndarray:
+    """Gripper pointing down with its fingers closing along the heading `yaw`
+    + 90 deg (the y axis of a frame with that yaw).
+
+    The two-finger grasp is symmetric under a half turn, so by default the
+    yaw is wrapped into +-90 deg of the start pose, which keeps the wrist
+    joint far from its limits; `wrap=False` keeps `yaw` as given (for a
+    motion that turns the wrist continuously, e.g. a tap).  `pitch` tilts the
+    approach axis about the fingers towards the frame's +x (pi/2: level,
+    pointing along +x), e.g. to lay a held object down."""
+    yaw = jnp.asarray(yaw, jnp.float32)
+    wrapped = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2 if wrap else yaw
+    same = jnp.cos(wrapped - yaw)  # +1, or -1 where the wrap turned the frame
+    tilt = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), -same * jnp.asarray(pitch, jnp.float32))
+    return quat_mul(yaw_quat(wrapped), quat_mul(tilt, DOWN))
+
+
+def natural_yaw(pos) -> jnp.ndarray:
+    """The heading from the robot base to the point `pos`: the gripper yaw
+    the arm reaches there without turning its wrist far."""
+    return jnp.arctan2(pos[1] - ROBOT_BASE_XY[1], pos[0] - ROBOT_BASE_XY[0])
+
+
+__all__ = ["DOWN", "HIDDEN_GROUP", "IDENTITY", "ROBOT_BASE_XY", "Pose", "down_grasp", "free_body",
+           "free_box", "natural_yaw", "pose_in_root", "sensor_volume", "yaw_of"]

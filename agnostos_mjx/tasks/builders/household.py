@@ -15,15 +15,11 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import sample_on_plane
-from agnostos_mjx.tasks.builders.common import pose_in_root
+from agnostos_mjx.tasks.builders.common import IDENTITY, pose_in_root
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
-
-# The gripper pointing down with its fingers closing along the world y axis.
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
-IDENTITY = (1.0, 0.0, 0.0, 0.0)
 
 
 # ---- scene pieces -------------------------------------------------------------------------
@@ -98,25 +94,6 @@ def place_on_boundary(key: jax.Array, root: tuple, plane_center, plane_half, hal
     quat = yaw_quat(yaw)
     local = jnp.concatenate([xy, jnp.zeros(1)]) - quat_rotate(quat, jnp.array([*offset, 0.0]))
     return pose_in_root(*root, local, quat)
-
-
-def yaw_of(quat) -> jnp.ndarray:
-    """Heading of a frame that stays upright (rotation about z only)."""
-    w, x, y, z = (quat[..., i] for i in range(4))
-    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def down_grasp(yaw, pitch=0.0) -> jnp.ndarray:
-    """Gripper pointing down with its fingers closing along the heading `yaw`
-    + 90 deg (the y axis of a frame with that yaw).  The two-finger grasp is
-    symmetric under a half turn, so the yaw is wrapped into +-90 deg of the
-    start pose, which keeps the wrist joint far from its limits.  `pitch`
-    tilts the approach axis about the fingers towards the frame's +x (pi/2:
-    level, pointing along +x), e.g. to lay a held object down."""
-    wrapped = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2
-    same = jnp.cos(wrapped - yaw)  # +1, or -1 where the wrap turned the frame
-    tilt = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), -same * jnp.asarray(pitch, jnp.float32))
-    return quat_mul(yaw_quat(wrapped), quat_mul(tilt, DOWN))
 
 
 # ---- success ------------------------------------------------------------------------------
