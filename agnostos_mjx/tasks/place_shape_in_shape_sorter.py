@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, Select
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,9 +15,13 @@ from agnostos_mjx.tasks.base import (
     in_frame,
     key_actions,
     place_root,
-    sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, sensor_volume
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    natural_yaw,
+    sensor_volume,
+    spawn_many_on_root_plane,
+)
 from agnostos_mjx.tasks.builders.furniture import shape_sorter, sorter_shape
 
 ROOT = "shape_sorter_root"
@@ -94,15 +97,11 @@ class PlaceShapeInShapeSorter(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_shapes = jax.random.split(key)
         pos, quat = place_root(k_root, (0.211, 0.263), jnp.pi, offset=(0.0, 0.0125))
-        bodies, placed = {ROOT: (pos, quat)}, []
-        for s, k in zip(SHAPES, jax.random.split(k_shapes, len(SHAPES))):
-            xy, yaw = sample_on_plane(k, FOOTPRINT, jnp.pi, plane_center=BOUNDARY_CENTER,
-                                      plane_half=BOUNDARY_HALF, others=tuple(placed),
-                                      min_distance=0.05)
-            placed.append((xy, yaw, jnp.asarray(FOOTPRINT)))
-            local = jnp.array([xy[0], xy[1], s.half_height])
-            bodies[s.name] = (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))
-        return Placement(bodies=bodies)
+        shapes = spawn_many_on_root_plane(k_shapes, (pos, quat), [FOOTPRINT] * len(SHAPES),
+                                          BOUNDARY_CENTER, BOUNDARY_HALF,
+                                          heights=[s.half_height for s in SHAPES],
+                                          min_distance=0.05)
+        return Placement(bodies={ROOT: (pos, quat), **dict(zip(NAMES, shapes))})
 
     def success(self, variation):
         return Select(tuple(Detected(n, "success", VOLUME_HALF, radius=0.01) for n in NAMES),

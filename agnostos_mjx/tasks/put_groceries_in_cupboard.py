@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     Placement,
@@ -17,9 +16,13 @@ from agnostos_mjx.tasks.base import (
     in_frame,
     key_actions,
     place_root,
-    sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, sensor_volume
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    natural_yaw,
+    sensor_volume,
+    spawn_many_on_root_plane,
+)
 from agnostos_mjx.tasks.builders.furniture import cupboard, grocery
 
 
@@ -100,16 +103,11 @@ class PutGroceriesInCupboard(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_items = jax.random.split(key)
         pos, quat = place_root(k_root, ROOT_HALF, 1.0, offset=ROOT_CENTER)
-        bodies, placed = {ROOT: (pos, quat)}, []
-        for g, k in zip(GROCERIES, jax.random.split(k_items, len(GROCERIES))):
-            half = (g.size[0] / 2, g.size[1] / 2)
-            xy, yaw = sample_on_plane(k, half, jnp.pi, plane_center=SPAWN_CENTER,
-                                      plane_half=SPAWN_HALF, others=tuple(placed),
-                                      min_distance=0.1, tries=256)
-            placed.append((xy, yaw, jnp.asarray(half)))
-            local = jnp.array([xy[0], xy[1], g.size[2] / 2])
-            bodies[g.name] = (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))
-        return Placement(bodies=bodies)
+        items = spawn_many_on_root_plane(
+            k_items, (pos, quat), [(g.size[0] / 2, g.size[1] / 2) for g in GROCERIES],
+            SPAWN_CENTER, SPAWN_HALF, heights=[g.size[2] / 2 for g in GROCERIES],
+            min_distance=0.1, tries=256)
+        return Placement(bodies={ROOT: (pos, quat), **dict(zip(NAMES, items))})
 
     def success(self, variation):
         inside = tuple(Detected(n, "success", VOLUME_HALF, radius=0.01) for n in NAMES)

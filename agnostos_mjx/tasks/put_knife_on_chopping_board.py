@@ -15,13 +15,14 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import down_grasp, free_body, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.household import (
-    held_by_weld_only,
-    place_on_boundary,
-    placed,
-    solid,
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    spawn_on_root_plane,
 )
+from agnostos_mjx.tasks.builders.household import held_by_weld_only, placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
 WOOD_DARK = (0.5, 0.21, 0.0)
@@ -103,8 +104,8 @@ class PutKnifeOnChoppingBoard(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_block = jax.random.split(key)
         pos, quat = place_root(k_root, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
-        block = place_on_boundary(k_block, (pos, quat), BOUNDARY_CENTER, BOUNDARY_HALF,
-                                  BLOCK_HALF)
+        block = spawn_on_root_plane(k_block, (pos, quat), BLOCK_HALF, BOUNDARY_CENTER,
+                                    BOUNDARY_HALF)
         knife = pose_in_root(*block, jnp.array([SLOT_X, 0.0, KNIFE_CENTER_Z]))
         return Placement(bodies={"board_root": (pos, quat), "knife_block": block, "knife": knife})
 

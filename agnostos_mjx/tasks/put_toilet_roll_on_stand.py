@@ -13,9 +13,10 @@ from agnostos_mjx.tasks.builders.common import (
     free_body,
     pose_in_root,
     sensor_volume,
+    spawn_on_root_plane,
     yaw_of,
 )
-from agnostos_mjx.tasks.builders.household import open_container, place_on_boundary, placed, solid
+from agnostos_mjx.tasks.builders.household import open_container, placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
 
 LIGHT_GREY = (0.87, 0.87, 0.87)
@@ -81,15 +82,15 @@ class PutToiletRollOnStand(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_box, k_stand = jax.random.split(key, 3)
         root = place_root(k_root, (0.2, 0.225), jnp.pi)
-        box_pos, box_quat = place_on_boundary(k_box, root, ROLL_PLANE, PLANE_HALF,
-                                              (BOX_HALF, BOX_HALF))
+        box_pos, box_quat = spawn_on_root_plane(k_box, root, (BOX_HALF, BOX_HALF), ROLL_PLANE,
+                                                PLANE_HALF)
         box = (box_pos + jnp.array([0.0, 0.0, BOX_HALF]), box_quat)
         return Placement(bodies={
             "roll_root": root,
             "toilet_roll_box": box,
             "toilet_roll": pose_in_root(*box, ROLL_ON_BOX, AXIS_ALONG_X),
-            "stand": place_on_boundary(k_stand, root, STAND_PLANE, PLANE_HALF, STAND_HALF,
-                                       STAND_OFFSET),
+            "stand": spawn_on_root_plane(k_stand, root, STAND_HALF, STAND_PLANE, PLANE_HALF,
+                                         offset=STAND_OFFSET),
         })
 
     def success(self, variation):

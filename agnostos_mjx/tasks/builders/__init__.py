@@ -16,10 +16,12 @@ from agnostos_mjx.tasks.builders.common import (
     natural_yaw,
     pose_in_root,
     sensor_volume,
+    spawn_many_on_root_plane,
+    spawn_on_root_plane,
     yaw_of,
 )
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 
 __all__ = ["DOWN", "WHITE", "WOOD", "disc", "down_grasp", "drawer_chest", "free_body", "free_box",
            "hinged_door", "natural_yaw", "panel", "pose_in_root", "push_button", "rod",
-           "sensor_volume", "yaw_of"]
+           "sensor_volume", "spawn_many_on_root_plane", "spawn_on_root_plane", "yaw_of"]

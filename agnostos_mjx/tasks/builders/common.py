@@ -12,10 +12,14 @@ world coordinates by composing the task root's pose with a local one.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import jax
 import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.base import sample_on_plane
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
@@ -113,5 +117,54 @@ def natural_yaw(pos) -> jnp.ndarray:
     return jnp.arctan2(pos[1] - ROBOT_BASE_XY[1], pos[0] - ROBOT_BASE_XY[0])
 
 
+# ---- spawning -------------------------------------------------------------------------------
+def spawn_on_root_plane(key: jax.Array, root: Pose, half_extents, plane_center, plane_half, *,
+                        yaw_range: float = jnp.pi, others: tuple = (),
+                        min_distance: float = 0.01, height: float = 0.0,
+                        offset: tuple[float, float] | None = None, tries: int = 64) -> Pose:
+    """RLBench's SpawnBoundary for one object on a plane of the task root
+    (`plane_center`, `plane_half` in the root frame): a heading within
+    +-`yaw_range` and a spot where its footprint (`half_extents`, centred
+    `offset` from the object's origin) lies inside the plane, clear of the
+    `others` ((xy, yaw, half_extents) in the root frame).  Returns the
+    object's world pose, its origin `height` above the plane."""
+    xy, yaw = sample_on_plane(key, half_extents, yaw_range, plane_center=plane_center,
+                              plane_half=plane_half, others=others, min_distance=min_distance,
+                              tries=tries)
+    return _on_root_plane(root, xy, yaw, height, offset)
+
+
+def spawn_many_on_root_plane(key: jax.Array, root: Pose, footprints: Sequence, plane_center,
+                             plane_half, *, heights: float | Sequence[float] = 0.0,
+                             yaw_range: float = jnp.pi, min_distance: float = 0.01,
+                             tries: int = 64) -> list[Pose]:
+    """Several objects spawned one after the other on a root plane (as
+    `spawn_on_root_plane`), each clear of those before it: one footprint
+    (half extents) per object, and the height of each origin above the
+    plane (one for all, or one each).  Returns their world poses."""
+    if isinstance(heights, int | float):
+        heights = [heights] * len(footprints)
+    placed, poses = [], []
+    for k, half, height in zip(jax.random.split(key, len(footprints)), footprints, heights):
+        xy, yaw = sample_on_plane(k, half, yaw_range, plane_center=plane_center,
+                                  plane_half=plane_half, others=tuple(placed),
+                                  min_distance=min_distance, tries=tries)
+        placed.append((xy, yaw, jnp.asarray(half)))
+        poses.append(_on_root_plane(root, xy, yaw, height, None))
+    return poses
+
+
+def _on_root_plane(root: Pose, xy: jnp.ndarray, yaw: jnp.ndarray, height: float,
+                   offset: tuple[float, float] | None) -> Pose:
+    """World pose of an object whose footprint centre sits at `xy` of the
+    root plane with heading `yaw` (its origin `offset` back from that centre)."""
+    quat = yaw_quat(yaw)
+    local = jnp.array([xy[0], xy[1], height])
+    if offset is not None:
+        local = local - quat_rotate(quat, jnp.array([*offset, 0.0]))
+    return pose_in_root(*root, local, quat)
+
+
 __all__ = ["DOWN", "HIDDEN_GROUP", "IDENTITY", "ROBOT_BASE_XY", "Pose", "down_grasp", "free_body",
-           "free_box", "natural_yaw", "pose_in_root", "sensor_volume", "yaw_of"]
+           "free_box", "natural_yaw", "pose_in_root", "sensor_volume", "spawn_many_on_root_plane",
+           "spawn_on_root_plane", "yaw_of"]

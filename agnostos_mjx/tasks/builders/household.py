@@ -9,15 +9,12 @@ episode.py) and a volume is an invisible site read by `conditions.Detected`.
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import quat_rotate, yaw_quat
-from agnostos_mjx.tasks.base import sample_on_plane
-from agnostos_mjx.tasks.builders.common import IDENTITY, pose_in_root
+from agnostos_mjx.math3d import yaw_quat
+from agnostos_mjx.tasks.builders.common import IDENTITY
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
@@ -81,19 +78,6 @@ def shelf_unit(body: mujoco.MjsBody, name: str, pos, half, shelf_top: float, hei
           name=f"{name}_back")
     body.add_site(name=name, pos=[x, y, z + shelf_top], size=[0.005, 0, 0], rgba=[0, 0, 0, 0],
                   group=4)
-
-
-# ---- poses ----------------------------------------------------------------------------------
-def place_on_boundary(key: jax.Array, root: tuple, plane_center, plane_half, half_extents,
-                      offset=(0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """RLBench's SpawnBoundary for an object on a spawn plane of its task
-    root: any yaw, its footprint (centred `offset` from its own origin)
-    inside the plane.  Returns the object's world pose."""
-    xy, yaw = sample_on_plane(key, half_extents, jnp.pi, plane_center=plane_center,
-                              plane_half=plane_half)
-    quat = yaw_quat(yaw)
-    local = jnp.concatenate([xy, jnp.zeros(1)]) - quat_rotate(quat, jnp.array([*offset, 0.0]))
-    return pose_in_root(*root, local, quat)
 
 
 # ---- success ------------------------------------------------------------------------------
