@@ -1,6 +1,6 @@
 """Furniture and loose objects for the seen pick-and-place / articulated tasks:
-free graspable bodies, sensor volumes, a two-handle tap, a wine rack, a
-cupboard and a shape sorter with its shapes.
+a two-handle tap, a wine rack and bottle, a cupboard with groceries, and a
+shape sorter with its shapes (free bodies and sensor volumes: see `common`).
 
 Everything is built from primitive geoms (boxes for contact; visual cylinders
 where the original is round), see `primitives`.

@@ -1,10 +1,7 @@
-"""Household pieces for the pick-and-place tasks: free graspable objects,
-open containers (bins, umbrella stands, shelves), success volumes, and the
-small pose helpers their samplers and experts share.
-
-RLBench carries objects by a kinematic attach and checks success with sensor
-volumes; here a graspable is a free body (attached by a weld on close, see
-episode.py) and a volume is an invisible site read by `conditions.Detected`.
+"""Household pieces for the pick-and-place tasks: solid parts with explicit
+masses, open containers (bins, umbrella stands, shelves), and their success
+test.  Free bodies, sensor volumes, root-frame poses, grasps and spawning
+come from `common`.
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ stick.
 Objects the gripper carries are free bodies in the world (MuJoCo free joints
 cannot hang under a mocap root): a builder creates them at the origin, the
 task declares their resting pose in its root frame and its sampler places them
-with `pose_in_root` next to the root it draws.  Static parts hang under the
-root.  Sensor volumes are box sites (`sensor_volume`) for `Detected`.
+with `common.pose_in_root` next to the root it draws.  Static parts hang
+under the root.  Sensor volumes are `common.sensor_volume` sites.
 """
 
 from __future__ import annotations
