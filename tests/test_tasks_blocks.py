@@ -214,3 +214,53 @@ def test_reach_and_drag_distractor_colours():
     np.testing.assert_allclose(colors["distractor1"], (0.0, 1.0, 0.0))
     np.testing.assert_allclose(colors["distractor2"], (0.0, 0.5, 0.0))
     np.testing.assert_allclose(colors["distractor3"], (0.0, 0.0, 1.0))
+
+
+# ---- sweep_to_dustpan_of_size ------------------------------------------------------------------
+def test_sweep_to_dustpan_variations_and_language():
+    task = task_or_skip("sweep_to_dustpan_of_size")
+    assert task.num_variations == 2
+    assert task.descriptions(0) == [
+        "sweep dirt to the tall dustpan", "sweep the dirt up into the tall dustpan",
+        "use the broom to brush the dirt into the tall dustpan",
+        "clean up the dirt with the tall pan"]
+    assert task.descriptions(1)[0] == "sweep dirt to the short dustpan"
+
+
+def test_sweep_to_dustpan_needs_all_dirt_in_the_chosen_pan():
+    task = task_or_skip("sweep_to_dustpan_of_size")
+    obs0 = reset_obs("sweep_to_dustpan_of_size")  # variation 0: the tall pan
+    cond = task.success(jnp.int32(0))
+    pan = np.asarray(obs0.pos("success"))
+    on_table = np.array([pan[0], pan[1], np.asarray(obs0.pos("dirt0"))[2]])
+    dirt = [f"dirt{k}" for k in range(5)]
+    spread = {d: on_table + [0.02 * k - 0.04, 0.01 * k, 0.0] for k, d in enumerate(dirt)}
+    assert met(cond, obs0, with_poses(obs0, spread))
+    assert not met(cond, obs0, with_poses(obs0, dict(list(spread.items())[:4])))
+    assert not met(cond, obs0, obs0)
+    # The tall pan's volume is 0.25 x 0.15 m: 10 cm off its centre along its
+    # short side is outside.
+    root_y = quat_y(np.asarray(obs0.quat("sweep_to_dustpan_of_size_root")))
+    outside = dict(spread, dirt0=on_table + 0.1 * root_y)
+    assert not met(cond, obs0, with_poses(obs0, outside))
+
+
+@pytest.mark.parametrize("variation, x_range, y_range", [
+    (0, (-0.138, 0.136), (-0.410, -0.192)),  # tall pan footprint (spec, root frame)
+    (1, (-0.039, 0.126), (0.138, 0.269)),  # short pan footprint
+])
+def test_sweep_to_dustpan_volume_sits_on_the_chosen_pan(variation, x_range, y_range):
+    from agnostos_mjx.math3d import quat_conj, quat_rotate
+
+    task = task_or_skip("sweep_to_dustpan_of_size")
+    bodies = task.sample(jax.random.PRNGKey(5), jnp.int32(variation)).bodies
+    root_pos, root_quat = bodies["sweep_to_dustpan_of_size_root"]
+    local = np.asarray(quat_rotate(quat_conj(root_quat), bodies["success_pan"][0] - root_pos))
+    assert x_range[0] < local[0] < x_range[1] and y_range[0] < local[1] < y_range[1]
+
+
+def quat_y(q: np.ndarray) -> np.ndarray:
+    """The y axis of a frame given by its quaternion (w, x, y, z)."""
+    from agnostos_mjx.math3d import quat_rotate
+
+    return np.asarray(quat_rotate(jnp.asarray(q), jnp.array([0.0, 1.0, 0.0])))

@@ -87,6 +87,21 @@ def test_variation_count(name, count):
                         "pick up and set the cups down into the orange cup",
                         "create a stack of cups with the orange cup as its base",
                         "keeping the orange cup on the table, stack the other two onto it"]),
+    ("place_cups", 0, ["place 1 cup on the cup holder", "pick up one cup and put it on the mug tree",
+                       "move 1 mug from the table to the cup holder",
+                       "pick up one cup and slide its handle onto a spoke on the mug holder"]),
+    ("place_cups", 1, ["place 2 cups on the cup holder", "pick up 2 cups and place them on the holder",
+                       "move 2 cups from the table to the mug tree",
+                       "pick up 2 mugs and slide their handles onto the cup holder spokes"]),
+    ("place_cups", 2, ["place 3 cups on the cup holder", "pick up 3 cups and place them on the holder",
+                       "move 3 cups from the table to the mug tree",
+                       "pick up 3 mugs and slide their handles onto the cup holder spokes"]),
+    ("put_money_in_safe", 0, ["put the money away in the safe on the bottom shelf",
+                              "leave the money on the bottom shelf on the safe",
+                              "place the stack of bank notes on the bottom shelf of the safe"]),
+    ("put_money_in_safe", 2, ["put the money away in the safe on the top shelf",
+                              "leave the money on the top shelf on the safe",
+                              "place the stack of bank notes on the top shelf of the safe"]),
 ])
 def test_descriptions_verbatim(name, variation, expected):
     if not is_implemented(name):
@@ -164,3 +179,37 @@ def test_stack_cups_base_cup_takes_the_variation_colour():
         for k in (1, 2, 3):
             rgb = env.geom_rgba[w, ep.scene.model.geom(f"cup{k}_side0").id, :3]
             assert np.allclose(rgb, COLORS[v][1]) == (k == 2)
+
+
+# ---- put_money_in_safe -----------------------------------------------------------------------
+@needs("put_money_in_safe")
+def test_put_money_in_safe_only_the_named_shelf_counts():
+    assert "shelf" not in get_task("put_money_in_safe").objects  # X-ICM's name for the safe
+    obs0 = reset_obs("put_money_in_safe", 1)
+    on = [np.asarray(obs0.pos(f"success_detector{k}")) + np.array([0.0, 0.0, 0.011])
+          for k in range(3)]  # money resting on shelf k
+    assert met("put_money_in_safe", 1, obs0, moved(obs0, "dollar_stack", on[1]))
+    assert not met("put_money_in_safe", 1, obs0, moved(obs0, "dollar_stack", on[0]))
+    assert not met("put_money_in_safe", 1, obs0, moved(obs0, "dollar_stack", on[2]))
+    assert not met("put_money_in_safe", 1, obs0,
+                   moved(obs0, "dollar_stack", on[1], attached=[True]))
+
+
+# ---- place_cups ------------------------------------------------------------------------------
+@needs("place_cups")
+def test_place_cups_counts_the_first_n_mugs_on_any_of_the_three_free_spokes():
+    task = get_task("place_cups")
+    assert "fourth cup" in task.objects and "forth cup" not in task.objects  # X-ICM's typo fixed
+    obs0 = reset_obs("place_cups", 1)
+    spoke = [np.asarray(obs0.pos(f"place_cups_holder_spoke{k}")) for k in range(4)]
+    below = np.array([0.0, 0.0, -0.015])  # a hung mug's hole sits under its spoke
+    two = moved(moved(obs0, "mug0_hole", spoke[2] + below), "mug1_hole", spoke[0] + below)
+    assert met("place_cups", 1, obs0, two)
+    assert met("place_cups", 0, obs0, two)
+    assert not met("place_cups", 2, obs0, two)  # mug2 still on the table
+    assert not met("place_cups", 1, obs0, moved(obs0, "mug0_hole", spoke[1] + below))
+    # spoke3 carries the static fourth mug and has no sensor; a held mug does not count.
+    assert not met("place_cups", 1, obs0, moved(two, "mug1_hole", spoke[3] + below))
+    assert not met("place_cups", 1, obs0, moved(two, "mug1_hole", spoke[0] + below,
+                                                 attached=[False, True, False]))
+    assert not met("place_cups", 0, obs0, obs0)

@@ -25,6 +25,8 @@ DESCRIPTIONS = [
     ("straighten_rope", 1, 0, 0, "straighten rope"),
     # the original's typo "is is" is kept: the strings are verbatim, not the instruction
     ("straighten_rope", 1, 0, 3, "pull each end of the rope until is is straight"),
+    ("water_plants", 1, 0, 0, "water plant"),
+    ("water_plants", 1, 0, 4, "pour water from the watering can into the plant pot"),
 ]
 
 
@@ -144,6 +146,21 @@ def test_rope_head_alone_is_not_enough_and_the_chain_holds():
     links = np.array([data.body(f"rope_{i}").xpos for i in range(18)])
     gaps = np.linalg.norm(np.diff(links, axis=0), axis=1)
     assert ((gaps > 0.019) & (gaps < 0.027)).all(), gaps  # links ~0.023 m apart
+
+
+@_needs("water_plants")
+def test_water_stays_in_the_can_until_it_is_tilted():
+    """Carrying the can upright over the pot releases no drop; the drops
+    travel inside the can."""
+    ep, env, actions = _reset("water_plants")
+    for k in range(4):  # beside the handle, grasp, lift, upright over the pot
+        env = _step(ep, env, actions, k)
+    assert env.attached.all() and (env.outcome == Outcome.RUNNING).all()
+    lip = np.asarray(env.obs.pos("waterer_lip"))
+    for i in range(5):
+        drop = np.asarray(env.obs.pos(f"water_drop{i}"))
+        assert np.linalg.norm(drop - lip, axis=1).max() < 0.13, "the drop is in the can"
+        assert (drop[:, 2] > np.asarray(env.obs.pos("plant_pot_soil"))[:, 2] + 0.08).all()
 
 
 def mujoco_data(ep, env, world: int):

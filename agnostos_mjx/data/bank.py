@@ -6,7 +6,7 @@ Layout of a bank directory::
                          per task: file name, SHA-256, demo count, failures
     <task>.npz           one compressed archive per task (no pickles)
 
-Each `<task>.npz` holds N demonstrations as arrays (K = 25 key-action slots,
+Each `<task>.npz` holds N demonstrations as arrays (K = MAX_KEYS key-action slots,
 O named objects, T_i trajectory frames at 20 Hz, RLBench's observation rate)::
 
     index (N,)  variation (N,)  attempt (N,)  sim_steps (N,)  n_keys (N,)
@@ -41,7 +41,7 @@ from agnostos_mjx.textualise import format_demo, point_to_voxel
 
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
-MAX_KEYS = 25
+MAX_KEYS = 64  # storage slots; long demos (stack_blocks) exceed X-ICM's 25-step episodes
 TRAJ_FIELDS = ("x", "y", "z", "qw", "qx", "qy", "qz", "gripper_open")
 
 

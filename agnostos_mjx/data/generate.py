@@ -114,7 +114,10 @@ def _demo_arrays(episodes, env, record, frames: dict, indices, attempts, ok, str
         keys = discover_keyframes(open_flag.astype(np.float32), traj[:, layout.slice("arm_qd")])
         keys = np.asarray(merge_repeated_keyframes(keys, tip_p, tip_q, open_flag), np.int64)
         if not 1 <= len(keys) <= MAX_KEYS:
-            raise RuntimeError(f"{task.name}: {len(keys)} keyframes in one demo")
+            log.warning("%s: a demo with %d keyframes (storage holds %d) is re-sampled",
+                        task.name, len(keys), MAX_KEYS)
+            ok[w] = False
+            continue
         ints = np.asarray(encode_action(tip_p[keys], tip_q[keys], open_flag[keys]), np.int32)
         v = int(env.variation[w])
         out["index"].append(indices[w])

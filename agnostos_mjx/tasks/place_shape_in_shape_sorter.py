@@ -19,8 +19,10 @@ from agnostos_mjx.tasks.base import (
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     natural_yaw,
+    nearest_yaw,
     sensor_volume,
     spawn_many_on_root_plane,
+    yaw_of,
 )
 from agnostos_mjx.tasks.builders.furniture import shape_sorter, sorter_shape
 
@@ -55,12 +57,33 @@ FOOTPRINT = (0.03, 0.03)  # shapes' half footprint for spawn overlap tests
 VOLUME_HALF = (0.08, 0.08, 0.05)  # RLBench's `success`: 0.16 x 0.16, 0.10 m high
 CARRY = 0.25  # carrying height above the table, clear of the 0.143 m high sorter
 
+FINGER_REACH = 0.05  # open fingers' pads from the tip, along the finger axis
+PAD_CLEARANCE = 0.045  # pad centre to a neighbour's centre
+HAND_REACH = (0.05, 0.075, 0.1)  # points of the hand along the finger axis
+SORTER_KEEPOUT = 0.089 + 0.03  # the sorter's half size plus half the hand's width
 
-def _nearest(angle, ref, period: float):
-    """The angle equal to `angle` modulo `period` nearest `ref` (ref itself if period is 0)."""
-    if period == 0.0:
-        return ref
-    return ref + (angle - ref) - period * jnp.round((angle - ref) / period)
+
+def _grasp_yaw(pos, yaw, period: float, others, sorter, sorter_yaw):
+    """A grasp yaw whose open pads miss the neighbours and whose hand misses
+    the sorter, least wrist twist first.  Candidates are quarter turns for
+    shapes with a hole orientation (the fingers may hold them either way;
+    the drop turns them by the same relative yaw), eighth turns for shapes
+    any yaw suits.  If none is clear, the one with the most pad clearance."""
+    base = nearest_yaw(yaw, natural_yaw(pos), jnp.pi / 2 if period else 0.0)
+    step, ks = (jnp.pi / 2, (0, -1, 1)) if period else (jnp.pi / 4, (0, -1, 1, -2, 2))
+    candidates = jnp.stack([base + k * step for k in ks])
+    finger = jnp.stack([-jnp.sin(candidates), jnp.cos(candidates)], -1)  # (C, 2)
+    pads = pos[:2] + FINGER_REACH * jnp.stack([finger, -finger], 1)  # (C, 2, 2)
+    gap = jnp.linalg.norm(pads[:, :, None] - others[None, None], axis=-1).min(axis=(1, 2))
+    reach = jnp.asarray(HAND_REACH + tuple(-r for r in HAND_REACH))
+    hand = pos[:2] + reach[None, :, None] * finger[:, None]  # (C, R, 2)
+    c, s = jnp.cos(sorter_yaw), jnp.sin(sorter_yaw)
+    d = hand - sorter[:2]
+    local = jnp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+    hits_sorter = jnp.all(jnp.abs(local) < SORTER_KEEPOUT, -1).any(-1)
+    clear = (gap > PAD_CLEARANCE) & ~hits_sorter
+    best = jnp.where(clear.any(), jnp.argmax(clear), jnp.argmax(gap - hits_sorter))
+    return candidates[best]
 
 
 class PlaceShapeInShapeSorter(Task):
@@ -77,8 +100,10 @@ class PlaceShapeInShapeSorter(Task):
              "box plate with a rectangular hole per shape, at RLBench's drop points. The shapes "
              "weigh 0.1 kg each instead of RLBench's 0.07-6.6 kg: CoppeliaSim's attach makes "
              "a carried object kinematic, our weld makes the arm carry its mass. The sorter "
-             "stands on the table (RLBench's reaches 4.6 cm below it). The expert carries the "
-             "shape at 0.25 m and turns it to match its hole (cube, prism, moon).")
+             "stands on the table (RLBench's reaches 4.6 cm below it). The expert picks a "
+             "grasp yaw whose open fingers miss the neighbouring shapes and whose hand misses "
+             "the sorter (RLBench's planner avoids them), carries the shape at 0.25 m and "
+             "turns it to match its hole (cube, prism, moon).")
 
     def descriptions(self, variation: int) -> list[str]:
         s = SHAPES[variation].words
@@ -110,23 +135,29 @@ class PlaceShapeInShapeSorter(Task):
     def expert(self, obs, variation):
         shape = jnp.stack([obs.pos(n) for n in NAMES])[variation]
         q = jnp.stack([obs.quat(n) for n in NAMES])[variation]
-        shape_yaw = 2.0 * jnp.arctan2(q[3], q[0])  # shapes lie flat: yaw only
-        root_q = obs.quat(ROOT)
-        root_yaw = 2.0 * jnp.arctan2(root_q[3], root_q[0])
+        shape_yaw, root_yaw = yaw_of(q), yaw_of(obs.quat(ROOT))  # shapes lie flat
         holes = jnp.asarray([[SORTER_XY[0] + s.hole[0], SORTER_XY[1] + s.hole[1]]
                              for s in SHAPES])
         half = jnp.asarray([s.half_height for s in SHAPES])[variation]
         hole = in_frame(obs, ROOT, jnp.concatenate([holes[variation], jnp.zeros(1)]))
-        # Grasp with the least wrist twist the shape's symmetry allows, then
-        # turn it so it lines up with its hole (the grasp keeps the relative yaw).
+        sorter = obs.pos("shape_sorter")
+        others = jnp.stack([obs.pos(n)[:2] for n in NAMES])
+        others = jnp.where((jnp.arange(len(NAMES)) == variation)[:, None], 1e3, others)
+        # Grasp with the least wrist twist while the open fingers miss the
+        # neighbours (RLBench spawns them 5 cm apart) and the hand misses the
+        # sorter, then turn the shape to line up with its hole (the grasp
+        # keeps the relative yaw).
         grasp_yaw, drop_yaw = natural_yaw(shape), natural_yaw(hole)
         for v, s in enumerate(SHAPES):
-            g = _nearest(shape_yaw, natural_yaw(shape), s.period)
-            d = _nearest(g + root_yaw - shape_yaw, natural_yaw(hole), s.period)
+            g = _grasp_yaw(shape, shape_yaw, s.period, others, sorter, root_yaw)
+            d = nearest_yaw(g + root_yaw - shape_yaw, natural_yaw(hole), s.period)
             grasp_yaw = jnp.where(variation == v, g, grasp_yaw)
             drop_yaw = jnp.where(variation == v, d, drop_yaw)
         table = obs.pos(ROOT)[2]
-        at = lambda p, z: p.at[2].set(table + z)  # noqa: E731
+
+        def at(p, z):  # p at height z above the table
+            return p.at[2].set(table + z)
+
         grip, drop = down_grasp(grasp_yaw, wrap=False), down_grasp(drop_yaw, wrap=False)
         return key_actions([
             (shape + jnp.array([0.0, 0.0, 0.075]), grip, 1.0),  # above (wp0)

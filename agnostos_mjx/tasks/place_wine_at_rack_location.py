@@ -15,7 +15,7 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import grasp_site, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.furniture import wine_bottle, wine_rack
 
 LOCATIONS = ("middle", "left", "right")
@@ -62,9 +62,7 @@ class PlaceWineAtRackLocation(Task):
         wine_rack(scene, root, "rack", SLOT_X)
         for loc, x in zip(LOCATIONS, SLOT_X):
             sensor_volume(root, f"success_{loc}", (x, 0.275, SLOT_Z), VOLUME_HALF)
-        bottle = wine_bottle(scene)
-        bottle.add_site(name="wine_bottle_grasp", pos=[0.0, 0.0, NECK], size=[0.005, 0, 0],
-                        rgba=[0, 1, 0, 0], group=4)
+        grasp_site(wine_bottle(scene), "wine_bottle_grasp", (0.0, 0.0, NECK))
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, (0.12, 0.22), jnp.pi / 4, offset=(0.054, 0.04))

@@ -19,9 +19,12 @@ from agnostos_mjx.tasks.base import (
 )
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
+    grasp_site,
     natural_yaw,
+    nearest_yaw,
     sensor_volume,
     spawn_many_on_root_plane,
+    yaw_of,
 )
 from agnostos_mjx.tasks.builders.furniture import cupboard, grocery
 
@@ -97,8 +100,7 @@ class PutGroceriesInCupboard(Task):
         sensor_volume(root, "success", (DEPTH / 2, 0.0, FLOOR + CLEAR / 2), VOLUME_HALF)
         for g in GROCERIES:
             body = grocery(scene, g.name, g.size, g.rgba, g.round_)
-            body.add_site(name=f"{g.name}_grasp_point", pos=[0.0, 0.0, _grasp_height(g)],
-                          size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=4)
+            grasp_site(body, f"{g.name}_grasp_point", (0.0, 0.0, _grasp_height(g)))
 
     def sample(self, key, variation) -> Placement:
         k_root, k_items = jax.random.split(key)
@@ -116,21 +118,17 @@ class PutGroceriesInCupboard(Task):
     def expert(self, obs, variation):
         grasp = jnp.stack([obs.pos(f"{n}_grasp_point") for n in NAMES])[variation]
         q = jnp.stack([obs.quat(n) for n in NAMES])[variation]
-        item_yaw = 2.0 * jnp.arctan2(q[3], q[0])  # upright: yaw only
-        # Boxes are gripped across their thin side (y): a half turn is the same
-        # grasp; cans in any yaw.  Choose the least wrist twist.
-        natural = natural_yaw(grasp)
+        # Boxes are gripped across their thin side (y), a half turn being the
+        # same grasp; cans in any yaw.  Choose the least wrist twist.
         boxed = ~jnp.asarray([g.round_ for g in GROCERIES])[variation]
-        grasp_yaw = jnp.where(boxed, natural + jnp.mod(item_yaw - natural + jnp.pi / 2, jnp.pi)
-                              - jnp.pi / 2, natural)
+        grasp_yaw = jnp.where(boxed, nearest_yaw(yaw_of(q), natural_yaw(grasp), jnp.pi),
+                              natural_yaw(grasp))
         # Height of the grasp point above the item's bottom.
         hold = jnp.asarray([g.size[2] / 2 + _grasp_height(g) for g in GROCERIES])[variation]
         inside = in_frame(obs, ROOT, (DEPTH / 2 - 0.01, 0.0, FLOOR + hold + 0.01))
         front = in_frame(obs, ROOT, (-0.06, 0.0, FLOOR + hold + 0.01))
-        root_q = obs.quat(ROOT)
-        put_yaw = 2.0 * jnp.arctan2(root_q[3], root_q[0])  # fingers across the opening
-        put_yaw = natural_yaw(inside) + jnp.mod(put_yaw - natural_yaw(inside) + jnp.pi / 2,
-                                                 jnp.pi) - jnp.pi / 2
+        # Fingers across the opening (along the root's y), hand clear of the sides.
+        put_yaw = nearest_yaw(yaw_of(obs.quat(ROOT)), natural_yaw(inside), jnp.pi)
         lift = TABLE_Z + 0.13 + hold  # the item's bottom above the other groceries
         grip, put = down_grasp(grasp_yaw, wrap=False), down_grasp(put_yaw, wrap=False)
         return key_actions([

@@ -110,7 +110,7 @@ class PutItemInDrawer(Task):
         backed = pulled + BACK_OFF * out
         drop = pulled - 0.076 * out + 0.038 * up  # RLBench's wp10, from the pulled handle
         return key_actions([
-            (over, side, 1.0),
+            (over, side, 1.0),  # above the chest front, turned horizontal
             (handle + 0.18 * out, side, 1.0),  # stand-off in front of the handle
             (handle + 0.087 * out, side, 1.0),  # pre-grasp (wp1)
             (handle, side, 0.0),  # grasp the handle (wp2)

@@ -6,16 +6,12 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw
+from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, nearest_yaw, yaw_of
 from agnostos_mjx.tasks.builders.furniture import two_handle_tap
 
 SIDES = ("left", "right")
 ROOT = "turn_tap_root"
 TURN = jnp.deg2rad(105.0)  # past RLBench's 1.57 rad threshold with margin
-
-
-def _wrap(a):
-    return jnp.mod(a + jnp.pi, 2.0 * jnp.pi) - jnp.pi
 
 
 class TurnTap(Task):
@@ -54,12 +50,11 @@ class TurnTap(Task):
     def expert(self, obs, variation):
         grasp = jnp.stack([obs.pos(f"tap_{s}_grasp") for s in SIDES])[variation]
         quat = jnp.stack([obs.quat(f"tap_{s}") for s in SIDES])[variation]
-        bar_yaw = 2.0 * jnp.arctan2(quat[3], quat[0])  # the handles only turn about z
-        # The bar is symmetric: grasp it with the wrist yaw nearest the arm's
-        # natural yaw there, and turn back towards that yaw, away from the
-        # wrist's joint limits.
+        # The bar is symmetric: grasp it (fingers across it) with the wrist yaw
+        # nearest the arm's natural yaw there, and turn back towards that yaw,
+        # away from the wrist's joint limits.
         natural = natural_yaw(grasp)
-        start = natural + _wrap(2.0 * (bar_yaw - natural)) / 2.0
+        start = nearest_yaw(yaw_of(quat), natural, jnp.pi)
         end = start - jnp.sign(start - natural + 1e-6) * TURN
         above = grasp + jnp.array([0.0, 0.0, 0.08])
         q0, q1 = down_grasp(start, wrap=False), down_grasp(end, wrap=False)

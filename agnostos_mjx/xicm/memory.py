@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from agnostos_mjx.cli import atomic_write
+from agnostos_mjx.data.bank import MAX_KEYS
 
 MEMORY_VERSION = 1
 MAX_OBJECTS = 8
@@ -34,9 +35,9 @@ class DemoMemory:
     instruction: np.ndarray  # (M,) str
     text: np.ndarray  # (M,) str, the demo's prompt segment (ends with ", ")
     n_keys: np.ndarray  # (M,)
-    key_pos: np.ndarray  # (M, 25, 3)
-    key_quat: np.ndarray  # (M, 25, 4)
-    key_open: np.ndarray  # (M, 25)
+    key_pos: np.ndarray  # (M, MAX_KEYS, 3)
+    key_quat: np.ndarray  # (M, MAX_KEYS, 4)
+    key_open: np.ndarray  # (M, MAX_KEYS)
     object_names: np.ndarray  # (M,) str, JSON list per demo
     objects: np.ndarray  # (M, MAX_OBJECTS, 3), NaN padded
     features: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (M, D)
@@ -54,7 +55,7 @@ class DemoMemory:
             "key_open", "object_names", "objects")}
         for demo in bank.demos():
             n = len(demo.key_ints)
-            pad = lambda a, width=25: np.concatenate(  # noqa: E731
+            pad = lambda a, width=MAX_KEYS: np.concatenate(  # noqa: E731
                 [a, np.zeros((width - len(a), *a.shape[1:]), a.dtype)])
             objs = np.full((MAX_OBJECTS, 3), np.nan, np.float32)
             names = list(demo.objects)[:MAX_OBJECTS]

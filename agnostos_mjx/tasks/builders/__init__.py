@@ -13,7 +13,9 @@ from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     free_body,
     free_box,
+    grasp_site,
     natural_yaw,
+    nearest_yaw,
     pose_in_root,
     sensor_volume,
     spawn_many_on_root_plane,
@@ -23,5 +25,6 @@ from agnostos_mjx.tasks.builders.common import (
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 
 __all__ = ["DOWN", "WHITE", "WOOD", "disc", "down_grasp", "drawer_chest", "free_body", "free_box",
-           "hinged_door", "natural_yaw", "panel", "pose_in_root", "push_button", "rod",
-           "sensor_volume", "spawn_many_on_root_plane", "spawn_on_root_plane", "yaw_of"]
+           "grasp_site", "hinged_door", "natural_yaw", "nearest_yaw", "panel", "pose_in_root",
+           "push_button", "rod", "sensor_volume", "spawn_many_on_root_plane", "spawn_on_root_plane",
+           "yaw_of"]

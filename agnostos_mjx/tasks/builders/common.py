@@ -76,6 +76,15 @@ def sensor_volume(body: mujoco.MjsBody, name: str, pos, half, *, quat=IDENTITY,
     return name
 
 
+def grasp_site(body: mujoco.MjsBody, name: str, pos) -> str:
+    """An invisible marker (RLBench's `*_grasp_point` dummies) at `pos` in
+    `body`'s frame: where the expert puts the tip, and the point the attach
+    test checks.  Returns the site name."""
+    body.add_site(name=name, pos=list(pos), size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
+                  group=HIDDEN_GROUP)
+    return name
+
+
 # ---- poses ----------------------------------------------------------------------------------
 def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
                  local_quat=IDENTITY) -> Pose:
@@ -92,6 +101,15 @@ def yaw_of(quat) -> jnp.ndarray:
     projected on the table (for an upright frame, its rotation about z)."""
     w, x, y, z = (quat[..., i] for i in range(4))
     return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def nearest_yaw(angle, ref, period: float):
+    """The angle equal to `angle` modulo `period` nearest `ref` (an object's
+    heading up to its grasp symmetry, as close as possible to the natural
+    yaw); `ref` itself for period 0 (an object any yaw suits)."""
+    if period == 0.0:
+        return ref
+    return ref + (angle - ref) - period * jnp.round((angle - ref) / period)
 
 
 def down_grasp(yaw=0.0, pitch=0.0, *, wrap: bool = True) -> jnp.ndarray:
@@ -114,7 +132,7 @@ def down_grasp(yaw=0.0, pitch=0.0, *, wrap: bool = True) -> jnp.ndarray:
 def natural_yaw(pos) -> jnp.ndarray:
     """The heading from the robot base to the point `pos`: the gripper yaw
     the arm reaches there without turning its wrist far."""
-    return jnp.arctan2(pos[1] - ROBOT_BASE_XY[1], pos[0] - ROBOT_BASE_XY[0])
+    return jnp.arctan2(pos[..., 1] - ROBOT_BASE_XY[1], pos[..., 0] - ROBOT_BASE_XY[0])
 
 
 # ---- spawning -------------------------------------------------------------------------------
@@ -166,5 +184,5 @@ def _on_root_plane(root: Pose, xy: jnp.ndarray, yaw: jnp.ndarray, height: float,
 
 
 __all__ = ["DOWN", "HIDDEN_GROUP", "IDENTITY", "ROBOT_BASE_XY", "Pose", "down_grasp", "free_body",
-           "free_box", "natural_yaw", "pose_in_root", "sensor_volume", "spawn_many_on_root_plane",
-           "spawn_on_root_plane", "yaw_of"]
+           "free_box", "grasp_site", "natural_yaw", "nearest_yaw", "pose_in_root", "sensor_volume",
+           "spawn_many_on_root_plane", "spawn_on_root_plane", "yaw_of"]

@@ -21,8 +21,9 @@ import numpy as np
 
 from agnostos_mjx.conditions import AnyOf, Condition, Detected
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
-from agnostos_mjx.tasks.base import sample_on_plane
-from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
+from agnostos_mjx.tasks.base import TABLE_Z, WORKSPACE_CENTER, WORKSPACE_HALF, sample_on_plane
+from agnostos_mjx.tasks.builders.articulated import hinged_door
+from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
 from agnostos_mjx.world import OBJECT_COLLISION
 
 G = mujoco.mjtGeom
@@ -33,22 +34,42 @@ INVISIBLE = (0.0, 0.0, 0.0, 0.0)
 def spawn_on_root_plane(key: jax.Array, root: tuple[jnp.ndarray, jnp.ndarray], count: int,
                         half_extents: tuple[float, float], plane_center: tuple[float, float],
                         plane_half: tuple[float, float], *, yaw_range: float = jnp.pi,
-                        min_distance: float = 0.01, height: float = 0.0,
+                        min_distance: float = 0.01, height: float = 0.0, tries: int = 64,
                         ) -> list[tuple[jnp.ndarray, jnp.ndarray]]:
     """RLBench's SpawnBoundary for objects on a plane of the task root:
     `count` objects of footprint `half_extents` are sampled one after the
     other (each avoiding those before it) and returned as world poses, the
-    origin `height` above the plane."""
+    origin `height` above the plane.  Crowded planes need more `tries`."""
     root_pos, root_quat = root
     placed, poses = [], []
     for k in jax.random.split(key, count):
         xy, yaw = sample_on_plane(k, half_extents, yaw_range, plane_center=plane_center,
                                   plane_half=plane_half, others=tuple(placed),
-                                  min_distance=min_distance)
+                                  min_distance=min_distance, tries=tries)
         placed.append((xy, yaw, jnp.asarray(half_extents)))
         local = jnp.array([xy[0], xy[1], height])
         poses.append((root_pos + quat_rotate(root_quat, local), quat_mul(root_quat, yaw_quat(yaw))))
     return poses
+
+
+def place_root_between(key: jax.Array, half_extents: tuple[float, float], yaw_min: float,
+                       yaw_max: float, offset=(0.0, 0.0), tries: int = 64,
+                       ) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """`place_root` for a yaw range not centred on zero (RLBench's
+    base_rotation_bounds, e.g. 0..pi/2): the first of `tries` candidates whose
+    yawed footprint (centred at `offset` in the root frame) fits the workspace."""
+    k_xy, k_yaw = jax.random.split(key)
+    center = jnp.asarray(WORKSPACE_CENTER)
+    half = jnp.asarray(WORKSPACE_HALF)
+    xy = center + jax.random.uniform(k_xy, (tries, 2), minval=-half, maxval=half)
+    yaw = jax.random.uniform(k_yaw, (tries,), minval=yaw_min, maxval=yaw_max)
+    c, s = jnp.abs(jnp.cos(yaw)), jnp.abs(jnp.sin(yaw))
+    reach = jnp.stack([c * half_extents[0] + s * half_extents[1],
+                       s * half_extents[0] + c * half_extents[1]], -1)
+    first = jnp.argmax(jnp.all(jnp.abs(xy - center) <= half - reach, -1))
+    quat = yaw_quat(yaw[first])
+    origin = jnp.concatenate([xy[first], jnp.array([TABLE_Z])])
+    return origin - quat_rotate(quat, jnp.array([*offset, 0.0])), quat
 
 
 def detected_one_of(pairs: Sequence[tuple[str, str]], index, half_extents, radius: float,
@@ -205,11 +226,11 @@ def cup_radius(z: float, bottom_radius: float = 0.032, top_radius: float = 0.047
 
 def cup(body: mujoco.MjsBody, name: str, *, bottom_radius: float = 0.032,
         top_radius: float = 0.047, wall: float = 0.003, sides: int = CUP_SIDES,
-        mass: float = 0.0532, rgba=WHITE) -> None:
+        mass: float = 0.0532, rgba=WHITE, half_height: float = CUP_HALF_HEIGHT) -> None:
     """A tapered, open plastic cup 0.14 m tall (a free object), origin at its
     centre: a bottom plate and `sides` tilted wall panels, so that cups of the
     same yaw nest inside each other.  Geoms as `cup_geoms(name)`."""
-    h = CUP_HALF_HEIGHT
+    h = half_height
     tilt = np.arctan2(top_radius - bottom_radius, 2 * h)
     mid = (top_radius + bottom_radius) / 2 - wall / 2 * np.cos(tilt)
     half_width = mid * np.tan(np.pi / sides)
@@ -228,8 +249,138 @@ def cup(body: mujoco.MjsBody, name: str, *, bottom_radius: float = 0.032,
         geom.mass = mass / (sides + 1)
 
 
+# ---- safe ----------------------------------------------------------------------------------
+SAFE_HALF = (0.155, 0.118, 0.2475)  # width (x), depth (y, open front at +y), height
+SAFE_WALL = 0.015
+SAFE_SHELVES = (0.02, 0.165, 0.32)  # shelf top surfaces above the safe's bottom
+MONEY_HALF = (0.0265, 0.0625, 0.016)
+
+
+def safe(scene, parent: mujoco.MjsBody, name: str, pos, yaw: float, *,
+         door_angle: float = 2.9, rgba=(0.8, 0.8, 0.8)) -> mujoco.MjsBody:
+    """A safe 0.31 x 0.236 x 0.495 m open at its front (+y), with a floor and
+    two shelves (tops at SAFE_SHELVES) and its door swung open on a passive
+    hinge at the front right edge (`<name>_joint`, held by friction).  Returns
+    the static body, origin at the safe's centre."""
+    hx, hy, hz = SAFE_HALF
+    t = SAFE_WALL
+    body = parent.add_body(name=name, pos=list(pos),
+                           quat=list(np.asarray(yaw_quat(np.float64(yaw)))))
+    floor_half = (SAFE_SHELVES[0] / 2)
+    panel(body, (hx, hy, floor_half), (0, 0, -hz + floor_half), rgba)  # floor
+    panel(body, (hx, hy, t / 2), (0, 0, hz - t / 2), rgba)  # roof
+    panel(body, (hx, t / 2, hz), (0, -hy + t / 2, 0), rgba)  # back
+    for sx in (-1, 1):
+        panel(body, (t / 2, hy, hz), (sx * (hx - t / 2), 0, 0), rgba)
+    for top in SAFE_SHELVES[1:]:
+        panel(body, (hx - t, hy - t / 2, 0.005), (0, t / 2, -hz + top - 0.005), rgba)
+    hinged_door(scene, body, f"{name}_door", hinge_pos=(hx, hy, 0.0), axis=(0, 0, -1),
+                panel_half=(0.145, 0.005, 0.2255), panel_offset=(-0.145, 0.005, 0.0),
+                limits=(-np.pi, np.pi), initial=door_angle, friction_torque=5.0, rgba=rgba)
+    scene.exclude(name, f"{name}_door")
+    return body
+
+
+def money_stack(body: mujoco.MjsBody, name: str, *, mass: float = 0.5) -> None:
+    """A banded stack of bank notes 0.053 x 0.125 x 0.032 m (a free graspable)."""
+    panel(body, MONEY_HALF, (0, 0, 0), (0.8, 0.86, 0.75), name=f"{name}_notes").mass = mass
+    panel(body, (MONEY_HALF[0] + 0.0005, 0.01, MONEY_HALF[2] + 0.0005), (0, 0, 0),
+          (0.77, 0.81, 0.9), collide=False, name=f"{name}_band")
+
+
+# ---- mugs and a mug tree -------------------------------------------------------------------
+MUG_RADIUS = 0.033
+MUG_HALF_HEIGHT = 0.0415
+HANDLE_RADIUS = 0.004
+# The handle is a loop of three capsules in the mug's x-z plane on its +x
+# side; its hole (30 mm out from the wall, 42 mm tall) is open along the
+# mug's y axis and takes a 13 mm spoke with room for the expert's error.
+HANDLE_OUTER_X = MUG_RADIUS + 0.030 + HANDLE_RADIUS
+HANDLE_TOP_Z, HANDLE_BOTTOM_Z = 0.030, -0.020
+MUG_HOLE = (MUG_RADIUS + 0.015, 0.0, (HANDLE_TOP_Z + HANDLE_BOTTOM_Z) / 2)
+# Where the expert grasps: the wall opposite the handle, 20 mm below the rim.
+MUG_GRASP = (-(MUG_RADIUS - 0.0015), 0.0, MUG_HALF_HEIGHT - 0.02)
+# Mug tree (origin at the foot of the post): four spokes 95 mm long, 13 mm
+# thick, tilted SPOKE_TILT up, their centres 0.0508 m out from the post's
+# axis, in RLBench's order and heights.
+SPOKE_TILT = np.deg2rad(20.0)
+SPOKE_HALF_LENGTH, SPOKE_RADIUS, SPOKE_OFFSET = 0.0475, 0.0065, 0.0508
+SPOKE_YAWS = tuple(np.deg2rad(a) for a in (189.8, 99.8, 9.8, 279.8))
+SPOKE_HEIGHTS = (0.210, 0.149, 0.210, 0.149)
+TREE_HEIGHT, TREE_BASE_RADIUS, POST_RADIUS = 0.316, 0.09, 0.015
+
+
+def mug(body: mujoco.MjsBody, name: str, *, mass: float = 0.3, rgba=WHITE) -> None:
+    """An open mug 0.083 m tall and 0.066 m wide with a handle loop on its +x
+    side, origin at the centre of its body.  Adds sites `<name>_hole` (the
+    handle's hole, what the spoke sensors detect) and `<name>_grasp`."""
+    cup(body, name, bottom_radius=MUG_RADIUS, top_radius=MUG_RADIUS, half_height=MUG_HALF_HEIGHT,
+        mass=mass, rgba=rgba)
+    inner = MUG_RADIUS - 0.002
+    for start, end in (((inner, 0, HANDLE_TOP_Z), (HANDLE_OUTER_X, 0, HANDLE_TOP_Z)),
+                       ((HANDLE_OUTER_X, 0, HANDLE_TOP_Z), (HANDLE_OUTER_X, 0, HANDLE_BOTTOM_Z)),
+                       ((HANDLE_OUTER_X, 0, HANDLE_BOTTOM_Z), (inner, 0, HANDLE_BOTTOM_Z))):
+        rod(body, start, end, HANDLE_RADIUS, rgba, collide=True).mass = 0.01
+    for site, pos in ((f"{name}_hole", MUG_HOLE), (f"{name}_grasp", MUG_GRASP)):
+        body.add_site(name=site, pos=list(pos), size=[0.004, 0, 0], rgba=[0, 0, 0, 0], group=4)
+
+
+def spoke_frame(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and unit axis (pointing out and up) of spoke `k` in the tree's frame."""
+    yaw = SPOKE_YAWS[k]
+    axis = np.array([np.cos(SPOKE_TILT) * np.cos(yaw), np.cos(SPOKE_TILT) * np.sin(yaw),
+                     np.sin(SPOKE_TILT)])
+    centre = np.array([SPOKE_OFFSET * np.cos(yaw), SPOKE_OFFSET * np.sin(yaw), SPOKE_HEIGHTS[k]])
+    return centre, axis
+
+
+def z_to(axis: np.ndarray) -> np.ndarray:
+    """Quaternion (wxyz) turning +z onto the unit vector `axis`."""
+    z = np.array([0.0, 0.0, 1.0])
+    half = (z + axis) / np.linalg.norm(z + axis)
+    return np.array([float(z @ half), *np.cross(z, half)])
+
+
+def mug_tree(parent: mujoco.MjsBody, name: str, pos, spoke_names: Sequence[str],
+             sensor_half, rgba=(0.5, 0.85, 1.0)) -> mujoco.MjsBody:
+    """A static mug tree 0.316 m tall: a round foot, a post and four capsule
+    spokes (SPOKE_YAWS, SPOKE_HEIGHTS).  Each spoke gets a box site named
+    `spoke_names[k]` on its centre, z along the spoke, of half size
+    `sensor_half` (the spoke's success sensor).  Returns the tree's body,
+    origin at the foot of the post."""
+    tree = parent.add_body(name=name, pos=list(pos))
+    disc(tree, TREE_BASE_RADIUS, 0.01, (0, 0, 0.01), rgba)
+    s = TREE_BASE_RADIUS / np.sqrt(2.0)
+    panel(tree, (s, s, 0.01), (0, 0, 0.01)).rgba = list(INVISIBLE)
+    post_half = (TREE_HEIGHT - 0.02) / 2
+    disc(tree, POST_RADIUS, post_half, (0, 0, 0.02 + post_half), rgba)
+    s = POST_RADIUS / np.sqrt(2.0)
+    panel(tree, (s, s, post_half), (0, 0, 0.02 + post_half)).rgba = list(INVISIBLE)
+    for k, spoke in enumerate(spoke_names):
+        centre, axis = spoke_frame(k)
+        rod(tree, centre - SPOKE_HALF_LENGTH * axis, centre + SPOKE_HALF_LENGTH * axis,
+            SPOKE_RADIUS, rgba, collide=True)
+        tree.add_site(name=spoke, pos=list(centre), quat=list(z_to(axis)), size=list(sensor_half),
+                      type=G.mjGEOM_BOX, rgba=[0, 1, 0, 0], group=4)
+    return tree
+
+
+def hung_mug_pose(k: int, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pose (tree frame) of an upright mug of yaw `yaw` whose handle's top bar
+    rests on spoke `k`, the spoke through the middle of the hole (a static
+    mug; `yaw` should turn the mug's y axis along the spoke)."""
+    centre, axis = spoke_frame(k)
+    rest_on = HANDLE_TOP_Z - HANDLE_RADIUS - SPOKE_RADIUS - MUG_HOLE[2]  # spoke below hole centre
+    hole = centre + np.array([0.0, 0.0, -rest_on])
+    quat = np.asarray(yaw_quat(np.float64(yaw)))
+    return hole - np.asarray(quat_rotate(quat, np.asarray(MUG_HOLE))), quat
+
+
 __all__ = [
-    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
+    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "MONEY_HALF", "SAFE_HALF", "SAFE_SHELVES",
+    "money_stack", "place_root_between", "safe", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
     "detected_one_of", "down_quat", "jar", "jar_lid", "lamp_with_socket", "light_bulb",
     "open_box", "open_box_geoms", "other_color", "spawn_on_root_plane", "square_yaw",
+    "MUG_GRASP", "MUG_HALF_HEIGHT", "MUG_HOLE", "MUG_RADIUS", "hung_mug_pose", "mug", "mug_tree",
+    "spoke_frame", "z_to",
 ]

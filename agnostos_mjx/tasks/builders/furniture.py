@@ -1,6 +1,7 @@
 """Furniture and loose objects for the seen pick-and-place / articulated tasks:
 a two-handle tap, a wine rack and bottle, a cupboard with groceries, and a
-shape sorter with its shapes (free bodies and sensor volumes: see `common`).
+shape sorter with its shapes (free bodies, sensor volumes, grasp sites and
+the experts' yaw helpers: see `common`).
 
 Everything is built from primitive geoms (boxes for contact; visual cylinders
 where the original is round), see `primitives`.
@@ -11,7 +12,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
 
@@ -46,8 +47,7 @@ def two_handle_tap(scene: SceneBuilder, parent: mujoco.MjsBody, *, spacing: floa
         for sx in (-1, 1):  # rounded bar ends
             disc(handle, bar_half[1] * 1.6, bar_half[2] * 1.2,
                  (sx * bar_half[0], 0.0, bar_z), handle_rgba)
-        handle.add_site(name=f"tap_{side}_grasp", pos=[0.0, 0.0, bar_z], size=[0.005, 0, 0],
-                        rgba=[0, 1, 0, 0], group=4)
+        grasp_site(handle, f"tap_{side}_grasp", (0.0, 0.0, bar_z))
         scene.exclude(parent.name, f"tap_{side}")
         joints.append(f"{side}_joint")
     return joints[0], joints[1]

@@ -191,3 +191,66 @@ def rope(scene: SceneBuilder, name: str, points, *, radius: float = 0.005,
         names.append(link)
         parent, parent_pose = body, (center, yaw)
     return names
+
+
+# ---- water_plants ----------------------------------------------------------------------------
+def watering_can(scene: SceneBuilder, name: str, *, half=(0.045, 0.035), height: float = 0.09,
+                 wall: float = 0.004, handle_rise: float = 0.065, mass: float = 0.3,
+                 rgba=(0.2, 0.45, 0.75)) -> mujoco.MjsBody:
+    """A watering can (origin at the bottom centre, spout toward +x): a box
+    with the front half of its top open (the mouth), a bar handle along x
+    high enough above the lid for the fingers to close around it from the
+    side, and a visual spout.  Sites: `<name>_handle` (the bar's middle),
+    `<name>_lip` (the front wall's top edge, where tilted contents leave) and
+    `<name>_head` (the spout's tip)."""
+    body = free_body(scene, name)
+    hx, hy = half
+    parts = [
+        ((hx, hy, wall / 2), (0, 0, wall / 2)),  # floor
+        ((wall / 2, hy, height / 2), (-hx + wall / 2, 0, height / 2)),  # back
+        ((wall / 2, hy, height / 2), (hx - wall / 2, 0, height / 2)),  # front
+        ((hx, wall / 2, height / 2), (0, hy - wall / 2, height / 2)),  # sides
+        ((hx, wall / 2, height / 2), (0, -hy + wall / 2, height / 2)),
+        ((hx / 2, hy, wall / 2), (-hx / 2, 0, height - wall / 2)),  # lid over the back half
+    ]
+    # The handle spans the lid (the back half), clear of the lip where the
+    # contents leave.
+    bar_z, bar_x = height + handle_rise, -hx / 2
+    parts += [((hx / 2, 0.006, 0.006), (bar_x, 0, bar_z))]  # handle bar
+    parts += [((0.004, 0.004, handle_rise / 2), (x, 0, height + handle_rise / 2))
+              for x in (-hx + 0.004, -0.004)]  # handle posts
+    geoms = [panel(body, h, p, rgba) for h, p in parts]
+    for geom in geoms:
+        geom.mass = mass / len(geoms)
+    tip = (hx + 0.08, 0.0, height)
+    rod(body, (hx, 0.0, 0.02), tip, 0.006, rgba)  # spout (visual)
+    body.add_site(name=f"{name}_handle", pos=[bar_x, 0, bar_z], group=4)
+    body.add_site(name=f"{name}_lip", pos=[hx, 0, height], group=4)
+    body.add_site(name=f"{name}_head", pos=list(tip), group=4)
+    return body
+
+
+def water_drops(scene: SceneBuilder, name: str, count: int, *, radius: float = 0.004,
+                mass: float = 0.001, rgba=(0.1, 0.1, 0.9)) -> list[str]:
+    """`count` free spheres (RLBench's water drops); their task places them
+    inside the can.  Returns their body names."""
+    return [ball(scene, f"{name}{i}", radius, mass, rgba).name for i in range(count)]
+
+
+def plant_pot(parent: mujoco.MjsBody, name: str, center, *, half: float = 0.085,
+              height: float = 0.09, soil: float = 0.06, wall: float = 0.006) -> None:
+    """A square pot with soil inside and a visual plant; `<name>_soil` is a
+    site on the soil's surface."""
+    x, y = center
+    terracotta, earth, leaf = (0.72, 0.36, 0.22), (0.3, 0.2, 0.1), (0.2, 0.6, 0.2)
+    panel(parent, (half, half, soil / 2), (x, y, soil / 2), earth, name=f"{name}_soil")
+    for sx, sy, hx, hy in ((1, 0, wall / 2, half), (-1, 0, wall / 2, half),
+                           (0, 1, half, wall / 2), (0, -1, half, wall / 2)):
+        panel(parent, (hx, hy, height / 2),
+              (x + sx * (half - wall / 2), y + sy * (half - wall / 2), height / 2), terracotta)
+    rod(parent, (x, y, soil), (x, y, soil + 0.12), 0.004, leaf)
+    for dx, dy, dz in ((0.03, 0.0, 0.08), (-0.025, 0.02, 0.1), (0.0, -0.03, 0.12)):
+        parent.add_geom(type=G.mjGEOM_ELLIPSOID, size=[0.025, 0.012, 0.004],
+                        pos=[x + dx, y + dy, soil + dz], rgba=[*leaf, 1.0], contype=0,
+                        conaffinity=0, group=1)
+    parent.add_site(name=f"{name}_soil", pos=[x, y, soil], group=4)

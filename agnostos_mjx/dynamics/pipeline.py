@@ -1,0 +1,154 @@
+"""A trained autoencoder + dynamics model, loaded from their run directories,
+with the batched inference calls the features and the evaluation need."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from agnostos_mjx.dynamics.autoencoder import Autoencoder, to_uint8
+from agnostos_mjx.dynamics.batching import map_chunks
+from agnostos_mjx.dynamics.checkpoint import CheckpointError, load_params, read_meta
+from agnostos_mjx.dynamics.config import (
+    LATENT_CHANNELS,
+    LATENT_SIZE,
+    AutoencoderConfig,
+    DiffusionConfig,
+    TextConfig,
+    UNetConfig,
+    from_dict,
+    to_dict,
+)
+from agnostos_mjx.dynamics.diffusion import DynamicsModel, ddim_sample
+from agnostos_mjx.dynamics.layers import abstract
+from agnostos_mjx.dynamics.text import tokenize
+
+AE_KIND, DYN_KIND = "autoencoder", "dynamics"
+_MODEL_FIELDS = ("prediction", "schedule", "timesteps")  # diffusion fields fixed at training
+
+
+def autoencoder_meta(cfg: AutoencoderConfig) -> dict[str, Any]:
+    return {"kind": AE_KIND, "model": {"autoencoder": to_dict(cfg)}}
+
+
+def dynamics_meta(
+    text: TextConfig, unet: UNetConfig, diffusion: DiffusionConfig, ae: AutoencoderConfig
+) -> dict[str, Any]:
+    d = to_dict(diffusion)
+    return {
+        "kind": DYN_KIND,
+        "diffusion": to_dict(diffusion),  # sampling defaults for Pipeline.load
+        "model": {
+            "text": to_dict(text),
+            "unet": to_dict(unet),
+            "autoencoder": to_dict(ae),
+            **{k: d[k] for k in _MODEL_FIELDS},
+        },
+    }
+
+
+def load_autoencoder(run: str | Path) -> tuple[Autoencoder, AutoencoderConfig]:
+    """The autoencoder of a run directory, built from the config in its checkpoint."""
+    meta = _meta(run, AE_KIND)
+    cfg = from_dict(AutoencoderConfig, meta["model"]["autoencoder"])
+    model = abstract(lambda: Autoencoder(cfg, rngs=nnx.Rngs(0)))
+    return load_params(run, model, {"kind": AE_KIND, "model": meta["model"]}), cfg
+
+
+def _meta(run: str | Path, kind: str) -> dict[str, Any]:
+    meta = read_meta(run)
+    if meta.get("kind") != kind:
+        raise CheckpointError(f"{run} holds a {meta.get('kind')!r} checkpoint, expected {kind!r}")
+    return meta
+
+
+@nnx.jit
+def _encode(ae: Autoencoder, frames: jax.Array) -> jax.Array:
+    return ae.encode(frames)[0]  # the mode of q(z|x), as the original's latent_dist.mode()
+
+
+@nnx.jit
+def _decode(ae: Autoencoder, z: jax.Array) -> jax.Array:
+    return to_uint8(ae.decode(z))
+
+
+@nnx.jit(static_argnames="cfg")
+def _sample(
+    model: DynamicsModel, cfg: DiffusionConfig, z_first: jax.Array, ids: jax.Array, mask: jax.Array
+) -> jax.Array:
+    # The same initial noise for every query: features do not depend on batch order or size.
+    noise = jax.random.normal(
+        jax.random.key(cfg.sample_seed), (LATENT_SIZE, LATENT_SIZE, LATENT_CHANNELS)
+    )
+    return ddim_sample(model, cfg, z_first, ids, mask, jnp.broadcast_to(noise, z_first.shape))
+
+
+@nnx.jit
+def _pooled(model: DynamicsModel, ids: jax.Array, mask: jax.Array) -> jax.Array:
+    return model.text(ids, mask)[1]
+
+
+@dataclass
+class Pipeline:
+    """Latents are in the diffusion model's units: autoencoder mean x latent_scale."""
+
+    ae: Autoencoder
+    latent_scale: float
+    model: DynamicsModel | None = None
+    text: TextConfig | None = None
+    diffusion: DiffusionConfig = DiffusionConfig()
+    chunk: int = 64
+    identity: str = ""  # run path, step and sampling settings: keys cached feature indices
+
+    @classmethod
+    def load(
+        cls, run: str | Path, ae_run: str | Path | None = None, chunk: int = 64, **sampling: Any
+    ) -> Pipeline:
+        """Load a dynamics run (and the autoencoder it was trained on, or `ae_run`).
+        `sampling` overrides sampling fields: sample_steps, image_guidance, text_guidance, sample_seed."""
+        meta = _meta(run, DYN_KIND)
+        m = meta["model"]
+        text, unet = from_dict(TextConfig, m["text"]), from_dict(UNetConfig, m["unet"])
+        diffusion = replace(from_dict(DiffusionConfig, meta["diffusion"]), **sampling)
+        ae_run = ae_run or meta["autoencoder_dir"]
+        ae, ae_cfg = load_autoencoder(ae_run)
+        if to_dict(ae_cfg) != m["autoencoder"]:
+            raise CheckpointError(
+                f"autoencoder at {ae_run} has another config than the one {run} was trained on"
+            )
+        model = abstract(lambda: DynamicsModel(text, unet, rngs=nnx.Rngs(0)))
+        model = load_params(run, model, {"kind": DYN_KIND, "model": m})
+        identity = f"{Path(run).absolute()}@{meta['step']}|{to_dict(diffusion)}"
+        return cls(ae, meta["latent_scale"], model, text, diffusion, chunk, identity)
+
+    def encode(self, frames: np.ndarray) -> np.ndarray:
+        """uint8 (N,128,128,3) -> scaled latents (N,16,16,4)."""
+        return (
+            map_chunks(lambda f: _encode(self.ae, f), frames, size=self.chunk) * self.latent_scale
+        )
+
+    def decode(self, latents: np.ndarray) -> np.ndarray:
+        """Scaled latents -> uint8 frames."""
+        return map_chunks(
+            lambda z: _decode(self.ae, z), np.asarray(latents) / self.latent_scale, size=self.chunk
+        )
+
+    def tokens(self, instructions: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        return tokenize(instructions, self.text.max_len)
+
+    def predict(self, first_latents: np.ndarray, instructions: list[str]) -> np.ndarray:
+        """Predicted last-frame latents (N,16,16,4) by guided DDIM from fixed noise."""
+        ids, mask = self.tokens(instructions)
+        fn = lambda z, i, m: _sample(self.model, self.diffusion, z, i, m)
+        return map_chunks(fn, np.asarray(first_latents, np.float32), ids, mask, size=self.chunk)
+
+    def lang(self, instructions: list[str]) -> np.ndarray:
+        """Pooled, projected instruction features (N, 1024)."""
+        ids, mask = self.tokens(instructions)
+        return map_chunks(lambda i, m: _pooled(self.model, i, m), ids, mask, size=self.chunk)

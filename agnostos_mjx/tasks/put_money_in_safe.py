@@ -1,0 +1,134 @@
+"""put_money_in_safe (seen): put the stack of bank notes on the named shelf of the safe."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx.conditions import NothingGrasped, all_of
+from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, sample_on_plane
+from agnostos_mjx.tasks.builders.containers import (
+    MONEY_HALF,
+    SAFE_HALF,
+    SAFE_SHELVES,
+    detected_one_of,
+    down_quat,
+    money_stack,
+    place_root_between,
+    safe,
+    square_yaw,
+)
+
+SHELVES = ("bottom", "middle", "top")
+SAFE_AT, SAFE_YAW = (-0.048, -0.25, SAFE_HALF[2]), 0.349  # root frame; 20 degrees
+# RLBench's detectors: 0.2 x 0.2 x 0.01 m boxes on each shelf, their centre
+# 0.012 m behind the safe's centre.
+DETECTOR_HALF = (0.1, 0.1, 0.005)
+DETECTOR_Y = -0.012
+MONEY_PLANE_HALF = (0.1115, 0.1415)  # dollar_stack_boundary on the safe's roof
+MONEY_RADIUS = 0.068  # the stack's half diagonal: fits the plane at any yaw
+GRIP_ABOVE = 0.0  # tip at the money's centre when grasping
+IN_FRONT = 0.075  # stand-off in front of the safe's face: the money's front end clears it
+# What must fit the workspace: the safe's box, turned by SAFE_YAW in the root
+# frame (with the open door the footprint would never fit our inferred
+# workspace, and the sampler would fall back to unchecked placements).
+SAFE_FOOTPRINT = (np.cos(SAFE_YAW) * SAFE_HALF[0] + np.sin(SAFE_YAW) * SAFE_HALF[1],
+                  np.sin(SAFE_YAW) * SAFE_HALF[0] + np.cos(SAFE_YAW) * SAFE_HALF[1])
+
+
+class PutMoneyInSafe(Task):
+    name = "put_money_in_safe"
+    split = Split.SEEN
+    num_variations = 3
+    # X-ICM's name map calls the safe "shelf"; we name it what it is.
+    objects = {"money": "dollar_stack", "safe": "safe_body"}
+    frames = ("success_detector0", "success_detector1", "success_detector2")
+    joints = ("safe_body_door_joint",)
+    graspables = ("dollar_stack",)
+    graspable_radius = (0.01,)
+    notes = ("Primitive safe (box walls, two shelf planks, door swung open on a passive hinge "
+             "held by friction) in the layout of RLBench's model, rotated 20 degrees in the "
+             "root frame. X-ICM's name map calls the safe 'shelf'; we use 'safe'. RLBench "
+             "keeps one tilted gripper orientation and grasps the stack's front end; our "
+             "expert grasps the stack top-down across its width, turns it in the air to "
+             "face the safe and slides it in level (the hand fits a shelf's 0.145 m slot), "
+             "with via-points in front of the safe instead of the planner. The money's "
+             "yaw (0..pi/2) and the root's yaw (0..pi/2) follow RLBench; the root is "
+             "placed so that the safe's box (not the swung-open door, which would never "
+             "fit our inferred workspace) lies in the workspace. When the safe faces the "
+             "robot from close by, the bottom shelf is at the elbow's limit and the "
+             "expert occasionally fails there (RLBench's planner would resample such "
+             "scenes).")
+
+    def descriptions(self, variation: int) -> list[str]:
+        s = SHELVES[variation]
+        return [f"put the money away in the safe on the {s} shelf",
+                f"leave the money on the {s} shelf on the safe",
+                f"place the stack of bank notes on the {s} shelf of the safe"]
+
+    def build(self, scene) -> None:
+        root = scene.mocap("put_money_in_safe_root")
+        body = safe(scene, root, "safe_body", SAFE_AT, SAFE_YAW)
+        for k, top in enumerate(SAFE_SHELVES):
+            z = -SAFE_HALF[2] + top + DETECTOR_HALF[2] - 0.001
+            body.add_site(name=f"success_detector{k}", pos=[0.0, DETECTOR_Y, z],
+                          size=list(DETECTOR_HALF), type=mujoco.mjtGeom.mjGEOM_BOX,
+                          rgba=[0, 1, 0, 0], group=4)
+        money = scene.world.add_body(name="dollar_stack", pos=[0, 0, 1.2])
+        money.add_freejoint()
+        money_stack(money, "dollar_stack")
+
+    def sample(self, key, variation) -> Placement:
+        k_root, k_money = jax.random.split(key)
+        root_pos, root_quat = place_root_between(k_root, SAFE_FOOTPRINT, 0.0, jnp.pi / 2,
+                                                 offset=SAFE_AT[:2])
+        safe_quat = quat_mul(root_quat, yaw_quat(jnp.asarray(SAFE_YAW)))
+        xy, yaw = sample_on_plane(k_money, (MONEY_RADIUS, MONEY_RADIUS), jnp.pi / 4,
+                                  plane_center=(0.0, 0.0), plane_half=MONEY_PLANE_HALF)
+        top = jnp.array([xy[0], xy[1], 2 * SAFE_HALF[2] + MONEY_HALF[2]])
+        safe_bottom = root_pos + quat_rotate(root_quat, jnp.array([*SAFE_AT[:2], 0.0]))
+        money_pos = safe_bottom + quat_rotate(safe_quat, top)
+        money_quat = quat_mul(safe_quat, yaw_quat(yaw + jnp.pi / 4))
+        return Placement(bodies={"put_money_in_safe_root": (root_pos, root_quat),
+                                 "dollar_stack": (money_pos, money_quat)})
+
+    def success(self, variation):
+        on_shelf = detected_one_of([("dollar_stack", f"success_detector{k}") for k in range(3)],
+                                   variation, DETECTOR_HALF, radius=0.012)
+        return all_of([on_shelf, NothingGrasped()])
+
+    def expert(self, obs, variation):
+        money = obs.pos("dollar_stack")
+        mq, sq = obs.quat("dollar_stack"), obs.quat("safe_body")
+        money_yaw = 2.0 * jnp.arctan2(mq[3], mq[0])
+        safe_yaw = 2.0 * jnp.arctan2(sq[3], sq[0])
+        # Fingers across the stack's width (its x axis): the gripper's finger
+        # axis is its y axis, so turn by a quarter.
+        grip = down_quat(square_yaw(money_yaw + jnp.pi / 2, jnp.pi))
+        insert = down_quat(square_yaw(safe_yaw + jnp.pi / 2, jnp.pi))
+        shelf = jnp.asarray(SAFE_SHELVES)[variation] - SAFE_HALF[2]
+        hold = MONEY_HALF[2] + GRIP_ABOVE + 0.008  # tip above the shelf, money 8 mm up
+        place = in_frame(obs, "safe_body", (0.0, DETECTOR_Y + 0.01, 0.0)).at[2].add(shelf + hold)
+        front = in_frame(obs, "safe_body", (0.0, SAFE_HALF[1] + IN_FRONT, 0.0)).at[2].add(
+            shelf + hold)
+        entrance = in_frame(obs, "safe_body", (0.0, SAFE_HALF[1] + 0.03, 0.0)).at[2].add(
+            shelf + hold)
+        high = front.at[2].set(obs.pos("safe_body")[2] + SAFE_HALF[2] + 0.06)
+        grasp = money + jnp.array([0.0, 0.0, GRIP_ABOVE])
+        up = jnp.array([0.0, 0.0, 0.12])
+        return key_actions([
+            (grasp + up, grip, 1.0),  # above the money
+            (grasp, grip, 0.0),  # down, close: attach
+            (grasp + up, grip, 0.0),  # lift
+            (high, insert, 0.0),  # in front of the safe, turned to face it
+            (front, insert, 0.0),  # down to the shelf's height
+            (entrance, insert, 0.0),  # money's front end at the opening
+            (place, insert, 1.0),  # slide in, release
+            (front, insert, 1.0),  # withdraw
+        ])
+
+
+TASK = PutMoneyInSafe()

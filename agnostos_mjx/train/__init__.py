@@ -1,0 +1,6 @@
+"""Training and evaluation entry points of the dynamics diffusion model (issue 6).
+
+python -m agnostos_mjx.train.autoencoder --help
+python -m agnostos_mjx.train.dynamics --help
+python -m agnostos_mjx.train.evaluate --help
+"""

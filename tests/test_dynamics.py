@@ -1,0 +1,386 @@
+"""The dynamics diffusion model on CPU with the quick preset: training, checkpoints,
+features and selection.  One autoencoder run and one dynamics run of two steps
+each are shared by the module (compiles dominate the run time)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import types
+from dataclasses import replace
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from agnostos_mjx.dynamics.autoencoder import Autoencoder, autoencoder_loss
+from agnostos_mjx.dynamics.checkpoint import CheckpointError, Checkpoints
+from agnostos_mjx.dynamics.config import (
+    AE_QUICK,
+    DIFFUSION_QUICK,
+    TEXT_QUICK,
+    TRAIN_QUICK,
+    UNET_QUICK,
+)
+from agnostos_mjx.dynamics.data import FramePairs, synthetic
+from agnostos_mjx.dynamics.diffusion import DynamicsModel, diffusion_loss
+from agnostos_mjx.dynamics.features import (
+    DemoSelector,
+    FeatureIndex,
+    build_index,
+    extract,
+    leave_one_out_same_task,
+    parse_mode,
+    select,
+    similarity,
+)
+from agnostos_mjx.dynamics.layers import abstract, create
+from agnostos_mjx.dynamics.pipeline import Pipeline, load_autoencoder
+from agnostos_mjx.dynamics.text import tokenize
+from agnostos_mjx.train import autoencoder as ae_cli
+from agnostos_mjx.train import dynamics as dyn_cli
+from agnostos_mjx.train import evaluate as eval_cli
+from agnostos_mjx.train.autoencoder import train_autoencoder
+from agnostos_mjx.train.common import make_step, optimizer
+from agnostos_mjx.train.dynamics import train_dynamics
+
+TCFG = replace(TRAIN_QUICK, steps=2, batch_size=4, ckpt_every=1, log_every=1, holdout_every=4)
+
+
+@pytest.fixture(scope="module")
+def pairs() -> FramePairs:
+    return synthetic(12, seed=0)
+
+
+@pytest.fixture(scope="module")
+def ae_run(tmp_path_factory, pairs):
+    out = tmp_path_factory.mktemp("ae")
+    train_autoencoder(pairs, AE_QUICK, TCFG, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def dyn_run(tmp_path_factory, pairs, ae_run):
+    out = tmp_path_factory.mktemp("dyn")
+    train_dynamics(
+        pairs, ae_run, TEXT_QUICK, UNET_QUICK, DIFFUSION_QUICK, TCFG, out, progress=False
+    )
+    return out
+
+
+@pytest.fixture(scope="module")
+def pipe(dyn_run) -> Pipeline:
+    return Pipeline.load(dyn_run)
+
+
+def _losses_before_after(model: nnx.Module, loss_fn, batch) -> tuple[float, float]:
+    """The jitted step returns the loss at the params it was given: two calls on
+    the same batch and key give the loss before and after one update."""
+    graphdef, params = nnx.split(model)
+    tx = optimizer(TCFG)  # the fixtures' optimiser: the compiled step can come from the cache
+    step = make_step(graphdef, tx, loss_fn)
+    key = jax.random.key(1)
+    params, opt_state, before = step(params, tx.init(params), batch, key)
+    _, _, after = step(params, opt_state, batch, key)
+    return float(before), float(after)
+
+
+def test_one_step_lowers_autoencoder_loss(pairs):
+    model = create(lambda: Autoencoder(AE_QUICK, rngs=nnx.Rngs(0)))
+    before, after = _losses_before_after(
+        model, lambda m, b, k: autoencoder_loss(m, b, k, 1e-4), pairs.first[:4]
+    )
+    assert after < before
+
+
+def test_one_step_lowers_diffusion_loss():
+    model = create(lambda: DynamicsModel(TEXT_QUICK, UNET_QUICK, rngs=nnx.Rngs(0)))
+    z = np.random.default_rng(0).normal(size=(2, 4, 16, 16, 4)).astype(np.float32)
+    ids, mask = tokenize(["push the red block left"] * 4, TEXT_QUICK.max_len)
+    before, after = _losses_before_after(
+        model, lambda m, b, k: diffusion_loss(m, DIFFUSION_QUICK, *b, k), (z[0], z[1], ids, mask)
+    )
+    assert after < before
+
+
+def test_training_writes_log_checkpoints_and_samples(ae_run, dyn_run):
+    for run in (ae_run, dyn_run):
+        log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+        assert [r["step"] for r in log] == [1, 2] and all(np.isfinite(r["loss"]) for r in log)
+        assert Checkpoints(run / "checkpoints").latest_step() == 2
+        assert (run / "samples" / "step_0000002.png").exists()
+        assert json.loads((run / "config.json").read_text())["train"]["steps"] == 2
+
+
+def test_checkpoint_round_trip(tmp_path):
+    a = create(lambda: Autoencoder(AE_QUICK, rngs=nnx.Rngs(0)))
+    b = abstract(lambda: Autoencoder(AE_QUICK, rngs=nnx.Rngs(1)))
+    ckpts = Checkpoints(tmp_path / "checkpoints")
+    ckpts.save(7, {"params": nnx.state(a)}, {"kind": "x", "model": {"n": 1}})
+    trees, meta = ckpts.restore({"params": nnx.state(b)}, {"kind": "x", "model": {"n": 1}})
+    assert meta["step"] == 7
+    for x, y in zip(jax.tree.leaves(nnx.state(a)), jax.tree.leaves(trees["params"])):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_resume_continues_step_count_and_matches_uninterrupted(tmp_path, pairs, ae_run):
+    """Interrupt after step 1 (lose checkpoint 2 and a log line past it), resume:
+    the run goes on from step 1 and ends where the uninterrupted one did."""
+    run = tmp_path / "run"
+    shutil.copytree(ae_run, run)
+    shutil.rmtree(run / "checkpoints" / "2")
+    train_autoencoder(pairs, AE_QUICK, TCFG, run, progress=False)
+    steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2]  # step 1 from before, step 2 after resuming (the stale line dropped)
+    assert Checkpoints(run / "checkpoints").latest_step() == 2
+    (a, _), (b, _) = load_autoencoder(run), load_autoencoder(ae_run)
+    for x, y in zip(jax.tree.leaves(nnx.state(a)), jax.tree.leaves(nnx.state(b))):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+
+
+def test_missing_checkpoint_is_a_clear_error(tmp_path, dyn_run):
+    with pytest.raises(CheckpointError, match=str(tmp_path / "nowhere")):
+        Pipeline.load(tmp_path / "nowhere")
+    (tmp_path / "empty" / "checkpoints").mkdir(parents=True)
+    with pytest.raises(CheckpointError, match="no checkpoint found in .*empty"):
+        load_autoencoder(tmp_path / "empty")
+    with pytest.raises(CheckpointError, match="'dynamics' checkpoint, expected 'autoencoder'"):
+        load_autoencoder(dyn_run)
+
+
+def test_incompatible_checkpoint_names_what_mismatched(tmp_path, pairs, ae_run):
+    run = tmp_path / "ae"
+    shutil.copytree(ae_run, run)
+    wider = replace(AE_QUICK, channels=(8, 16, 16, 32))
+    with pytest.raises(
+        CheckpointError,
+        match=r"(?s)incompatible.*autoencoder\.channels: checkpoint has \[8, 16, 16, 16\]",
+    ):
+        train_autoencoder(pairs, wider, TCFG, run, progress=False)
+    # Same metadata, other shapes: the parameter is named.
+    ckpts = Checkpoints(run / "checkpoints")
+    meta = ckpts.meta()
+    template = {"params": nnx.state(abstract(lambda: Autoencoder(wider, rngs=nnx.Rngs(0))))}
+    with pytest.raises(CheckpointError, match=r"params\.decoder\.conv_in\.kernel.*: shape"):
+        ckpts.restore(template, {"kind": meta["kind"], "model": meta["model"]})
+
+
+def test_feature_shapes_and_determinism(pipe, pairs):
+    first, instr = pairs.first[:3], pairs.instructions[:3]
+    a = extract(pipe, first, instr)
+    b = extract(pipe, first, instr)
+    assert set(a) == {"lang", "vis.in", "vis.out"}
+    for part in a:
+        assert a[part].shape == (3, 1024) and a[part].dtype == np.float32
+        assert np.all(np.isfinite(a[part]))
+        np.testing.assert_array_equal(a[part], b[part])
+    # A demo's features do not depend on the batch it is computed in.
+    one = extract(pipe, first[1:2], instr[1:2])
+    for part in a:
+        np.testing.assert_allclose(one[part][0], a[part][1], rtol=1e-4, atol=1e-4)
+
+
+def test_lang_depends_on_the_instruction(pipe):
+    lang = pipe.lang(
+        [
+            "push the red block left",
+            "slide the blue block up",
+            "öffne die schublade",
+            "push the red block left",
+        ]
+    )
+    assert not np.allclose(lang[0], lang[1]) and not np.allclose(lang[0], lang[2])
+    np.testing.assert_array_equal(lang[0], lang[3])
+
+
+def _bank(m: int = 30, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {p: rng.normal(size=(m, 1024)).astype(np.float32) for p in ("lang", "vis.in", "vis.out")}
+
+
+@pytest.mark.parametrize(
+    "mode",
+    [
+        "lang",
+        "vis.in",
+        "vis.out",
+        "lang+vis.in",
+        "lang+vis.out",
+        "vis.in+vis.out",
+        "lang+vis.in+vis.out",
+    ],
+)
+def test_selection_is_most_similar_first(mode):
+    bank = _bank()
+    rng = np.random.default_rng(1)
+    query = {p: bank[p][5] + 0.1 * rng.normal(size=1024) for p in bank}
+    chosen = select(query, bank, mode=mode, k=18)
+    assert len(chosen) == 18 and len(set(chosen)) == 18 and chosen[0] == 5
+    sims = similarity(query, bank, mode)[0]
+    assert np.all(np.diff(sims[chosen]) <= 0)
+    assert np.all(sims[chosen].min() >= np.delete(sims, chosen))
+    # Only the named parts matter: scrambling another part changes nothing.
+    other = [p for p in bank if p not in parse_mode(mode)]
+    if other:
+        scrambled = {**bank, other[0]: bank[other[0]][::-1]}
+        np.testing.assert_array_equal(select(query, scrambled, mode=mode), chosen)
+
+
+def test_selection_modes_random_dot_and_exclude():
+    bank = _bank()
+    r1, r2 = select({}, bank, mode="random", seed=3), select({}, bank, mode="random", seed=3)
+    np.testing.assert_array_equal(r1, r2)
+    assert len(set(r1)) == 18 and not np.array_equal(r1, select({}, bank, mode="random", seed=4))
+    assert parse_mode("lang_vis.out") == parse_mode("lang+vis.out") == ("lang", "vis.out")
+    with pytest.raises(ValueError, match="bad selection mode"):
+        parse_mode("vision")
+    # The original's dot product lets a large-norm item win; cosine does not.
+    query = {"lang": bank["lang"][2], "vis.out": bank["vis.out"][2]}
+    loud = {p: v.copy() for p, v in bank.items()}
+    loud["lang"][9] = 100 * (0.3 * bank["lang"][2] + bank["lang"][9])  # cosine ~0.3, norm x100
+    assert select(query, loud, metric="cosine")[0] == 2
+    assert select(query, loud, metric="dot")[0] == 9
+    excluded = np.zeros(30, bool)
+    excluded[2] = True
+    assert 2 not in select(query, bank, exclude=excluded)
+
+
+def test_index_cache_and_leave_one_out(pipe, pairs, tmp_path, monkeypatch):
+    bank = pairs.subset(range(6))
+    path = tmp_path / "index.npz"
+    index = build_index(pipe, bank, path, pipe.identity)
+    loaded = FeatureIndex.load(path)
+    assert loaded.fingerprint == index.fingerprint and list(loaded.tasks) == bank.tasks
+    t0 = bank.tasks[0]
+    assert list(index.positions[index.tasks == t0]) == list(range(bank.tasks.count(t0)))
+    for part in index.features:
+        np.testing.assert_array_equal(loaded.features[part], index.features[part])
+    monkeypatch.setattr(
+        "agnostos_mjx.dynamics.features.extract", lambda *a, **k: pytest.fail("cache not used")
+    )
+    assert build_index(pipe, bank, path, pipe.identity).fingerprint == index.fingerprint
+    for mode in ("random", "lang+vis.out"):
+        assert 0.0 <= leave_one_out_same_task(index, mode, k=3) <= 1.0
+    monkeypatch.undo()
+    chosen = DemoSelector(pipe, index, k=3)(bank.first[4], bank.instructions[4])
+    assert chosen[0] == (bank.tasks[4], int(index.positions[4]))  # a demo is its own best match
+    assert len(DemoSelector(None, index, mode="random", k=3)(bank.first[0], "x")) == 3
+    np.savez(tmp_path / "old.npz", version=0)
+    with pytest.raises(ValueError, match="version 0"):
+        FeatureIndex.load(tmp_path / "old.npz")
+
+
+def test_evaluate_script(dyn_run, pairs, tmp_path):
+    data = tmp_path / "pairs.npz"
+    pairs.save(data)
+    assert FramePairs.load(data).instructions == pairs.instructions
+    result = eval_cli.main(
+        [
+            "--run",
+            str(dyn_run),
+            "--data",
+            str(data),
+            "--holdout-every",
+            "4",
+            "--k",
+            "3",
+            "--batch",
+            "3",
+            "--json",
+            str(tmp_path / "e.json"),
+        ]
+    )
+    assert json.loads((tmp_path / "e.json").read_text())["prediction"]["demos"] == 3
+    assert set(result["selection"]["same_task_fraction"]) == set(eval_cli.MODES)
+
+
+def test_cli_help_explains_every_flag():
+    for cli in (ae_cli, dyn_cli, eval_cli):
+        text = cli.parser().format_help()
+        for action in cli.parser()._actions:
+            assert action.help, f"{cli.__name__}: {action.option_strings} has no help"
+        assert "--quick" in text or cli is eval_cli
+    assert (
+        "--unet-channels" in dyn_cli.parser().format_help()
+        and "--batch-size" in ae_cli.parser().format_help()
+    )
+
+
+def test_frame_pairs_from_bank_records_and_split(pairs, monkeypatch):
+    class Demo:  # the bank's record: frames[camera] = (first, last)
+        def __init__(self, i: int):
+            self.frames = {"front": (pairs.first[i], pairs.last[i])}
+            self.instruction, self.task = pairs.instructions[i], pairs.tasks[i]
+
+    assert FramePairs.from_records(Demo(i) for i in range(3)).instructions == pairs.instructions[:3]
+
+    class DemoBank:
+        def __init__(self, root):
+            pass
+
+        def frame_pairs(self, camera):
+            return pairs.first, pairs.last, pairs.instructions, pairs.tasks
+
+    monkeypatch.setitem(sys.modules, "agnostos_mjx.data", types.SimpleNamespace(DemoBank=DemoBank))
+    assert FramePairs.from_bank("bank").tasks == pairs.tasks
+    records = [
+        {
+            "first_frame": pairs.first[i],
+            "last_frame": pairs.last[i],
+            "instruction": pairs.instructions[i],
+            "task": pairs.tasks[i],
+            "variation": 0,
+        }
+        for i in range(5)
+    ]
+    fp = FramePairs.from_records(records)
+    assert len(fp) == 5 and fp.tasks == pairs.tasks[:5]
+    train, held = pairs.split(4)
+    assert len(train) == 9 and held.instructions == [pairs.instructions[i] for i in (3, 7, 11)]
+
+
+def test_sample_grid_png(pairs, tmp_path):
+    from PIL import Image
+
+    from agnostos_mjx.train.common import save_grid
+
+    path = save_grid(tmp_path / "g.png", [pairs.first[:2], pairs.last[:2]], ["first", "last"])
+    grid = np.asarray(Image.open(path).convert("RGB"))
+    assert grid.shape == (2 * 130, 2 * 130, 3)
+    np.testing.assert_array_equal(grid[:128, 130:258], pairs.last[0])
+    (tmp_path / "file").write_text("")  # a file where the folder should be: warn, go on
+    assert save_grid(tmp_path / "file" / "g.png", [pairs.first[:1]], []) is None
+
+
+@pytest.mark.parametrize("prediction", ["v", "epsilon"])
+@pytest.mark.parametrize("schedule", ["cosine", "scaled_linear"])
+def test_ddim_with_an_oracle_denoiser_recovers_the_target(prediction, schedule):
+    """A denoiser that knows x0 makes DDIM land on x0: checks the schedule, the
+    v/epsilon conversions and the step rule without any training."""
+    import jax.numpy as jnp
+
+    from agnostos_mjx.dynamics.diffusion import alphas_cumprod, ddim_sample
+
+    cfg = replace(DIFFUSION_QUICK, prediction=prediction, schedule=schedule, sample_steps=10)
+    ab_all = jnp.asarray(alphas_cumprod(cfg))
+    x0 = jnp.asarray(np.random.default_rng(0).normal(size=(2, 16, 16, 4)), jnp.float32)
+
+    def unet(x, cond, t, ctx, mask, pooled):
+        target = jnp.concatenate([x0] * 3)  # the three guidance branches agree
+        ab = ab_all[t][:, None, None, None]
+        eps = (x - jnp.sqrt(ab) * target) / jnp.sqrt(1 - ab)
+        return eps if prediction == "epsilon" else jnp.sqrt(ab) * eps - jnp.sqrt(1 - ab) * target
+
+    oracle = types.SimpleNamespace(
+        text=lambda ids, mask: (
+            jnp.zeros((len(ids), ids.shape[1], 8)),
+            jnp.zeros((len(ids), 1024)),
+        ),
+        unet=unet,
+    )
+    ids, mask = tokenize(["a", "b"], 8)
+    noise = jax.random.normal(jax.random.key(0), x0.shape)
+    out = ddim_sample(oracle, cfg, jnp.zeros_like(x0), jnp.asarray(ids), jnp.asarray(mask), noise)
+    np.testing.assert_allclose(out, x0, atol=1e-3)

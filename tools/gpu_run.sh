@@ -1,0 +1,29 @@
+#!/bin/bash
+# Steps run on the lent GPU machine after tools/gpu_setup.sh (see README "GPU").
+#   bash tools/gpu_run.sh oracle-native      oracle reports of every implemented task, native CPU
+#   bash tools/gpu_run.sh oracle-warp TASKS  oracle on TASKS with the warp backend
+#   bash tools/gpu_run.sh bank DEMOS         the seen-task bank (native physics, EGL rendering)
+# Outputs go to $OUT (what comes back) and /tmp/agnostos (kept while the machine is warm).
+set -e
+export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl
+export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+export AGNOSTOS_JAX_CACHE=/tmp/agnostos/jax_cache
+mkdir -p /tmp/agnostos "$OUT"
+case "$1" in
+  oracle-native)
+    for split in seen unseen; do
+      t0=$SECONDS; python3 -m agnostos_mjx.eval --policy oracle --tasks $split \
+        --variations all --backend native --batch 75 --quiet --out /tmp/agnostos/oracle_$split \
+        2>&1 | tail -60; echo "wall $((SECONDS - t0)) s"
+      tar -C /tmp/agnostos -czf "$OUT/oracle_$split.tgz" oracle_$split
+    done ;;
+  oracle-warp)
+    t0=$SECONDS; python3 -m agnostos_mjx.eval --policy oracle --tasks "$2" \
+      --variations all --backend warp --batch 75 --quiet --out /tmp/agnostos/warp_$3 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
+    tar -C /tmp/agnostos -czf "$OUT/warp_$3.tgz" warp_$3 ;;
+  bank)
+    tasks=$(python3 -c "from agnostos_mjx.tasks import list_tasks; print(','.join(list_tasks('seen')))")
+    t0=$SECONDS; python3 -m agnostos_mjx.data.generate --out /tmp/agnostos/bank \
+      --tasks "$tasks" --demos "$2" --batch 200 --backend native --quiet 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
+    cp /tmp/agnostos/bank/report.md /tmp/agnostos/bank/manifest.json "$OUT"/ ;;
+esac
