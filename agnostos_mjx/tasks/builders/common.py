@@ -77,9 +77,9 @@ def sensor_volume(body: mujoco.MjsBody, name: str, pos, half, *, quat=IDENTITY,
 
 
 def grasp_site(body: mujoco.MjsBody, name: str, pos) -> str:
-    """An invisible marker (RLBench's `*_grasp_point` dummies) at `pos` in
-    `body`'s frame: where the expert puts the tip, and the point the attach
-    test checks.  Returns the site name."""
+    """An invisible point marker (RLBench's dummies, e.g. `*_grasp_point`)
+    at `pos` in `body`'s frame: where the expert puts the tip, the point the
+    attach test checks, or a point a task observes.  Returns the site name."""
     body.add_site(name=name, pos=list(pos), size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
                   group=HIDDEN_GROUP)
     return name
@@ -112,6 +112,14 @@ def nearest_yaw(angle, ref, period: float):
     return ref + (angle - ref) - period * jnp.round((angle - ref) / period)
 
 
+def square_yaw(yaw, symmetry: float = jnp.pi / 2) -> jnp.ndarray:
+    """The yaw in [-symmetry/2, symmetry/2) equivalent to `yaw` for an object
+    with `symmetry`-fold rotational symmetry (a square face pair: pi/2; a
+    two-finger grasp: pi): lines the fingers up with the faces without
+    twisting the wrist far from its start pose."""
+    return jnp.mod(yaw + symmetry / 2, symmetry) - symmetry / 2
+
+
 def down_grasp(yaw=0.0, pitch=0.0, *, wrap: bool = True) -> jnp.ndarray:
     """Gripper pointing down with its fingers closing along the heading `yaw`
     + 90 deg (the y axis of a frame with that yaw).
@@ -123,7 +131,7 @@ def down_grasp(yaw=0.0, pitch=0.0, *, wrap: bool = True) -> jnp.ndarray:
     approach axis about the fingers towards the frame's +x (pi/2: level,
     pointing along +x), e.g. to lay a held object down."""
     yaw = jnp.asarray(yaw, jnp.float32)
-    wrapped = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2 if wrap else yaw
+    wrapped = square_yaw(yaw, jnp.pi) if wrap else yaw
     same = jnp.cos(wrapped - yaw)  # +1, or -1 where the wrap turned the frame
     tilt = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), -same * jnp.asarray(pitch, jnp.float32))
     return quat_mul(yaw_quat(wrapped), quat_mul(tilt, DOWN))
@@ -185,4 +193,4 @@ def _on_root_plane(root: Pose, xy: jnp.ndarray, yaw: jnp.ndarray, height: float,
 
 __all__ = ["DOWN", "HIDDEN_GROUP", "IDENTITY", "ROBOT_BASE_XY", "Pose", "down_grasp", "free_body",
            "free_box", "grasp_site", "natural_yaw", "nearest_yaw", "pose_in_root", "sensor_volume",
-           "spawn_many_on_root_plane", "spawn_on_root_plane", "yaw_of"]
+           "spawn_many_on_root_plane", "spawn_on_root_plane", "square_yaw", "yaw_of"]
