@@ -11,7 +11,7 @@ import numpy as np
 
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
 from agnostos_mjx.math3d import yaw_quat
-from agnostos_mjx.tasks.builders.common import IDENTITY
+from agnostos_mjx.tasks.builders.common import IDENTITY, grasp_site
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
@@ -73,8 +73,7 @@ def shelf_unit(body: mujoco.MjsBody, name: str, pos, half, shelf_top: float, hei
               rgba, name=f"{name}_side{(side + 1) // 2}")
     panel(body, (hx, wall / 2, height / 2), (x, y - hy + wall / 2, z + height / 2), rgba,
           name=f"{name}_back")
-    body.add_site(name=name, pos=[x, y, z + shelf_top], size=[0.005, 0, 0], rgba=[0, 0, 0, 0],
-                  group=4)
+    grasp_site(body, name, (x, y, z + shelf_top))
 
 
 # ---- success ------------------------------------------------------------------------------

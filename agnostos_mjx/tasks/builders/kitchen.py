@@ -14,7 +14,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from agnostos_mjx.tasks.builders.common import free_body
+from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
 
@@ -89,8 +89,7 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
     disc(lid, knob_radius, 0.01, (0, 0, knob_z), WHITE, name=f"{lid_name}_knob")
     side = knob_radius / np.sqrt(2.0)
     hidden(panel(lid, (side, side, 0.01), (0, 0, knob_z), WHITE), mass=0.057)
-    lid.add_site(name=f"{lid_name}_grasp_point", pos=[0, 0, knob_z], size=[0.005, 0, 0],
-                 rgba=[0, 1, 0, 0], group=4)
+    grasp_site(lid, f"{lid_name}_grasp_point", (0, 0, knob_z))
     return lid_name, f"{lid_name}_grasp_point"
 
 
@@ -121,8 +120,7 @@ def plug(scene: SceneBuilder, name: str, *, body_half, pins, pin_half: tuple[flo
     for i, (y, z) in enumerate(pins):
         stiff(panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
                     name=f"{name}_pin{i}")).mass = 0.1 * mass
-    body.add_site(name=f"{name}_grasp_point", pos=list(grasp_offset), size=[0.005, 0, 0],
-                  rgba=[0, 1, 0, 0], group=4)
+    grasp_site(body, f"{name}_grasp_point", grasp_offset)
     return f"{name}_grasp_point"
 
 
@@ -141,8 +139,7 @@ def wall_socket(parent: mujoco.MjsBody, name: str, *, face_x: float, plate_cente
           collide=False, name=f"{name}_plate")
     for y, z in holes:
         socket_tube(parent, (face_x, y, z), hole_half, depth)
-    parent.add_site(name=f"{name}_socket", pos=[face_x, cy, cz], size=[0.005, 0, 0],
-                    rgba=[0, 1, 0, 0], group=4)
+    grasp_site(parent, f"{name}_socket", (face_x, cy, cz))
     return f"{name}_socket"
 
 
@@ -167,8 +164,7 @@ def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=
     button.name = f"{name}_power"
     y, z = port
     socket_tube(case, (-hx, y, z - hz), port_half, port_depth, wall=0.002)
-    case.add_site(name=f"{name}_port", pos=[-hx, y, z - hz], size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
-                  group=4)
+    grasp_site(case, f"{name}_port", (-hx, y, z - hz))
     return f"{name}_port"
 
 
@@ -204,14 +200,12 @@ def plate(scene: SceneBuilder, name: str, *, radius: float = 0.1, half_thickness
     for a in (np.pi / 8, 3 * np.pi / 8):
         hidden(panel(body, (half, half_thickness, half), (0, 0, 0), WHITE,
                      quat=(np.cos(a / 2), 0.0, np.sin(a / 2), 0.0)), mass=mass / 2)
-    body.add_site(name=f"{name}_grasp_point", pos=[0, 0, grasp_height], size=[0.005, 0, 0],
-                  rgba=[0, 1, 0, 0], group=4)
+    grasp_site(body, f"{name}_grasp_point", (0, 0, grasp_height))
     probes = [(0.0, 0.0)] + [(0.9 * radius * np.cos(a), 0.9 * radius * np.sin(a))
                              for a in np.arange(4) * np.pi / 2]
     names = []
     for i, (x, z) in enumerate(probes):
-        body.add_site(name=f"{name}_probe{i}", pos=[x, 0, z], size=[0.004, 0, 0],
-                      rgba=[0, 1, 0, 0], group=4)
+        grasp_site(body, f"{name}_probe{i}", (x, 0, z))
         names.append(f"{name}_probe{i}")
     return tuple(names)
 
