@@ -20,6 +20,7 @@ from agnostos_mjx.tasks.builders.common import (
     sensor_volume,
     spawn_many_on_root_plane,
     spawn_on_root_plane,
+    square_yaw,
     yaw_of,
 )
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
@@ -27,4 +28,4 @@ from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 __all__ = ["DOWN", "WHITE", "WOOD", "disc", "down_grasp", "drawer_chest", "free_body", "free_box",
            "grasp_site", "hinged_door", "natural_yaw", "nearest_yaw", "panel", "pose_in_root",
            "push_button", "rod", "sensor_volume", "spawn_many_on_root_plane", "spawn_on_root_plane",
-           "yaw_of"]
+           "square_yaw", "yaw_of"]
