@@ -6,7 +6,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,7 +15,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.props import ball, ball_stop, basketball_hoop, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN, grasp_site, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.props import ball, ball_stop, basketball_hoop
 
 ROOT, BALL = "basketball_root", "ball"
 BALL_RADIUS, BALL_MASS = 0.03, 0.111
@@ -24,7 +24,6 @@ BALL_START = (-0.15, 0.035)
 RIM = (0.093, 0.026, 0.25)  # rim centre; RLBench releases the ball 8.5 cm above it
 # RLBench's `success` sensor: a 5 cm box on the ground under the rim.
 SUCCESS_CENTER, SUCCESS_HALF = (0.095, 0.024, 0.059), (0.025, 0.025, 0.025)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 
 
 class BasketballInHoop(Task):
@@ -48,7 +47,7 @@ class BasketballInHoop(Task):
     def build(self, scene) -> None:
         root = scene.mocap(ROOT)
         basketball_hoop(root, "basketball_hoop", rim_center=RIM)
-        root.add_site(name="basketball_hoop", pos=list(RIM), group=4)
+        grasp_site(root, "basketball_hoop", RIM)
         ball_stop(root, BALL_START, BALL_RADIUS)
         sensor_volume(root, "basketball_success", SUCCESS_CENTER, SUCCESS_HALF)
         ball(scene, BALL, BALL_RADIUS, BALL_MASS)
@@ -56,8 +55,8 @@ class BasketballInHoop(Task):
     def sample(self, key, variation) -> Placement:
         # RLBench's `basket_boundary_root` plane, 0.30 x 0.55 m, yaw +-pi/4.
         pos, quat = place_root(key, (0.15, 0.275), jnp.pi / 4)
-        ball_pos = pos + quat_rotate(quat, jnp.array([*BALL_START, BALL_RADIUS]))
-        return Placement(bodies={ROOT: (pos, quat), BALL: (ball_pos, quat)})
+        return Placement(bodies={ROOT: (pos, quat),
+                                 BALL: pose_in_root(pos, quat, (*BALL_START, BALL_RADIUS))})
 
     def success(self, variation):
         return Detected(BALL, "basketball_success", SUCCESS_HALF, radius=BALL_RADIUS)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from agnostos_mjx.conditions import AnyOf, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate
+from agnostos_mjx.math3d import axis_angle_quat, quat_mul, quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -17,7 +17,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.props import buzz_wire, ring_wand, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN, grasp_site, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.props import buzz_wire, ring_wand
 
 ROOT, WAND = "beat_the_buzz_root", "beat_the_buzz_wand"
 WIRE_Z = 0.295
@@ -37,7 +38,7 @@ _tilt = np.deg2rad(40.0)
 APPROACH = tuple(np.cos(_tilt) * np.array([-_handle[2], 0.0, _handle[0]]) + np.sin(_tilt) * _handle)
 # The down-pointing gripper (fingers along y) pitched about y onto APPROACH.
 GRASP = quat_mul(axis_angle_quat(np.array([0.0, 1.0, 0.0]), np.arctan2(-APPROACH[0], -APPROACH[2])),
-                 euler_xyz_quat(np.pi, 0.0, np.pi))
+                 DOWN)
 # The fingers do not collide with the wand (squeezing the round handle
 # squirted the light, free wand away before the grasp attached it); they
 # close to the handle's width instead of through it.
@@ -96,7 +97,7 @@ class BeatTheBuzz(Task):
     def build(self, scene) -> None:
         root = scene.mocap(ROOT)
         buzz_wire(root, "beat_the_buzz", wire_z=WIRE_Z)
-        root.add_site(name="beat_the_buzz_stand", pos=[0, 0, 0.149], group=4)
+        grasp_site(root, "beat_the_buzz_stand", (0, 0, 0.149))
         sensor_volume(root, "beat_the_buzz_middle", MIDDLE_CENTER, (CORE, MIDDLE_HALF_LENGTH, CORE))
         sensor_volume(root, "beat_the_buzz_middle45", MIDDLE_CENTER,
                       (CORE, MIDDLE_HALF_LENGTH, CORE), quat=ROLL_45)
@@ -105,15 +106,13 @@ class BeatTheBuzz(Task):
                          handle_end=HANDLE_END)
         for finger in ("left_finger", "right_finger"):
             scene.exclude(finger, WAND)
-        wand.add_site(name="beat_the_buzz_grip", pos=list(GRIP), group=4)
-        wand.add_site(name="beat_the_buzz_handle", pos=list(np.add(HANDLE_END, (0, 0, -RING_RADIUS))
-                                                             / 2), group=4)
+        grasp_site(wand, "beat_the_buzz_grip", GRIP)
+        grasp_site(wand, "beat_the_buzz_handle", np.add(HANDLE_END, (0, 0, -RING_RADIUS)) / 2)
 
     def sample(self, key, variation) -> Placement:
         # Footprint x[-0.10, 0.05], y[-0.18, 0.18]; RLBench samples any yaw.
         pos, quat = place_root(key, (0.077, 0.176), jnp.pi, offset=(-0.024, 0.0))
-        wand_pos = pos + quat_rotate(quat, jnp.asarray(WAND_START))
-        return Placement(bodies={ROOT: (pos, quat), WAND: (wand_pos, quat)})
+        return Placement(bodies={ROOT: (pos, quat), WAND: pose_in_root(pos, quat, WAND_START)})
 
     def success(self, variation):
         far_end = Detected(WAND, "beat_the_buzz_right", RIGHT_HALF, radius=TUBE_RADIUS)

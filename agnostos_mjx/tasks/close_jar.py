@@ -4,22 +4,26 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import NothingGrasped, all_of
-from agnostos_mjx.math3d import quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    spawn_many_on_root_plane,
+    square_yaw,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.containers import (
     JAR_HALF_HEIGHT,
     LID_HALF_HEIGHT,
     detected_one_of,
-    down_quat,
     jar,
     jar_lid,
     other_color,
-    spawn_on_root_plane,
-    square_yaw,
 )
 
 TABLE_TO_JAR = 0.051  # jar centre above the table (RLBench layout)
@@ -59,20 +63,15 @@ class CloseJar(Task):
         for k in range(2):
             body = scene.mocap(f"jar{k}")
             jar(body, f"jar{k}")
-            body.add_site(name=f"jar{k}_mouth", pos=list(MOUTH), size=list(MOUTH_HALF),
-                          type=mujoco.mjtGeom.mjGEOM_BOX, rgba=[0, 1, 0, 0], group=4)
-        lid = scene.world.add_body(name="jar_lid0", pos=[0, 0, 1.0])
-        lid.add_freejoint()
-        jar_lid(lid, "jar_lid0")
+            sensor_volume(body, f"jar{k}_mouth", MOUTH, MOUTH_HALF)
+        jar_lid(free_body(scene, "jar_lid0", pos=(0, 0, 1.0)), "jar_lid0")
 
     def sample(self, key, variation) -> Placement:
         k_root, k_jars, k_color = jax.random.split(key, 3)
         # Footprint of the whole scene (jars' plane and the lid) in the root frame.
         root = place_root(k_root, (0.166, 0.295), 0.6 * jnp.pi, offset=(0.0, 0.02))
-        jars = spawn_on_root_plane(k_jars, root, 2, JAR_FOOTPRINT, SPAWN_CENTER, SPAWN_HALF,
-                                   height=TABLE_TO_JAR)
-        root_pos, root_quat = root
-        lid_pos = root_pos + quat_rotate(root_quat, jnp.asarray(LID_AT))
+        jars = spawn_many_on_root_plane(k_jars, root, [JAR_FOOTPRINT] * 2, SPAWN_CENTER,
+                                        SPAWN_HALF, heights=TABLE_TO_JAR)
         rgb = jnp.asarray([c for _, c in COLORS], jnp.float32)
         target = variation % 2
         other = other_color(k_color, variation, len(COLORS))
@@ -80,7 +79,7 @@ class CloseJar(Task):
                            jnp.stack([other, variation]))
         return Placement(
             bodies={"close_jar_root": root, "jar0": jars[0], "jar1": jars[1],
-                    "jar_lid0": (lid_pos, root_quat)},
+                    "jar_lid0": pose_in_root(*root, LID_AT)},
             colors={f"jar{k}_{part}": rgb[colors[k]] for k in range(2) for part in ("body", "neck")},
         )
 
@@ -93,10 +92,9 @@ class CloseJar(Task):
         lid = obs.pos("jar_lid0")
         target = jnp.where(variation % 2 == 0, obs.pos("jar0"), obs.pos("jar1"))
         # Fingers square to the lid's contact box.
-        lid_q = obs.quat("jar_lid0")
-        lid_yaw = 2.0 * jnp.arctan2(lid_q[3], lid_q[0])
-        grip = down_quat(square_yaw(lid_yaw))
-        screwed = down_quat(square_yaw(lid_yaw) + jnp.pi / 2)
+        lid_yaw = square_yaw(yaw_of(obs.quat("jar_lid0")))
+        grip = down_grasp(lid_yaw, wrap=False)
+        screwed = down_grasp(lid_yaw + jnp.pi / 2, wrap=False)  # a quarter turn on
         up = jnp.array([0.0, 0.0, ABOVE])
         grasp = lid + jnp.array([0.0, 0.0, GRIP_ABOVE_LID])
         # Lid bottom 2 mm above the neck, then it drops onto the jar when released.

@@ -7,21 +7,13 @@ import jax.numpy as jnp
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import Detected, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, yaw_quat
-from agnostos_mjx.tasks.base import (
-    Placement,
-    Split,
-    Task,
-    key_actions,
-    place_root,
-    sample_on_plane,
-)
-from agnostos_mjx.tasks.builders.blocks import (
-    detector,
-    on_root,
-    peg_board,
-    square_grasp_yaw,
-    square_ring,
+from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
+from agnostos_mjx.tasks.builders.blocks import peg_board, square_grasp_yaw, square_ring
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    pose_in_root,
+    sensor_volume,
+    spawn_on_root_plane,
 )
 
 ROOT = "insert_onto_square_peg_root"
@@ -34,7 +26,6 @@ DETECTORS = (((0.0, 0.02, 0.025), (0.02, 0.005, 0.025)),
              ((0.0, -0.023, 0.025), (0.02, 0.005, 0.025)),
              ((-0.02, -0.005, 0.025), (0.005, 0.02, 0.025)),
              ((0.02, -0.005, 0.025), (0.005, 0.02, 0.025)))
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 # Tip heights above the table (RLBench's waypoints 2-4): lift, above the peg,
 # release with the ring already around the peg's top (peg top at 0.14).
 LIFT_Z, ABOVE_PEG_Z, RELEASE_Z = 0.22, 0.217, 0.129
@@ -73,21 +64,21 @@ class InsertOntoSquarePeg(Task):
                   PEG_X, (0.49, 0.38, 0.29), (0.5, 0.5, 0.5))
         centre = scene.mocap("success_centre")
         for k, (pos, half) in enumerate(DETECTORS):
-            detector(centre, f"success_detector{k}", pos, half)
+            sensor_volume(centre, f"success_detector{k}", pos, half)
         square_ring(scene, "square_ring", RING_HALF, RING_WALL, RING_HALF_HEIGHT,
                     (0.23, 0.75, 1.0), mass=0.02)
 
     def sample(self, key, variation) -> Placement:
         k_root, k_ring, k_peg, k_colors = jax.random.split(key, 4)
         root_pos, root_quat = place_root(k_root, (0.2, 0.1625), jnp.pi, offset=(0.0, 0.0375))
-        xy, yaw = sample_on_plane(k_ring, (RING_HALF, RING_HALF), jnp.pi, plane_center=(0.0, 0.1),
-                                  plane_half=(0.2, 0.1))
         chosen = jax.random.randint(k_peg, (), 0, 3)
         peg_x = jnp.asarray(PEG_X)[chosen]
         bodies = {
             ROOT: (root_pos, root_quat),
-            "square_ring": on_root(root_pos, root_quat, (xy[0], xy[1], RING_HALF_HEIGHT), yaw),
-            "success_centre": on_root(root_pos, root_quat, (peg_x, BOARD_Y, 0.0)),
+            "square_ring": spawn_on_root_plane(k_ring, (root_pos, root_quat),
+                                               (RING_HALF, RING_HALF), (0.0, 0.1), (0.2, 0.1),
+                                               height=RING_HALF_HEIGHT),
+            "success_centre": pose_in_root(root_pos, root_quat, (peg_x, BOARD_Y, 0.0)),
         }
         # The chosen peg takes the variation's colour, the others two distinct others.
         rgb = jnp.asarray([c for _, c in COLORS], jnp.float32)
@@ -104,9 +95,9 @@ class InsertOntoSquarePeg(Task):
 
     def expert(self, obs, variation):
         ring = obs.pos("square_ring")
-        grasp = quat_mul(yaw_quat(square_grasp_yaw(obs.quat("square_ring"))), DOWN)
+        grasp = down_grasp(square_grasp_yaw(obs.quat("square_ring")), wrap=False)
         # Turn the ring square to the pegs (any of the four ways round).
-        place = quat_mul(yaw_quat(square_grasp_yaw(obs.quat(ROOT))), DOWN)
+        place = down_grasp(square_grasp_yaw(obs.quat(ROOT)), wrap=False)
         table = obs.pos(ROOT)[2]
         peg = obs.pos("success_centre")
         return key_actions([

@@ -6,11 +6,10 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
 from agnostos_mjx.tasks.builders import disc, panel, push_button, rod
+from agnostos_mjx.tasks.builders.common import DOWN
 
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 # Model bounding box of the lamp scene in the root frame: x[-0.138, 0.167],
 # y[-0.183, 0.311].
 FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.153, 0.247), (0.015, 0.064)

@@ -5,22 +5,25 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import NothingGrasped, all_of
-from agnostos_mjx.math3d import quat_rotate
 from agnostos_mjx.tasks.base import TABLE_Z, Placement, Split, Task, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    spawn_many_on_root_plane,
+)
 from agnostos_mjx.tasks.builders.containers import (
     HOLDER_HALF,
     bulb_holder,
     detected_one_of,
-    down_quat,
     lamp_with_socket,
     light_bulb,
     open_box_geoms,
     other_color,
-    spawn_on_root_plane,
 )
 
 LAMP_AT = (0.033, 0.002)
@@ -64,26 +67,22 @@ class LightBulbIn(Task):
     def build(self, scene) -> None:
         root = scene.mocap("light_bulb_in_root")
         socket = lamp_with_socket(root, "lamp_base", "lamp_screw", LAMP_AT)
-        socket.add_site(name="light_bulb_in_success", pos=[0, 0, SENSOR_Z],
-                        size=list(SENSOR_HALF), type=mujoco.mjtGeom.mjGEOM_BOX,
-                        rgba=[0, 1, 0, 0], group=4)
+        sensor_volume(socket, "light_bulb_in_success", (0, 0, SENSOR_Z), SENSOR_HALF)
         for k in range(2):
             bulb_holder(scene.mocap(f"bulb_holder{k}"), f"bulb_holder{k}")
-            bulb = scene.world.add_body(name=f"bulb_phys{k}", pos=[0, 0, 1.0 + k])
-            bulb.add_freejoint()
+            bulb = free_body(scene, f"bulb_phys{k}", pos=(0, 0, 1.0 + k))
             light_bulb(bulb, f"bulb_phys{k}", f"bulb{k}")
 
     def sample(self, key, variation) -> Placement:
         k_root, k_holders, k_color = jax.random.split(key, 3)
         # Scene footprint in the root frame: lamp and the holders' plane.
         root = place_root(k_root, (0.166, 0.225), jnp.pi, offset=(0.0, 0.18))
-        holders = spawn_on_root_plane(k_holders, root, 2, HOLDER_HALF[:2], SPAWN_CENTER,
-                                      SPAWN_HALF, height=HOLDER_HALF[2])
+        holders = spawn_many_on_root_plane(k_holders, root, [HOLDER_HALF[:2]] * 2, SPAWN_CENTER,
+                                           SPAWN_HALF, heights=HOLDER_HALF[2])
         bodies = {"light_bulb_in_root": root}
         for k, (pos, quat) in enumerate(holders):
             bodies[f"bulb_holder{k}"] = (pos, quat)
-            bulb_pos = pos + quat_rotate(quat, jnp.array([0.0, 0.0, BULB_IN_HOLDER]))
-            bodies[f"bulb_phys{k}"] = (bulb_pos, quat)
+            bodies[f"bulb_phys{k}"] = pose_in_root(pos, quat, (0.0, 0.0, BULB_IN_HOLDER))
         rgb = jnp.asarray([c for _, c in COLORS], jnp.float32)
         other = other_color(k_color, variation, len(COLORS))
         index = jnp.where(variation % 2 == 0, jnp.stack([variation, other]),
@@ -99,7 +98,8 @@ class LightBulbIn(Task):
     def expert(self, obs, variation):
         glass = jnp.where(variation % 2 == 0, obs.pos("bulb0"), obs.pos("bulb1"))
         socket = obs.pos("lamp_screw")
-        grip, screwed = down_quat(START_YAW), down_quat(START_YAW - SCREW)
+        grip = down_grasp(START_YAW, wrap=False)
+        screwed = down_grasp(START_YAW - SCREW, wrap=False)  # turns the wrist continuously
         seated = socket + jnp.array([0.0, 0.0, GLASS_ABOVE_FOOT + 0.004])
         lift = glass.at[2].set(TABLE_Z + LIFT_Z)
         return key_actions([

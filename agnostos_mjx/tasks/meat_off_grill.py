@@ -6,7 +6,6 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -23,6 +22,7 @@ from agnostos_mjx.tasks.builders.appliances import (
     GRILL_X,
     grill,
 )
+from agnostos_mjx.tasks.builders.common import DOWN, free_body, pose_in_root
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 MEATS = ("chicken", "steak")
@@ -30,7 +30,6 @@ GRILL_CX = (GRILL_X[0] + GRILL_X[1]) / 2
 MEAT_Y = (-0.1, 0.1)  # on the grate, root frame
 # The "beside the grill" sensor: a box on the table in front of the grill.
 SUCCESS_POS, SUCCESS_HALF = (-0.05, 0.0, 0.05), (0.1, 0.2, 0.05)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # fingers along the meat's y (its short side)
 HOVER, LIFT = 0.1, 0.15
 
 
@@ -73,16 +72,14 @@ class MeatOffGrill(Task):
         root.add_site(name="meat_off_grill_success", pos=list(SUCCESS_POS), size=[0.005, 0, 0],
                       rgba=[0, 1, 0, 0], group=4)
         for name, y, shape in zip(MEATS, MEAT_Y, (_chicken, _steak)):
-            body = scene.world.add_body(name=name, pos=[0.25 + GRILL_CX, y, 1.2])
-            body.add_freejoint()
-            shape(body)
+            shape(free_body(scene, name, pos=(0.25 + GRILL_CX, y, 1.2)))
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, GRILL_BOUNDARY_HALF, jnp.pi, offset=GRILL_BOUNDARY_CENTER)
         bodies = {"meat_off_grill_root": (pos, quat)}
         for name, y, half_h in zip(MEATS, MEAT_Y, (0.022, 0.01)):
             local = jnp.array([GRILL_CX, y, GRATE_Z + half_h + 0.001])
-            bodies[name] = (pos + quat_rotate(quat, local), quat)
+            bodies[name] = pose_in_root(pos, quat, local)
         return Placement(bodies=bodies)
 
     def success(self, variation):

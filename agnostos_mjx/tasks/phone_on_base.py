@@ -5,15 +5,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.household import (
+from agnostos_mjx.tasks.builders.common import (
     down_grasp,
-    free_object,
-    placed,
-    solid,
-    to_world,
-    volume,
+    free_body,
+    pose_in_root,
+    sensor_volume,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.household import placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
 BASE_RGBA = (1.0, 0.27, 0.0)
@@ -55,8 +54,8 @@ class PhoneOnBase(Task):
         panel(base, (0.141, 0.004, rim), (0, 0.106, SLAB_TOP + rim), BASE_RGBA)  # lip
         base.add_site(name="phone_case_center", pos=[0, 0, 0.037], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
-        volume(base, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        phone = free_object(scene, "phone")
+        sensor_volume(base, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        phone = free_body(scene, "phone")
         for sx in (-1, 1):  # earpiece and mouthpiece
             solid(phone, (0.025, 0.03, 0.033), (sx * 0.109, 0, -0.003), WHITE, 0.09)
         solid(phone, (0.085, 0.022, 0.015), (0, 0, 0.015), WHITE, 0.091)  # grip bar
@@ -65,7 +64,7 @@ class PhoneOnBase(Task):
         # No spawn boundaries: the root turns with any yaw, the handset lies beside the base.
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
         return Placement(bodies={"phone_case": (pos, quat),
-                                 "phone": to_world(pos, quat, PHONE_START)})
+                                 "phone": pose_in_root(pos, quat, PHONE_START)})
 
     def success(self, variation):
         return placed("phone", "success", SUCCESS_HALF)

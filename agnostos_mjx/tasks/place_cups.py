@@ -9,17 +9,21 @@ import numpy as np
 from agnostos_mjx.conditions import AnyOf, Detected, NothingGrasped, all_of
 from agnostos_mjx.math3d import quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    spawn_many_on_root_plane,
+    square_yaw,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.containers import (
     MUG_GRASP,
     MUG_HALF_HEIGHT,
     MUG_HOLE,
     SPOKE_YAWS,
-    down_quat,
     hung_mug_pose,
     mug,
     mug_tree,
-    spawn_on_root_plane,
-    square_yaw,
 )
 
 TREE_AT = (0.03, -0.149)  # root frame
@@ -83,16 +87,14 @@ class PlaceCups(Task):
         pos, quat = hung_mug_pose(3, SPOKE_YAWS[3] - np.pi / 2)
         mug(tree.add_body(name="mug3", pos=list(pos), quat=list(quat)), "mug3")
         for k in range(3):
-            body = scene.world.add_body(name=f"mug{k}", pos=[0, 0.5 + 0.2 * k, 1.0])
-            body.add_freejoint()
-            mug(body, f"mug{k}")
+            mug(free_body(scene, f"mug{k}", pos=(0, 0.5 + 0.2 * k, 1.0)), f"mug{k}")
 
     def sample(self, key, variation) -> Placement:
         k_root, k_mugs = jax.random.split(key)
         root = place_root(k_root, ROOT_FOOTPRINT, jnp.pi / 2, offset=ROOT_OFFSET)
-        poses = spawn_on_root_plane(k_mugs, root, 3, MUG_FOOTPRINT, MUG_PLANE_CENTER,
-                                    MUG_PLANE_HALF, min_distance=MIN_DISTANCE,
-                                    height=MUG_HALF_HEIGHT, tries=1024)
+        poses = spawn_many_on_root_plane(k_mugs, root, [MUG_FOOTPRINT] * 3, MUG_PLANE_CENTER,
+                                         MUG_PLANE_HALF, min_distance=MIN_DISTANCE,
+                                         heights=MUG_HALF_HEIGHT, tries=1024)
         return Placement(bodies={"place_cups_root": root,
                                  **{f"mug{k}": poses[k] for k in range(3)}})
 
@@ -104,8 +106,7 @@ class PlaceCups(Task):
     def expert(self, obs, variation):
         steps, valid = [], []
         for k in range(3):
-            q = obs.quat(f"mug{k}")
-            mug_yaw = 2.0 * jnp.arctan2(q[3], q[0])
+            mug_yaw = yaw_of(obs.quat(f"mug{k}"))
             grasp = obs.pos(f"mug{k}_grasp")
             # Fingers close across the wall, along the mug's x axis.
             grip_yaw = mug_yaw + jnp.pi / 2
@@ -113,7 +114,7 @@ class PlaceCups(Task):
             # of the two such yaws the one nearer the grasp's wrist turn.
             centre, axis = obs.pos(SPOKES[k]), quat_rotate(obs.quat(SPOKES[k]), Z)
             turn = square_yaw(jnp.arctan2(axis[1], axis[0]) - jnp.pi / 2 - mug_yaw, jnp.pi)
-            hang_q = down_quat(grip_yaw + turn)
+            grip_q, hang_q = down_grasp(grip_yaw, wrap=False), down_grasp(grip_yaw + turn, wrap=False)
             # Tip targets that put the hole on the spoke's axis.
             offset = quat_rotate(yaw_quat(mug_yaw + turn),
                                  jnp.asarray(MUG_GRASP) - jnp.asarray(MUG_HOLE))
@@ -122,9 +123,9 @@ class PlaceCups(Task):
             up = jnp.array([0.0, 0.0, 0.1])
             high = start + up
             steps += [
-                (grasp + up, down_quat(grip_yaw), 1.0),  # above the far wall
-                (grasp, down_quat(grip_yaw), 0.0),  # fingers around the wall, close: attach
-                (grasp.at[2].set(high[2]), down_quat(grip_yaw), 0.0),  # lift
+                (grasp + up, grip_q, 1.0),  # above the far wall
+                (grasp, grip_q, 0.0),  # fingers around the wall, close: attach
+                (grasp.at[2].set(high[2]), grip_q, 0.0),  # lift
                 (high, hang_q, 0.0),  # over the spoke's tip, hole turned along the spoke
                 (start, hang_q, 0.0),  # hole on the spoke's axis, beyond its tip
                 (slide, hang_q, 1.0),  # slide on along the spoke, let go

@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, Select
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,17 +15,16 @@ from agnostos_mjx.tasks.base import (
     in_frame,
     key_actions,
     place_root,
-    sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.furniture import (
-    arm_yaw,
-    down_quat,
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    natural_yaw,
     nearest_yaw,
     sensor_volume,
-    shape_sorter,
-    sorter_shape,
+    spawn_many_on_root_plane,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.furniture import shape_sorter, sorter_shape
 
 ROOT = "shape_sorter_root"
 SORTER_XY = (0.0, -0.15)  # root frame, as in RLBench's (x2 scaled) PerAct model
@@ -71,7 +69,7 @@ def _grasp_yaw(pos, yaw, period: float, others, sorter, sorter_yaw):
     shapes with a hole orientation (the fingers may hold them either way;
     the drop turns them by the same relative yaw), eighth turns for shapes
     any yaw suits.  If none is clear, the one with the most pad clearance."""
-    base = nearest_yaw(yaw, arm_yaw(pos), jnp.pi / 2 if period else 0.0)
+    base = nearest_yaw(yaw, natural_yaw(pos), jnp.pi / 2 if period else 0.0)
     step, ks = (jnp.pi / 2, (0, -1, 1)) if period else (jnp.pi / 4, (0, -1, 1, -2, 2))
     candidates = jnp.stack([base + k * step for k in ks])
     finger = jnp.stack([-jnp.sin(candidates), jnp.cos(candidates)], -1)  # (C, 2)
@@ -117,22 +115,18 @@ class PlaceShapeInShapeSorter(Task):
         root = scene.mocap(ROOT)
         holder = root.add_body(name="shape_sorter_frame", pos=[*SORTER_XY, 0.0])
         shape_sorter(holder, "shape_sorter", [s.hole for s in SHAPES], height=LID_TOP)
-        sensor_volume(holder, "success", VOLUME_HALF, (0.0, 0.0, VOLUME_HALF[2] - 0.001))
+        sensor_volume(holder, "success", (0.0, 0.0, VOLUME_HALF[2] - 0.001), VOLUME_HALF)
         for s in SHAPES:
             assert sorter_shape(scene, s.name, s.name, s.rgba) == s.half_height
 
     def sample(self, key, variation) -> Placement:
         k_root, k_shapes = jax.random.split(key)
         pos, quat = place_root(k_root, (0.211, 0.263), jnp.pi, offset=(0.0, 0.0125))
-        bodies, placed = {ROOT: (pos, quat)}, []
-        for s, k in zip(SHAPES, jax.random.split(k_shapes, len(SHAPES))):
-            xy, yaw = sample_on_plane(k, FOOTPRINT, jnp.pi, plane_center=BOUNDARY_CENTER,
-                                      plane_half=BOUNDARY_HALF, others=tuple(placed),
-                                      min_distance=0.05)
-            placed.append((xy, yaw, jnp.asarray(FOOTPRINT)))
-            local = jnp.array([xy[0], xy[1], s.half_height])
-            bodies[s.name] = (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))
-        return Placement(bodies=bodies)
+        shapes = spawn_many_on_root_plane(k_shapes, (pos, quat), [FOOTPRINT] * len(SHAPES),
+                                          BOUNDARY_CENTER, BOUNDARY_HALF,
+                                          heights=[s.half_height for s in SHAPES],
+                                          min_distance=0.05)
+        return Placement(bodies={ROOT: (pos, quat), **dict(zip(NAMES, shapes))})
 
     def success(self, variation):
         return Select(tuple(Detected(n, "success", VOLUME_HALF, radius=0.01) for n in NAMES),
@@ -153,10 +147,10 @@ class PlaceShapeInShapeSorter(Task):
         # neighbours (RLBench spawns them 5 cm apart) and the hand misses the
         # sorter, then turn the shape to line up with its hole (the grasp
         # keeps the relative yaw).
-        grasp_yaw, drop_yaw = arm_yaw(shape), arm_yaw(hole)
+        grasp_yaw, drop_yaw = natural_yaw(shape), natural_yaw(hole)
         for v, s in enumerate(SHAPES):
             g = _grasp_yaw(shape, shape_yaw, s.period, others, sorter, root_yaw)
-            d = nearest_yaw(g + root_yaw - shape_yaw, arm_yaw(hole), s.period)
+            d = nearest_yaw(g + root_yaw - shape_yaw, natural_yaw(hole), s.period)
             grasp_yaw = jnp.where(variation == v, g, grasp_yaw)
             drop_yaw = jnp.where(variation == v, d, drop_yaw)
         table = obs.pos(ROOT)[2]
@@ -164,12 +158,13 @@ class PlaceShapeInShapeSorter(Task):
         def at(p, z):  # p at height z above the table
             return p.at[2].set(table + z)
 
+        grip, drop = down_grasp(grasp_yaw, wrap=False), down_grasp(drop_yaw, wrap=False)
         return key_actions([
-            (shape + jnp.array([0.0, 0.0, 0.075]), down_quat(grasp_yaw), 1.0),  # above (wp0)
-            (shape, down_quat(grasp_yaw), 0.0),  # grasp (wp1)
-            (at(shape, CARRY), down_quat(grasp_yaw), 0.0),  # lift (wp2)
-            (at(hole, CARRY), down_quat(drop_yaw), 0.0),  # above the hole (wp3)
-            (at(hole, LID_TOP + half + 0.012), down_quat(drop_yaw), 1.0),  # at the hole, drop (wp4)
+            (shape + jnp.array([0.0, 0.0, 0.075]), grip, 1.0),  # above (wp0)
+            (shape, grip, 0.0),  # grasp (wp1)
+            (at(shape, CARRY), grip, 0.0),  # lift (wp2)
+            (at(hole, CARRY), drop, 0.0),  # above the hole (wp3)
+            (at(hole, LID_TOP + half + 0.012), drop, 1.0),  # at the hole, drop (wp4)
         ])
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
+from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -15,12 +15,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.furniture import (
-    grasp_site,
-    sensor_volume,
-    wine_bottle,
-    wine_rack,
-)
+from agnostos_mjx.tasks.builders.common import grasp_site, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.furniture import wine_bottle, wine_rack
 
 LOCATIONS = ("middle", "left", "right")
 SLOT_X = (0.051, 0.170, -0.065)  # RLBench's success_<location> sensors, root frame
@@ -65,13 +61,13 @@ class PlaceWineAtRackLocation(Task):
         root = scene.mocap(ROOT)
         wine_rack(scene, root, "rack", SLOT_X)
         for loc, x in zip(LOCATIONS, SLOT_X):
-            sensor_volume(root, f"success_{loc}", VOLUME_HALF, (x, 0.275, SLOT_Z))
+            sensor_volume(root, f"success_{loc}", (x, 0.275, SLOT_Z), VOLUME_HALF)
         grasp_site(wine_bottle(scene), "wine_bottle_grasp", (0.0, 0.0, NECK))
 
     def sample(self, key, variation) -> Placement:
         pos, quat = place_root(key, (0.12, 0.22), jnp.pi / 4, offset=(0.054, 0.04))
-        bottle = pos + quat_rotate(quat, jnp.asarray(BOTTLE_LOCAL))
-        return Placement(bodies={ROOT: (pos, quat), "wine_bottle": (bottle, quat)})
+        return Placement(bodies={ROOT: (pos, quat),
+                                 "wine_bottle": pose_in_root(pos, quat, BOTTLE_LOCAL)})
 
     def success(self, variation):
         slots = tuple(Detected("wine_bottle", f"success_{loc}", VOLUME_HALF, radius=0.02)

@@ -9,7 +9,6 @@ import jax.numpy as jnp
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import JointMoved, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -17,9 +16,9 @@ from agnostos_mjx.tasks.base import (
     in_frame,
     key_actions,
     place_root,
-    sample_on_plane,
 )
 from agnostos_mjx.tasks.builders import push_button
+from agnostos_mjx.tasks.builders.common import DOWN, spawn_many_on_root_plane
 
 # The 18-colour list without red and lime; variation i uses permutation i // 3
 # of it and presses 1 + i % 3 buttons (only permutations 0-16 are reachable).
@@ -27,7 +26,6 @@ BUTTON_COLORS = tuple((n, c) for n, c in COLORS if n not in ("red", "lime"))
 PERMUTATIONS = tuple(itertools.islice(itertools.permutations(range(len(BUTTON_COLORS)), 3), 17))
 BOUNDARY_HALF = (0.258, 0.339)
 UNIT_HALF = (0.05, 0.05)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 HOVER, PRESS = 0.083 + 0.009, 0.016
 
 
@@ -58,15 +56,9 @@ class PushButtons(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_units, k_spare = jax.random.split(key, 3)
         root_pos, root_quat = place_root(k_root, BOUNDARY_HALF, jnp.pi)
-        placed, bodies = [], {}
-        for k, kk in enumerate(jax.random.split(k_units, 3)):
-            xy, yaw = sample_on_plane(kk, UNIT_HALF, jnp.pi, plane_center=(0.0, 0.0),
-                                      plane_half=BOUNDARY_HALF, others=tuple(placed),
-                                      min_distance=0.1)
-            placed.append((xy, yaw, jnp.asarray(UNIT_HALF)))
-            local = jnp.array([xy[0], xy[1], 0.0])
-            bodies[f"push_buttons_target{k}"] = (root_pos + quat_rotate(root_quat, local),
-                                                 quat_mul(root_quat, yaw_quat(yaw)))
+        units = spawn_many_on_root_plane(k_units, (root_pos, root_quat), [UNIT_HALF] * 3,
+                                         (0.0, 0.0), BOUNDARY_HALF, min_distance=0.1)
+        bodies = {f"push_buttons_target{k}": pose for k, pose in enumerate(units)}
         # Bases 0..n-1 take the permutation's colours, the rest spare colours.
         perm = jnp.asarray(PERMUTATIONS)[variation // 3]
         n = 1 + variation % 3

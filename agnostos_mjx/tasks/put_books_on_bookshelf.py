@@ -7,15 +7,14 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.household import (
+from agnostos_mjx.tasks.builders.common import (
     down_grasp,
-    free_object,
-    shelf_unit,
-    solid,
-    to_world,
-    volume,
+    free_body,
+    pose_in_root,
+    sensor_volume,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.household import shelf_unit, solid
 
 WOOD = (0.55, 0.35, 0.2)
 BOOK_COLORS = ((0.6, 0.1, 0.1), (0.1, 0.3, 0.6), (0.2, 0.5, 0.2))
@@ -59,9 +58,9 @@ class PutBooksOnBookshelf(Task):
     def build(self, scene) -> None:
         root = scene.mocap("bookshelf_root")
         shelf_unit(root, "bookshelf", (0.0, SHELF_Y, 0.0), SHELF_HALF, SHELF_TOP, SIDE_HEIGHT, WOOD)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         for k, rgb in enumerate(BOOK_COLORS):
-            book = free_object(scene, f"book{k}")
+            book = free_body(scene, f"book{k}")
             solid(book, BOOK_HALF, (0, 0, 0), rgb, 0.15)
             book.add_site(name=f"book{k}_grip", pos=[0, 0, BOOK_HALF[2] - GRIP_BELOW_TOP],
                           size=[0.004, 0, 0], rgba=[0, 0, 0, 0], group=4)
@@ -71,7 +70,7 @@ class PutBooksOnBookshelf(Task):
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi / 2, offset=FOOTPRINT_CENTER)
         bodies = {"bookshelf_root": (pos, quat)}
         for k, x in enumerate(BOOK_SLOTS_X):
-            bodies[f"book{k}"] = to_world(pos, quat, (x, BOOKS_Y, BOOK_HALF[2] + 0.001))
+            bodies[f"book{k}"] = pose_in_root(pos, quat, (x, BOOKS_Y, BOOK_HALF[2] + 0.001))
         return Placement(bodies=bodies)
 
     def success(self, variation):

@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     Placement,
@@ -17,18 +16,17 @@ from agnostos_mjx.tasks.base import (
     in_frame,
     key_actions,
     place_root,
-    sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.furniture import (
-    arm_yaw,
-    cupboard,
-    down_quat,
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
     grasp_site,
-    grocery,
+    natural_yaw,
     nearest_yaw,
     sensor_volume,
+    spawn_many_on_root_plane,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.furniture import cupboard, grocery
 
 
 class Grocery(NamedTuple):
@@ -99,7 +97,7 @@ class PutGroceriesInCupboard(Task):
         root = scene.mocap(ROOT)
         floor, clear = cupboard(root, "cupboard", depth=DEPTH, width=WIDTH)
         assert (floor, round(clear, 6)) == (FLOOR, CLEAR)
-        sensor_volume(root, "success", VOLUME_HALF, (DEPTH / 2, 0.0, FLOOR + CLEAR / 2))
+        sensor_volume(root, "success", (DEPTH / 2, 0.0, FLOOR + CLEAR / 2), VOLUME_HALF)
         for g in GROCERIES:
             body = grocery(scene, g.name, g.size, g.rgba, g.round_)
             grasp_site(body, f"{g.name}_grasp_point", (0.0, 0.0, _grasp_height(g)))
@@ -107,16 +105,11 @@ class PutGroceriesInCupboard(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_items = jax.random.split(key)
         pos, quat = place_root(k_root, ROOT_HALF, 1.0, offset=ROOT_CENTER)
-        bodies, placed = {ROOT: (pos, quat)}, []
-        for g, k in zip(GROCERIES, jax.random.split(k_items, len(GROCERIES))):
-            half = (g.size[0] / 2, g.size[1] / 2)
-            xy, yaw = sample_on_plane(k, half, jnp.pi, plane_center=SPAWN_CENTER,
-                                      plane_half=SPAWN_HALF, others=tuple(placed),
-                                      min_distance=0.1, tries=256)
-            placed.append((xy, yaw, jnp.asarray(half)))
-            local = jnp.array([xy[0], xy[1], g.size[2] / 2])
-            bodies[g.name] = (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))
-        return Placement(bodies=bodies)
+        items = spawn_many_on_root_plane(
+            k_items, (pos, quat), [(g.size[0] / 2, g.size[1] / 2) for g in GROCERIES],
+            SPAWN_CENTER, SPAWN_HALF, heights=[g.size[2] / 2 for g in GROCERIES],
+            min_distance=0.1, tries=256)
+        return Placement(bodies={ROOT: (pos, quat), **dict(zip(NAMES, items))})
 
     def success(self, variation):
         inside = tuple(Detected(n, "success", VOLUME_HALF, radius=0.01) for n in NAMES)
@@ -128,23 +121,24 @@ class PutGroceriesInCupboard(Task):
         # Boxes are gripped across their thin side (y), a half turn being the
         # same grasp; cans in any yaw.  Choose the least wrist twist.
         boxed = ~jnp.asarray([g.round_ for g in GROCERIES])[variation]
-        grasp_yaw = jnp.where(boxed, nearest_yaw(yaw_of(q), arm_yaw(grasp), jnp.pi),
-                              arm_yaw(grasp))
+        grasp_yaw = jnp.where(boxed, nearest_yaw(yaw_of(q), natural_yaw(grasp), jnp.pi),
+                              natural_yaw(grasp))
         # Height of the grasp point above the item's bottom.
         hold = jnp.asarray([g.size[2] / 2 + _grasp_height(g) for g in GROCERIES])[variation]
         inside = in_frame(obs, ROOT, (DEPTH / 2 - 0.01, 0.0, FLOOR + hold + 0.01))
         front = in_frame(obs, ROOT, (-0.06, 0.0, FLOOR + hold + 0.01))
         # Fingers across the opening (along the root's y), hand clear of the sides.
-        put_yaw = nearest_yaw(yaw_of(obs.quat(ROOT)), arm_yaw(inside), jnp.pi)
+        put_yaw = nearest_yaw(yaw_of(obs.quat(ROOT)), natural_yaw(inside), jnp.pi)
         lift = TABLE_Z + 0.13 + hold  # the item's bottom above the other groceries
+        grip, put = down_grasp(grasp_yaw, wrap=False), down_grasp(put_yaw, wrap=False)
         return key_actions([
-            (grasp + jnp.array([0.0, 0.0, 0.08]), down_quat(grasp_yaw), 1.0),  # above the item
-            (grasp, down_quat(grasp_yaw), 0.0),  # grasp (wp1 = the grasp point)
-            (grasp.at[2].set(lift), down_quat(grasp_yaw), 0.0),  # lift
-            (front.at[2].set(lift), down_quat(put_yaw), 0.0),  # in front of the cupboard
-            (front, down_quat(put_yaw), 0.0),  # down to the compartment's floor height
-            (inside, down_quat(put_yaw), 1.0),  # slide in, release
-            (front, down_quat(put_yaw), 1.0),  # retreat
+            (grasp + jnp.array([0.0, 0.0, 0.08]), grip, 1.0),  # above the item
+            (grasp, grip, 0.0),  # grasp (wp1 = the grasp point)
+            (grasp.at[2].set(lift), grip, 0.0),  # lift
+            (front.at[2].set(lift), put, 0.0),  # in front of the cupboard
+            (front, put, 0.0),  # down to the compartment's floor height
+            (inside, put, 1.0),  # slide in, release
+            (front, put, 1.0),  # retreat
         ])
 
 

@@ -17,7 +17,7 @@ from agnostos_mjx.tasks.base import (
     sample_on_plane,
 )
 from agnostos_mjx.tasks.builders.articulated import drawer_chest
-from agnostos_mjx.tasks.builders.furniture import free_box, sensor_volume
+from agnostos_mjx.tasks.builders.common import free_box, pose_in_root, sensor_volume
 
 LEVELS = ("bottom", "middle", "top")
 ROOT = "put_item_in_drawer_root"
@@ -73,8 +73,8 @@ class PutItemInDrawer(Task):
         for lv in LEVELS:
             handle_z = scene.spec.site(f"drawer_handle_{lv}").pos[2]
             floor_top = handle_z - DRAWER_HEIGHT / 2 + 0.010
-            sensor_volume(scene.spec.body(f"drawer_{lv}"), f"success_{lv}", VOLUME_HALF,
-                          (0.0, 0.0, floor_top + VOLUME_HALF[2]))
+            sensor_volume(scene.spec.body(f"drawer_{lv}"), f"success_{lv}",
+                          (0.0, 0.0, floor_top + VOLUME_HALF[2]), VOLUME_HALF)
         free_box(scene, "item", (ITEM_HALF,) * 3, (0.85, 0.85, 1.0), 0.064)
 
     def sample(self, key, variation) -> Placement:
@@ -87,8 +87,7 @@ class PutItemInDrawer(Task):
         quat = yaw_quat(yaw)
         pos = jnp.concatenate([xy, jnp.array([TABLE_Z])]) - quat_rotate(
             quat, jnp.array([*CHEST_OFFSET, 0.0]))
-        item = pos + quat_rotate(quat, jnp.asarray(ITEM_LOCAL))
-        return Placement(bodies={ROOT: (pos, quat), "item": (item, quat)})
+        return Placement(bodies={ROOT: (pos, quat), "item": pose_in_root(pos, quat, ITEM_LOCAL)})
 
     def success(self, variation):
         return Select(tuple(Detected("item", f"success_{lv}", VOLUME_HALF, radius=ITEM_HALF)

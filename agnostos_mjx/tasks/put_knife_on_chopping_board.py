@@ -15,16 +15,14 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.household import (
+from agnostos_mjx.tasks.builders.common import (
     down_grasp,
-    free_object,
-    held_by_weld_only,
-    place_on_boundary,
-    placed,
-    solid,
-    to_world,
-    volume,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    spawn_on_root_plane,
 )
+from agnostos_mjx.tasks.builders.household import held_by_weld_only, placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel
 
 WOOD_DARK = (0.5, 0.21, 0.0)
@@ -79,7 +77,7 @@ class PutKnifeOnChoppingBoard(Task):
         panel(root, BOARD_HALF, (*BOARD_CENTER, BOARD_HALF[2]), WHITE)
         root.add_site(name="chopping_board", pos=[*BOARD_CENTER, 2 * BOARD_HALF[2]],
                       size=[0.005, 0, 0], rgba=[0, 0, 0, 0], group=4)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         block = scene.mocap("knife_block")
         hx, hy = BLOCK_HALF
         sx, sy = SLOT_HALF
@@ -92,7 +90,7 @@ class PutKnifeOnChoppingBoard(Task):
             panel(block, (sx, (hy - sy) / 2, BLOCK_TOP / 2),
                   (SLOT_X, side * (hy + sy) / 2, BLOCK_TOP / 2), WOOD_DARK)
         panel(block, (sx, sy, SLOT_FLOOR / 2), (SLOT_X, 0, SLOT_FLOOR / 2), WOOD_DARK)
-        knife = free_object(scene, "knife")
+        knife = free_body(scene, "knife")
         handle = 0.1
         handle_z = KNIFE_HALF_LENGTH - handle / 2
         knife.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.008, handle / 2 - 0.008, 0],
@@ -106,9 +104,9 @@ class PutKnifeOnChoppingBoard(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_block = jax.random.split(key)
         pos, quat = place_root(k_root, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
-        block = place_on_boundary(k_block, (pos, quat), BOUNDARY_CENTER, BOUNDARY_HALF,
-                                  BLOCK_HALF)
-        knife = to_world(*block, jnp.array([SLOT_X, 0.0, KNIFE_CENTER_Z]))
+        block = spawn_on_root_plane(k_block, (pos, quat), BLOCK_HALF, BOUNDARY_CENTER,
+                                    BOUNDARY_HALF)
+        knife = pose_in_root(*block, jnp.array([SLOT_X, 0.0, KNIFE_CENTER_Z]))
         return Placement(bodies={"board_root": (pos, quat), "knife_block": block, "knife": knife})
 
     def success(self, variation):

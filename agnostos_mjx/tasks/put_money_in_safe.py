@@ -4,22 +4,26 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import NothingGrasped, all_of
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, sample_on_plane
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.containers import (
     MONEY_HALF,
     SAFE_HALF,
     SAFE_SHELVES,
     detected_one_of,
-    down_quat,
     money_stack,
     place_root_between,
     safe,
-    square_yaw,
 )
 
 SHELVES = ("bottom", "middle", "top")
@@ -74,26 +78,21 @@ class PutMoneyInSafe(Task):
         body = safe(scene, root, "safe_body", SAFE_AT, SAFE_YAW)
         for k, top in enumerate(SAFE_SHELVES):
             z = -SAFE_HALF[2] + top + DETECTOR_HALF[2] - 0.001
-            body.add_site(name=f"success_detector{k}", pos=[0.0, DETECTOR_Y, z],
-                          size=list(DETECTOR_HALF), type=mujoco.mjtGeom.mjGEOM_BOX,
-                          rgba=[0, 1, 0, 0], group=4)
-        money = scene.world.add_body(name="dollar_stack", pos=[0, 0, 1.2])
-        money.add_freejoint()
-        money_stack(money, "dollar_stack")
+            sensor_volume(body, f"success_detector{k}", (0.0, DETECTOR_Y, z), DETECTOR_HALF)
+        money_stack(free_body(scene, "dollar_stack", pos=(0, 0, 1.2)), "dollar_stack")
 
     def sample(self, key, variation) -> Placement:
         k_root, k_money = jax.random.split(key)
         root_pos, root_quat = place_root_between(k_root, SAFE_FOOTPRINT, 0.0, jnp.pi / 2,
                                                  offset=SAFE_AT[:2])
-        safe_quat = quat_mul(root_quat, yaw_quat(jnp.asarray(SAFE_YAW)))
+        # The money lies on the safe's roof (its spawn plane), turned 45 degrees.
+        safe_bottom = pose_in_root(root_pos, root_quat, (*SAFE_AT[:2], 0.0), yaw_quat(SAFE_YAW))
         xy, yaw = sample_on_plane(k_money, (MONEY_RADIUS, MONEY_RADIUS), jnp.pi / 4,
                                   plane_center=(0.0, 0.0), plane_half=MONEY_PLANE_HALF)
         top = jnp.array([xy[0], xy[1], 2 * SAFE_HALF[2] + MONEY_HALF[2]])
-        safe_bottom = root_pos + quat_rotate(root_quat, jnp.array([*SAFE_AT[:2], 0.0]))
-        money_pos = safe_bottom + quat_rotate(safe_quat, top)
-        money_quat = quat_mul(safe_quat, yaw_quat(yaw + jnp.pi / 4))
         return Placement(bodies={"put_money_in_safe_root": (root_pos, root_quat),
-                                 "dollar_stack": (money_pos, money_quat)})
+                                 "dollar_stack": pose_in_root(*safe_bottom, top,
+                                                              yaw_quat(yaw + jnp.pi / 4))})
 
     def success(self, variation):
         on_shelf = detected_one_of([("dollar_stack", f"success_detector{k}") for k in range(3)],
@@ -102,13 +101,10 @@ class PutMoneyInSafe(Task):
 
     def expert(self, obs, variation):
         money = obs.pos("dollar_stack")
-        mq, sq = obs.quat("dollar_stack"), obs.quat("safe_body")
-        money_yaw = 2.0 * jnp.arctan2(mq[3], mq[0])
-        safe_yaw = 2.0 * jnp.arctan2(sq[3], sq[0])
         # Fingers across the stack's width (its x axis): the gripper's finger
         # axis is its y axis, so turn by a quarter.
-        grip = down_quat(square_yaw(money_yaw + jnp.pi / 2, jnp.pi))
-        insert = down_quat(square_yaw(safe_yaw + jnp.pi / 2, jnp.pi))
+        grip = down_grasp(yaw_of(obs.quat("dollar_stack")) + jnp.pi / 2)
+        insert = down_grasp(yaw_of(obs.quat("safe_body")) + jnp.pi / 2)
         shelf = jnp.asarray(SAFE_SHELVES)[variation] - SAFE_HALF[2]
         hold = MONEY_HALF[2] + GRIP_ABOVE + 0.008  # tip above the shelf, money 8 mm up
         place = in_frame(obs, "safe_body", (0.0, DETECTOR_Y + 0.01, 0.0)).at[2].add(shelf + hold)

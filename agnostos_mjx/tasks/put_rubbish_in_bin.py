@@ -7,16 +7,14 @@ import jax.numpy as jnp
 import mujoco
 
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.household import (
+from agnostos_mjx.tasks.builders.common import (
     down_grasp,
-    free_object,
-    open_container,
-    placed,
-    solid,
-    to_world,
-    volume,
+    free_body,
+    pose_in_root,
+    sensor_volume,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.household import open_container, placed, solid
 
 GREY = (0.6, 0.6, 0.6)
 PAPER = (1.0, 1.0, 1.0)
@@ -58,8 +56,8 @@ class PutRubbishInBin(Task):
         open_container(root, "bin", (*BIN_XY, 0.0), BIN_INNER, BIN_HEIGHT, GREY)
         root.add_site(name="bin_center", pos=[*BIN_XY, BIN_HEIGHT / 2], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        rubbish = free_object(scene, "rubbish")
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        rubbish = free_body(scene, "rubbish")
         solid(rubbish, RUBBISH_HALF, (0, 0, 0), PAPER, 0.42)
         for k, (dx, dy, r) in enumerate(((0.012, 0.01, 0.02), (-0.014, -0.008, 0.018))):
             rubbish.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[r, 0, 0],
@@ -86,7 +84,7 @@ class PutRubbishInBin(Task):
         heights = (RUBBISH_HALF[2], 0.0, 0.0)
         bodies = {"bin_root": (pos, quat)}
         for k, name in enumerate(("rubbish", "tomato1", "tomato2")):
-            bodies[name] = to_world(pos, quat, jnp.array([xy[k, 0], xy[k, 1], heights[k]]))
+            bodies[name] = pose_in_root(pos, quat, jnp.array([xy[k, 0], xy[k, 1], heights[k]]))
         return Placement(bodies=bodies)
 
     def success(self, variation):

@@ -8,17 +8,15 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.household import (
+from agnostos_mjx.tasks.builders.common import (
     down_grasp,
-    free_object,
-    open_container,
-    place_on_boundary,
-    placed,
-    solid,
-    to_world,
-    volume,
+    free_body,
+    pose_in_root,
+    sensor_volume,
+    spawn_on_root_plane,
     yaw_of,
 )
+from agnostos_mjx.tasks.builders.household import open_container, placed, solid
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel
 
 LIGHT_GREY = (0.87, 0.87, 0.87)
@@ -73,10 +71,10 @@ class PutToiletRollOnStand(Task):
         panel(stand, SPINDLE_HALF, (0, 0, SPINDLE_Z), LIGHT_GREY, name="holder_spindle")
         stand.add_site(name="holder", pos=[0, 0, SPINDLE_Z], size=[0.005, 0, 0],
                        rgba=[0, 0, 0, 0], group=4)
-        volume(stand, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        box = free_object(scene, "toilet_roll_box")
+        sensor_volume(stand, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        box = free_body(scene, "toilet_roll_box")
         solid(box, (BOX_HALF,) * 3, (0, 0, 0), (0.85, 0.85, 0.85), 1.0)
-        roll = free_object(scene, "toilet_roll")
+        roll = free_body(scene, "toilet_roll")
         for geom in open_container(roll, "toilet_roll", (0, 0, -ROLL_HALF_LENGTH), ROLL_INNER,
                                    2 * ROLL_HALF_LENGTH, WHITE, sides=8, wall=ROLL_WALL, floor=0):
             geom.mass = 0.1 / 8
@@ -84,15 +82,15 @@ class PutToiletRollOnStand(Task):
     def sample(self, key, variation) -> Placement:
         k_root, k_box, k_stand = jax.random.split(key, 3)
         root = place_root(k_root, (0.2, 0.225), jnp.pi)
-        box_pos, box_quat = place_on_boundary(k_box, root, ROLL_PLANE, PLANE_HALF,
-                                              (BOX_HALF, BOX_HALF))
+        box_pos, box_quat = spawn_on_root_plane(k_box, root, (BOX_HALF, BOX_HALF), ROLL_PLANE,
+                                                PLANE_HALF)
         box = (box_pos + jnp.array([0.0, 0.0, BOX_HALF]), box_quat)
         return Placement(bodies={
             "roll_root": root,
             "toilet_roll_box": box,
-            "toilet_roll": to_world(*box, ROLL_ON_BOX, AXIS_ALONG_X),
-            "stand": place_on_boundary(k_stand, root, STAND_PLANE, PLANE_HALF, STAND_HALF,
-                                       STAND_OFFSET),
+            "toilet_roll": pose_in_root(*box, ROLL_ON_BOX, AXIS_ALONG_X),
+            "stand": spawn_on_root_plane(k_stand, root, STAND_HALF, STAND_PLANE, PLANE_HALF,
+                                         offset=STAND_OFFSET),
         })
 
     def success(self, variation):

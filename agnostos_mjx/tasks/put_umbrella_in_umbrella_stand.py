@@ -7,16 +7,8 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.household import (
-    down_grasp,
-    free_object,
-    held_by_weld_only,
-    open_container,
-    placed,
-    solid,
-    to_world,
-    volume,
-)
+from agnostos_mjx.tasks.builders.common import down_grasp, free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.household import held_by_weld_only, open_container, placed, solid
 from agnostos_mjx.tasks.builders.primitives import rod
 
 GREY = (0.6, 0.6, 0.6)
@@ -65,8 +57,8 @@ class PutUmbrellaInUmbrellaStand(Task):
         open_container(root, "stand", (*STAND_XY, 0.0), STAND_INNER, STAND_HEIGHT, GREY, sides=8)
         root.add_site(name="stand_center", pos=[*STAND_XY, STAND_HEIGHT / 2], size=[0.005, 0, 0],
                       rgba=[0, 0, 0, 0], group=4)
-        volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
-        umbrella = free_object(scene, "umbrella")
+        sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
+        umbrella = free_body(scene, "umbrella")
         # Collision: a square-section body (it must not roll off the rim) and
         # a thin ferrule; looks: capsules for the furled canopy and the handle.
         solid(umbrella, (0.014, 0.014, 0.0945), (0, 0, 0.0145), CANOPY, 0.045).rgba[3] = 0.0
@@ -83,7 +75,7 @@ class PutUmbrellaInUmbrellaStand(Task):
         # No spawn boundaries: the root turns with any yaw.
         pos, quat = place_root(key, FOOTPRINT_HALF, jnp.pi, offset=FOOTPRINT_CENTER)
         return Placement(bodies={"stand_root": (pos, quat),
-                                 "umbrella": to_world(pos, quat, UMBRELLA_START, ALONG_MINUS_Y)})
+                                 "umbrella": pose_in_root(pos, quat, UMBRELLA_START, ALONG_MINUS_Y)})
 
     def success(self, variation):
         return placed("umbrella_probe", "success", SUCCESS_HALF)

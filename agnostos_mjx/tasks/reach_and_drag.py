@@ -6,22 +6,15 @@ import jax.numpy as jnp
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import Detected
-from agnostos_mjx.math3d import (
-    axis_angle_quat,
-    euler_xyz_quat,
-    quat_conj,
-    quat_mul,
-    quat_rotate,
-    yaw_quat,
-)
+from agnostos_mjx.math3d import axis_angle_quat, quat_conj, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.blocks import (
-    detector,
-    flat_patch,
+from agnostos_mjx.tasks.builders.blocks import flat_patch, rotation_between, stick
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
     free_box,
-    on_root,
-    rotation_between,
-    stick,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
 )
 
 ROOT = "reach_and_drag_root"
@@ -35,7 +28,6 @@ STICK_YAW, STICK_PITCH = 1.192, 0.276
 PATCH_HALF = 0.065
 TARGET_XY = (-0.137, -0.154)
 DISTRACTOR_XY = ((0.088, 0.121), (0.088, -0.379), (0.253, -0.153))
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 # Dragging: the stick lies level along the root's +y at this height, first
 # this far beyond the cube's +x face, then pulled along -x until the cube
 # sits on the target's centre.
@@ -73,7 +65,7 @@ class ReachAndDrag(Task):
         target = root.add_body(name="target0", pos=[*TARGET_XY, 0.0])
         flat_patch(target, "target0", (0.0, 0.0, 0.0), (PATCH_HALF, PATCH_HALF), (1.0, 0.0, 0.0))
         # RLBench's success0: 0.1 x 0.1 m, 1 cm high, centred on the table top.
-        detector(target, "success0", (0.0, 0.0, 0.0), (0.05, 0.05, 0.005))
+        sensor_volume(target, "success0", (0.0, 0.0, 0.0), (0.05, 0.05, 0.005))
         for k, (x, y) in enumerate(DISTRACTOR_XY):
             flat_patch(root, f"distractor{k + 1}", (x, y, 0.0), (PATCH_HALF, PATCH_HALF),
                        (1.0, 0.0, 0.0))
@@ -83,14 +75,14 @@ class ReachAndDrag(Task):
 
     def sample(self, key, variation) -> Placement:
         root_pos, root_quat = place_root(key, (0.15, 0.15), jnp.pi, offset=(0.058, -0.129))
-        stick_pos, heading = on_root(root_pos, root_quat, STICK_CENTRE, STICK_YAW)
+        stick_pos, heading = pose_in_root(root_pos, root_quat, STICK_CENTRE, yaw_quat(STICK_YAW))
         pitch = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), jnp.float32(STICK_PITCH))
         rgb = jnp.asarray([c for _, c in COLORS], jnp.float32)
         colors = {"target0": rgb[variation]}
         colors |= {f"distractor{k}": rgb[(variation + 4 + k) % len(COLORS)] for k in (1, 2, 3)}
         return Placement(bodies={
             ROOT: (root_pos, root_quat),
-            "cube": on_root(root_pos, root_quat, (*CUBE_XY, CUBE_HALF)),
+            "cube": pose_in_root(root_pos, root_quat, (*CUBE_XY, CUBE_HALF)),
             "stick": (stick_pos, quat_mul(heading, pitch)),
         }, colors=colors)
 
@@ -102,8 +94,7 @@ class ReachAndDrag(Task):
         grip = obs.pos("stick_grasp")
         along = quat_rotate(obs.quat("stick"), jnp.array([1.0, 0.0, 0.0]))  # held end -> tip
         # Grasp from above, fingers closing across the stick.
-        heading = jnp.arctan2(along[1], along[0])
-        grasp = quat_mul(yaw_quat(jnp.mod(heading + jnp.pi / 2, jnp.pi) - jnp.pi / 2), DOWN)
+        grasp = down_grasp(yaw_of(obs.quat("stick")))
         # Turn the hand so the stick lies level along the root's +y.
         level = quat_rotate(root_quat, jnp.array([0.0, 1.0, 0.0]))
         drag = quat_mul(rotation_between(along, level), grasp)

@@ -16,8 +16,9 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
+from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import panel
-from agnostos_mjx.tasks.builders.props import free_body, sensor_volume, spatula
+from agnostos_mjx.tasks.builders.props import spatula
 
 ROOT, SPATULA, CUBE = "scoop_with_spatula_root", "spatula", "scoop_cube"
 GRIP = (0.13, 0.209, 0.033)  # the handle's middle (RLBench waypoint1), root frame

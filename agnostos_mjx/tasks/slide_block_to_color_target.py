@@ -5,9 +5,16 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.blocks import detector, flat_patch, free_box, on_root, yaw_of
+from agnostos_mjx.tasks.builders.blocks import flat_patch
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_box,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
 
 ROOT = "slide_block_to_color_target_root"
 BLOCK_HALF = 0.028
@@ -32,7 +39,6 @@ PUSH_Z = 0.02  # tip height while pushing (the pads reach 9 mm lower)
 HOVER_Z = 0.1
 BACK_OFF = 0.1  # retreat along the stroke before going round the block
 HALF_CLOSED = 0.5  # RLBench's close_gripper(0.5): fingers half shut to push
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 
 
 class SlideBlockToColorTarget(Task):
@@ -64,7 +70,7 @@ class SlideBlockToColorTarget(Task):
         # RLBench's success<i> volume (0.1 x 0.1 x 0.1 m on the target), moved
         # onto the chosen target by the sampler.
         success = scene.mocap("success_target")
-        detector(success, "success", (0.0, 0.0, TARGET_HALF), (TARGET_HALF,) * 3)
+        sensor_volume(success, "success", (0.0, 0.0, TARGET_HALF), (TARGET_HALF,) * 3)
         free_box(scene, "block", (BLOCK_HALF,) * 3, (1.0, 0.0, 0.0), mass=0.356)
 
     def sample(self, key, variation) -> Placement:
@@ -72,8 +78,8 @@ class SlideBlockToColorTarget(Task):
         target_xy = jnp.asarray([xy for _, _, xy in TARGETS])[variation]
         return Placement(bodies={
             ROOT: (root_pos, root_quat),
-            "block": on_root(root_pos, root_quat, (*BLOCK_XY, BLOCK_HALF)),
-            "success_target": on_root(root_pos, root_quat, (target_xy[0], target_xy[1], 0.0)),
+            "block": pose_in_root(root_pos, root_quat, (*BLOCK_XY, BLOCK_HALF)),
+            "success_target": pose_in_root(root_pos, root_quat, (target_xy[0], target_xy[1], 0.0)),
         })
 
     def success(self, variation):
@@ -91,9 +97,7 @@ class SlideBlockToColorTarget(Task):
             start, end = strokes[s, 0], strokes[s, 1]
             direction = (end - start) / jnp.linalg.norm(end - start)
             # Fingers across the push direction, the wrist turned the short way.
-            yaw = yaw_of(root_quat) + jnp.arctan2(direction[1], direction[0])
-            yaw = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2
-            grip = quat_mul(yaw_quat(yaw), DOWN)
+            grip = down_grasp(yaw_of(root_quat) + jnp.arctan2(direction[1], direction[0]))
             steps += [(world(start, HOVER_Z), grip, HALF_CLOSED),  # above the start
                       (world(start, PUSH_Z), grip, HALF_CLOSED),  # down behind the block
                       (world(end, PUSH_Z), grip, HALF_CLOSED),  # push

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, yaw_quat
+from agnostos_mjx.math3d import yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     WORKSPACE_CENTER,
@@ -20,14 +20,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     sample_on_plane,
 )
-from agnostos_mjx.tasks.builders.blocks import (
-    detector,
-    free_box,
-    on_root,
-    robot_keep_out,
-    spawn_on_planes,
-    square_grasp_yaw,
-)
+from agnostos_mjx.tasks.builders.blocks import robot_keep_out, spawn_on_planes, square_grasp_yaw
+from agnostos_mjx.tasks.builders.common import down_grasp, free_box, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import panel
 
 NUMBERS = {2: "2", 3: "3", 4: "4"}
@@ -42,7 +36,6 @@ BOUNDARIES = (((0.0, 0.225), (0.3, 0.18)), ((0.0, -0.225), (0.3, 0.18)),
 # The plate (root) lands in the central 0.2 x 0.2 m of the workspace; see notes.
 ROOT_AREA_HALF = (0.1, 0.1)
 PLATE_KEEP_OUT = (0.09, 0.09)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 CARRY_Z = 0.3  # tip height above the plate while carrying or leaving the tower
 RELEASE_GAP = 0.008  # the block is let go this far above its resting height
 
@@ -99,7 +92,7 @@ class StackBlocks(Task):
         plate = root.add_body(name="stack_blocks_target_plane", pos=[0.0, 0.0, 0.0])
         panel(plate, PLATE_HALF, (0.0, 0.0, PLATE_HALF[2]), PLATE_RGB)
         # A thin column from the plate's mid-height up 0.2 m.
-        detector(plate, "stack_blocks_success", (0.0, 0.0, 0.125), (0.005, 0.005, 0.1))
+        sensor_volume(plate, "stack_blocks_success", (0.0, 0.0, 0.125), (0.005, 0.005, 0.1))
         for name in TARGETS + DISTRACTORS:
             free_box(scene, name, (HALF,) * 3, (0.5, 0.0, 0.0), mass=0.125)
 
@@ -118,7 +111,7 @@ class StackBlocks(Task):
             bxy, yaw = spawn_on_planes(k, (HALF, HALF), BOUNDARIES, others=tuple(keep_out + placed),
                                        min_distance=0.1)
             placed.append((bxy, yaw, jnp.asarray((HALF, HALF))))
-            bodies[name] = on_root(root_pos, root_quat, (bxy[0], bxy[1], HALF), yaw)
+            bodies[name] = pose_in_root(root_pos, root_quat, (bxy[0], bxy[1], HALF), yaw_quat(yaw))
         rgb = jnp.asarray([c for _, c in COLORS], jnp.float32)
         target = variation // 3
         others = jax.random.choice(k_colors, len(COLORS) - 1, (2,), replace=False)
@@ -139,7 +132,7 @@ class StackBlocks(Task):
         for k, block in enumerate(TARGETS):
             at = obs.pos(block)
             to_tower = (plate_top - at)[:2]
-            grip = quat_mul(yaw_quat(square_grasp_yaw(obs.quat(block), to_tower)), DOWN)
+            grip = down_grasp(square_grasp_yaw(obs.quat(block), to_tower), wrap=False)
             rest = plate_top + jnp.array([0.0, 0.0, HALF * (2 * k + 1)])
             release = rest + jnp.array([0.0, 0.0, RELEASE_GAP])
             steps += [

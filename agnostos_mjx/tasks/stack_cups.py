@@ -4,20 +4,24 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 
 from agnostos_mjx.colors import COLORS
 from agnostos_mjx.conditions import Detected, NothingGrasped, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    grasp_site,
+    sensor_volume,
+    spawn_many_on_root_plane,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.containers import (
     CUP_HALF_HEIGHT,
     cup,
     cup_geoms,
     cup_radius,
-    down_quat,
     other_color,
-    spawn_on_root_plane,
-    square_yaw,
 )
 
 BOUNDARY_CENTER, BOUNDARY_HALF = (-0.008, -0.001), (0.2, 0.3)
@@ -66,24 +70,19 @@ class StackCups(Task):
     def build(self, scene) -> None:
         scene.mocap("stack_cups_root")
         for k in (1, 2, 3):
-            body = scene.world.add_body(name=f"cup{k}", pos=[0, 0, 1.0 + 0.2 * k])
-            body.add_freejoint()
+            body = free_body(scene, f"cup{k}", pos=(0, 0, 1.0 + 0.2 * k))
             cup(body, f"cup{k}")
-            body.add_site(name=f"cup{k}_grasp", pos=list(GRASP), size=[0.004, 0, 0],
-                          rgba=[0, 0, 0, 0], group=4)
-            body.add_site(name=f"cup{k}_bottom", pos=[0, 0, -CUP_HALF_HEIGHT],
-                          size=[0.004, 0, 0], rgba=[0, 0, 0, 0], group=4)
-        scene.spec.body("cup2").add_site(
-            name="stack_cups_success", pos=list(SENSOR), size=list(SENSOR_HALF),
-            type=mujoco.mjtGeom.mjGEOM_BOX, rgba=[0, 1, 0, 0], group=4)
+            grasp_site(body, f"cup{k}_grasp", GRASP)
+            grasp_site(body, f"cup{k}_bottom", (0, 0, -CUP_HALF_HEIGHT))
+        sensor_volume(scene.spec.body("cup2"), "stack_cups_success", SENSOR, SENSOR_HALF)
 
     def sample(self, key, variation) -> Placement:
         k_root, k_cups, k1, k3 = jax.random.split(key, 4)
         root = place_root(k_root, BOUNDARY_HALF, jnp.pi, offset=BOUNDARY_CENTER)
         # RLBench samples cup2 first, then cup1 and cup3, without rotation.
-        poses = spawn_on_root_plane(k_cups, root, 3, CUP_FOOTPRINT, BOUNDARY_CENTER,
-                                    BOUNDARY_HALF, yaw_range=0.0, min_distance=MIN_DISTANCE,
-                                    height=CUP_HALF_HEIGHT)
+        poses = spawn_many_on_root_plane(k_cups, root, [CUP_FOOTPRINT] * 3, BOUNDARY_CENTER,
+                                         BOUNDARY_HALF, yaw_range=0.0, min_distance=MIN_DISTANCE,
+                                         heights=CUP_HALF_HEIGHT)
         rgb = jnp.asarray([c for _, c in COLORS], jnp.float32)
         index = {2: variation, 1: other_color(k1, variation, len(COLORS)),
                  3: other_color(k3, variation, len(COLORS))}
@@ -102,8 +101,7 @@ class StackCups(Task):
         base = obs.pos("cup2_grasp")
         for k in (1, 3):
             grasp = obs.pos(f"cup{k}_grasp")
-            q = obs.quat(f"cup{k}")
-            quat = down_quat(square_yaw(2.0 * jnp.arctan2(q[3], q[0]), jnp.pi))
+            quat = down_grasp(yaw_of(obs.quat(f"cup{k}")))  # fingers across the +y wall
             release = base + jnp.array([0.0, 0.0, RELEASE_ABOVE])
             steps += [
                 (grasp + jnp.array([0.0, 0.0, 0.068]), quat, 1.0),  # above the rim

@@ -6,10 +6,17 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    grasp_site,
+    pose_in_root,
+    sensor_volume,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.primitives import panel
-from agnostos_mjx.tasks.builders.props import rope, sensor_volume
+from agnostos_mjx.tasks.builders.props import rope
 
 ROOT = "straighten_rope_root"
 # RLBench's rope, tail to head: the tail's free end, the 17 joints, the
@@ -30,17 +37,13 @@ SENSOR_HALF = (0.03, 0.05, 0.01)
 # short of its patch's centre so the rope (0.37 m end to end) stays slack
 # and does not pull the tail off again.
 TAIL_DROP, HEAD_DROP = TAIL_TARGET, (-0.127, -0.26)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 PINCH_HEIGHT = 0.007  # tip above a link's centre: fingertips 3 mm above the table
 
 
 def _pinch(obs, link: str):
     """Tip pose pinching a link across its axis, the wrist turned at most 90
     degrees from home."""
-    x_axis = quat_rotate(obs.quat(link), jnp.array([1.0, 0.0, 0.0]))
-    yaw = jnp.arctan2(x_axis[1], x_axis[0])
-    yaw = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2
-    return obs.pos(link) + jnp.array([0.0, 0.0, PINCH_HEIGHT]), quat_mul(yaw_quat(yaw), DOWN)
+    return obs.pos(link) + jnp.array([0.0, 0.0, PINCH_HEIGHT]), down_grasp(yaw_of(obs.quat(link)))
 
 
 class StraightenRope(Task):
@@ -71,7 +74,7 @@ class StraightenRope(Task):
             patch = panel(root, (0.05, 0.025, 0.0005), (x, y, 0.0005), (0.2, 0.6, 0.2),
                           collide=False, name=f"rope_{target}_target_patch")
             patch.group = 1
-            root.add_site(name=f"rope_{target}_target", pos=[x, y, 0.001], group=4)
+            grasp_site(root, f"rope_{target}_target", (x, y, 0.001))
             sensor_volume(root, f"rope_success_{target}", (x, y, 0.008), SENSOR_HALF)
         rope(scene, "rope", POINTS, radius=LINK_RADIUS, masses=MASSES)
 
@@ -83,7 +86,7 @@ class StraightenRope(Task):
         local = jnp.array([*(a + b) / 2, LINK_RADIUS])
         yaw = jnp.arctan2(*(b - a)[::-1])
         return Placement(bodies={ROOT: (pos, quat),
-                                 TAIL: (pos + quat_rotate(quat, local), quat_mul(quat, yaw_quat(yaw)))})
+                                 TAIL: pose_in_root(pos, quat, local, yaw_quat(yaw))})
 
     def success(self, variation):
         return all_of([

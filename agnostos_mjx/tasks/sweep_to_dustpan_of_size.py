@@ -7,7 +7,8 @@ import jax.numpy as jnp
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.blocks import broom, detector, free_box, on_root
+from agnostos_mjx.tasks.builders.blocks import broom
+from agnostos_mjx.tasks.builders.common import free_box, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 ROOT = "sweep_to_dustpan_of_size_root"
@@ -77,7 +78,7 @@ class SweepToDustpanOfSize(Task):
         holder = root.add_body(name="broom_holder", pos=[*HOLDER_XY, 0.0])
         panel(holder, HOLDER_HALF, (0.0, 0.0, HOLDER_HALF[2]), (0.35, 0.48, 0.54))
         success = scene.mocap("success_pan")
-        detector(success, "success", (0.0, 0.0, 0.0), VOLUMES[0][1])  # the condition sizes it
+        sensor_volume(success, "success", (0.0, 0.0, 0.0), VOLUMES[0][1])  # the condition sizes it
         broom(scene, "broom", HEAD_HALF, 0.6, LEAN, GRIP_HEIGHT, (0.46, 0.31, 0.2), mass=0.445)
         for name in DIRT:
             free_box(scene, name, (DIRT_HALF,) * 3, DIRT_RGB, mass=0.002)
@@ -87,10 +88,10 @@ class SweepToDustpanOfSize(Task):
         centre = jnp.asarray([c for c, _ in VOLUMES])[variation]
         height = jnp.asarray([h[2] for _, h in VOLUMES])[variation]
         bodies = {ROOT: (root_pos, root_quat),
-                  "broom": on_root(root_pos, root_quat, (*BROOM_XY, 0.0)),
-                  "success_pan": on_root(root_pos, root_quat, (centre[0], centre[1], height))}
+                  "broom": pose_in_root(root_pos, root_quat, (*BROOM_XY, 0.0)),
+                  "success_pan": pose_in_root(root_pos, root_quat, (centre[0], centre[1], height))}
         for name, (x, y) in zip(DIRT, DIRT_XY):
-            bodies[name] = on_root(root_pos, root_quat, (x, y, DIRT_HALF))
+            bodies[name] = pose_in_root(root_pos, root_quat, (x, y, DIRT_HALF))
         return Placement(bodies=bodies)
 
     def success(self, variation):

@@ -5,16 +5,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, Grasped, all_of
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.kitchen import (
-    LID_HALF_THICKNESS,
-    pose_in_root,
-    saucepan,
-    sensor_volume,
-)
+from agnostos_mjx.tasks.builders.common import DOWN, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import LID_HALF_THICKNESS, saucepan
 
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 # RLBench's `success` volume: 0.1 x 0.1 m, 0.05 m high, from 0.216 m above the
 # table over the knob's start (the knob starts at 0.101 m).
 SUCCESS_HALF = (0.05, 0.05, 0.025)

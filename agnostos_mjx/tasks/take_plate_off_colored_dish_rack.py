@@ -6,7 +6,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import AnyOf, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,7 +15,8 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.kitchen import dish_rack, plate, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import dish_rack, plate
 from agnostos_mjx.tasks.builders.primitives import panel
 
 SECTIONS = ("black", "red", "purple")
@@ -30,7 +30,6 @@ TARGET_POS, TARGET_HALF = (0.07, -0.312, 0.05), 0.05
 SOURCE_POS, SOURCE_HALF = (0.0, 0.0, 0.06), (0.1, 0.11, 0.05)
 GOAL_POS, GOAL_HALF = (0.076, -0.309, 0.11), (0.025, 0.025, 0.025)
 # Gripper pointing down, fingers across the plate (along the root's y).
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 # Footprint in the root frame: rack, plate and cyan block, x[-0.1, 0.12] y[-0.362, 0.15].
 FOOTPRINT_HALF, FOOTPRINT_CENTER = (0.11, 0.256), (0.01, -0.106)
 

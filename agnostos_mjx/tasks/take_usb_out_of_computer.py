@@ -7,7 +7,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -17,9 +16,9 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.kitchen import desktop_computer, plug, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import desktop_computer, plug
 
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)  # fingers across the stick (root y)
 CASE_HALF = (0.15, 0.09, 0.17)
 FRONT_X = 0.05  # the case's front face; the stick sticks out towards the root's -x
 PORT = (0.0, 0.28)  # (y, z) of the port's mouth

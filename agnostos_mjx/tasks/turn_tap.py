@@ -6,13 +6,8 @@ import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.furniture import (
-    arm_yaw,
-    down_quat,
-    nearest_yaw,
-    two_handle_tap,
-    yaw_of,
-)
+from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, nearest_yaw, yaw_of
+from agnostos_mjx.tasks.builders.furniture import two_handle_tap
 
 SIDES = ("left", "right")
 ROOT = "turn_tap_root"
@@ -58,11 +53,11 @@ class TurnTap(Task):
         # The bar is symmetric: grasp it (fingers across it) with the wrist yaw
         # nearest the arm's natural yaw there, and turn back towards that yaw,
         # away from the wrist's joint limits.
-        natural = arm_yaw(grasp)
+        natural = natural_yaw(grasp)
         start = nearest_yaw(yaw_of(quat), natural, jnp.pi)
         end = start - jnp.sign(start - natural + 1e-6) * TURN
         above = grasp + jnp.array([0.0, 0.0, 0.08])
-        q0, q1 = down_quat(start), down_quat(end)
+        q0, q1 = down_grasp(start, wrap=False), down_grasp(end, wrap=False)
         return key_actions([
             (above, q0, 1.0),  # above the handle
             (grasp, q0, 0.0),  # at the bar, close: the handle is attached

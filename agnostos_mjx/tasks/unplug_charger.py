@@ -5,7 +5,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -15,10 +14,10 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.kitchen import DARK, plug, pose_in_root, sensor_volume, wall_socket
+from agnostos_mjx.tasks.builders.common import DOWN, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.kitchen import DARK, plug, wall_socket
 
 # Gripper pointing down, fingers across the charger (along the root's y).
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
 CHARGER_HALF = (0.0345, 0.025, 0.0125)
 CHARGER_POS = (0.0865, -0.022, 0.219)  # body centre, 2 mm off the socket; pins 2.3 cm in
 HOLES = ((-0.034, 0.219), (-0.009, 0.219))

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 from agnostos_mjx.conditions import Detected, all_of
 from agnostos_mjx.math3d import axis_angle_quat, mat_to_quat, quat_mul, quat_rotate, quat_to_mat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
-from agnostos_mjx.tasks.builders.props import plant_pot, sensor_volume, water_drops, watering_can
+from agnostos_mjx.tasks.builders.common import grasp_site, sensor_volume
+from agnostos_mjx.tasks.builders.props import plant_pot, water_drops, watering_can
 
 ROOT, CAN = "water_plants_root", "waterer"
 DROPS = 5
@@ -66,7 +67,7 @@ class WaterPlants(Task):
         root = scene.mocap(ROOT)
         plant_pot(root, "plant_pot", POT_CENTER, soil=SOIL)
         sensor_volume(root, "water_plants_success", SUCCESS_CENTER, SUCCESS_HALF)
-        root.add_site(name="water_plants_base", pos=[*CAN_START, 0.0], group=4)
+        grasp_site(root, "water_plants_base", (*CAN_START, 0.0))
         watering_can(scene, CAN, half=CAN_HALF, height=CAN_HEIGHT, wall=WALL)
         water_drops(scene, "water_drop", DROPS, radius=DROP_RADIUS)
 

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.tasks.builders.articulated import hinged_door
+from agnostos_mjx.tasks.builders.common import grasp_site
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 from agnostos_mjx.world import SceneBuilder
 
@@ -31,10 +32,6 @@ GRILL_LID_HINGE = (0.319, -0.116, 0.293)
 # RLBench places the grill through its `grill_root` plane (0.325 x 0.455 m at
 # x = 0.125), smaller than the grill itself: (half extents, centre) for place_root.
 GRILL_BOUNDARY_HALF, GRILL_BOUNDARY_CENTER = (0.1625, 0.2275), (0.125, 0.0)
-
-
-def _site(body: mujoco.MjsBody, name: str, pos) -> None:
-    body.add_site(name=name, pos=list(pos), size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=4)
 
 
 def grill(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill") -> mujoco.MjsBody:
@@ -64,7 +61,7 @@ def grill(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill") -> m
             leg = (cx + sx * (hx - 0.015), sy * (hy - 0.015))
             rod(body, (*leg, 0.0), (*leg, floor_z), 0.012, GRILL_RGBA)
     panel(body, (hx - 0.015, hy - 0.015, 0.005), (cx, 0, 0.06), GRILL_RGBA)  # shelf between legs
-    _site(body, f"{name}_center", (cx, 0, 0.15))
+    grasp_site(body, f"{name}_center", (cx, 0, 0.15))
     return body
 
 
@@ -91,8 +88,8 @@ def grill_lid(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "grill_li
     handle.add_joint(name=f"{name}_handle_joint", type=mujoco.mjtJoint.mjJNT_HINGE,
                      axis=[0, 1, 0], damping=0.01, armature=0.001)
     panel(handle, (0.007, 0.04, 0.007), (0, 0, 0), HANDLE_RGBA).mass = 0.02
-    _site(lid, f"{name}_center", (-0.1005, 0.0, 0.0505))
-    _site(parent, f"{name}_hinge", hinge)
+    grasp_site(lid, f"{name}_center", (-0.1005, 0.0, 0.0505))
+    grasp_site(parent, f"{name}_hinge", hinge)
     scene.exclude(name, grill_name)
     scene.exclude(f"{name}_handle", grill_name)
     return joint
@@ -128,7 +125,7 @@ def laptop(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "laptop") ->
     scene.spec.joint(joint).damping[0] = 0.01
     panel(lid, (0.155, 0.0005, 0.1), (0.003, -0.0005, 0.13), (0.1, 0.12, 0.2),
           collide=False)  # screen
-    _site(lid, f"{name}_lid_center", (0.003, 0.0, 0.1225))
+    grasp_site(lid, f"{name}_lid_center", (0.003, 0.0, 0.1225))
     scene.exclude(f"{name}_lid", f"{name}_base")
     scene.exclude(f"{name}_lid", f"{name}_holder")
     return joint
@@ -162,7 +159,7 @@ def toilet(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "toilet") ->
                         mass=0.178)
     seat = scene.spec.body(f"{name}_seat")
     scene.spec.joint(joint).damping[0] = 0.002
-    _site(seat, f"{name}_seat_center", (0.0, 0.1275, 0.0055))
+    grasp_site(seat, f"{name}_seat_center", (0.0, 0.1275, 0.0055))
     for part in ("bowl", "cistern"):
         scene.exclude(f"{name}_seat", f"{name}_{part}")
     return joint
@@ -202,7 +199,7 @@ def fridge(scene: SceneBuilder, parent: mujoco.MjsBody, name: str = "fridge") ->
         door = scene.spec.body(f"{name}_door_{level}")
         # A vertical bar handle on the outer face near the free edge.
         rod(door, (-0.065, 0.30, z_off - 0.1), (-0.065, 0.30, z_off + 0.1), 0.008, (0.6, 0.6, 0.6))
-        _site(door, f"{name}_door_{level}_center", (-0.0255, 0.171, z_off))
+        grasp_site(door, f"{name}_door_{level}_center", (-0.0255, 0.171, z_off))
         scene.exclude(f"{name}_door_{level}", f"{name}_base")
         doors.append(joint)
     scene.exclude(f"{name}_door_top", f"{name}_door_bottom")

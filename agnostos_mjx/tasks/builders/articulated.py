@@ -5,6 +5,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.tasks.builders.common import grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
 
@@ -76,8 +77,7 @@ def drawer_chest(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *,
         panel(body, (0.07, 0.007, 0.007), (0, hd + 0.016, zc), (0.3, 0.3, 0.3))
         for sx in (-1, 1):
             panel(body, (0.006, 0.006, 0.006), (sx * 0.064, hd + 0.004, zc), (0.3, 0.3, 0.3))
-        body.add_site(name=f"{name}_handle_{level}", pos=[0, hd + 0.016, zc], size=[0.005, 0, 0],
-                      rgba=[0, 1, 0, 0], group=4)
+        grasp_site(body, f"{name}_handle_{level}", (0, hd + 0.016, zc))
         body.gravcomp = 0.0
         joints.append(f"{name}_joint_{level}")
     names = [f"{name}_{lv}" for lv in levels]

@@ -1,10 +1,10 @@
-"""Table-top pieces for the block family of tasks: free blocks, flat coloured
-target patches, invisible detector volumes, and the multi-plane spawn sampler
-RLBench uses to scatter objects (SpawnBoundary over several planes).
+"""Table-top pieces for the block family of tasks: flat coloured target
+patches, square rings and peg boards, a stick and a broom, the multi-plane
+spawn sampler RLBench uses to scatter objects (SpawnBoundary over several
+planes) and the experts' square-grasp yaw.
 
-Free objects are bodies of the world with a free joint: their pose is set
-every episode through `Placement.bodies` in world coordinates, so samplers
-compose the task root's pose with a local pose (`on_root`).
+Free blocks, detector volumes (`sensor_volume`), root-frame poses
+(`pose_in_root`) and headings (`yaw_of`) are the shared ones of `common`.
 """
 
 from __future__ import annotations
@@ -14,26 +14,17 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.math3d import axis_angle_quat, quat_conj, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.math3d import axis_angle_quat, quat_conj, quat_rotate
 from agnostos_mjx.tasks.base import TABLE_Z, sample_on_plane
+from agnostos_mjx.tasks.builders.common import (
+    ROBOT_BASE_XY,
+    free_body,
+    grasp_site,
+    square_yaw,
+    yaw_of,
+)
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 from agnostos_mjx.world import SceneBuilder
-
-# The detector volumes and grasp frames are sites of this group (hidden).
-HIDDEN_GROUP = 4
-ROBOT_BASE_XY = (-0.268, -0.006)
-
-
-def free_box(scene: SceneBuilder, name: str, half, rgba, mass: float,
-             friction: float = 1.0) -> mujoco.MjsBody:
-    """A dynamic box with a free joint (RLBench's dynamic, respondable cuboid).
-    Its geom is called `<name>` so samplers can recolour it."""
-    body = scene.world.add_body(name=name, pos=[0.0, 0.0, TABLE_Z + half[2]])
-    body.add_freejoint()
-    geom = panel(body, half, (0.0, 0.0, 0.0), rgba, name=name)
-    geom.mass = mass
-    geom.friction = [friction, 0.005, 0.0001]
-    return body
 
 
 def flat_patch(parent: mujoco.MjsBody, name: str, pos, half_xy, rgba) -> mujoco.MjsGeom:
@@ -42,20 +33,6 @@ def flat_patch(parent: mujoco.MjsBody, name: str, pos, half_xy, rgba) -> mujoco.
     x, y, z = pos
     return panel(parent, (half_xy[0], half_xy[1], 0.0005), (x, y, z + 0.0005), rgba,
                  collide=False, name=name)
-
-
-def detector(parent: mujoco.MjsBody, name: str, pos, half, quat=(1.0, 0.0, 0.0, 0.0)) -> str:
-    """An invisible box volume for `Detected` (RLBench's proximity sensor).
-    `pos` is the box centre; observe the site by listing it in `frames`."""
-    parent.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), quat=list(quat),
-                    size=list(half), rgba=[0.0, 1.0, 0.0, 0.3], group=HIDDEN_GROUP)
-    return name
-
-
-def on_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos, local_yaw=0.0):
-    """World pose (pos, quat) of a pose given in a task root's frame."""
-    pos = root_pos + quat_rotate(root_quat, jnp.asarray(local_pos, jnp.float32))
-    return pos, quat_mul(root_quat, yaw_quat(jnp.asarray(local_yaw, jnp.float32)))
 
 
 def robot_keep_out(root_pos: jnp.ndarray, root_quat: jnp.ndarray, half: float = 0.3):
@@ -81,12 +58,6 @@ def spawn_on_planes(key: jax.Array, half_extents, planes, others: tuple = (),
                            plane_half=halves[index], others=others, min_distance=min_distance)
 
 
-def yaw_of(quat: jnp.ndarray) -> jnp.ndarray:
-    """Heading of a frame about the world z axis (its x axis projected on the table)."""
-    x_axis = quat_rotate(quat, jnp.array([1.0, 0.0, 0.0]))
-    return jnp.arctan2(x_axis[..., 1], x_axis[..., 0])
-
-
 def square_grasp_yaw(quat: jnp.ndarray, avoid=None) -> jnp.ndarray:
     """A gripper yaw that lines the fingers up with a square object's faces.
 
@@ -95,7 +66,7 @@ def square_grasp_yaw(quat: jnp.ndarray, avoid=None) -> jnp.ndarray:
     tower next to the object) it is the pair whose closing axis lies most
     across that direction, so the open fingers and the hand, which are long
     along the closing axis, stay clear of it."""
-    yaw = jnp.mod(yaw_of(quat) + jnp.pi / 4, jnp.pi / 2) - jnp.pi / 4
+    yaw = square_yaw(yaw_of(quat))
     if avoid is None:
         return yaw
     other = yaw - jnp.sign(yaw + 1e-6) * jnp.pi / 2
@@ -109,8 +80,7 @@ def square_ring(scene: SceneBuilder, name: str, outer_half: float, wall: float,
                 half_height: float, rgba, mass: float) -> mujoco.MjsBody:
     """A free square frame of four bars (RLBench's square_ring): its hole,
     2 * (outer_half - wall) wide, slides over a square peg."""
-    body = scene.world.add_body(name=name, pos=[0.0, 0.0, TABLE_Z + half_height])
-    body.add_freejoint()
+    body = free_body(scene, name, pos=(0.0, 0.0, TABLE_Z + half_height))
     mid = outer_half - wall / 2
     for k, (x, y, hx, hy) in enumerate(((mid, 0, wall / 2, outer_half),
                                         (-mid, 0, wall / 2, outer_half),
@@ -139,11 +109,9 @@ def stick(scene: SceneBuilder, name: str, half_length: float, half_width: float,
           mass: float, grip_from_end: float) -> mujoco.MjsBody:
     """A free square-section stick along its local x axis with a site
     `<name>_grasp` `grip_from_end` in from its -x end (where the expert holds it)."""
-    body = scene.world.add_body(name=name, pos=[0.0, 0.0, TABLE_Z + half_width])
-    body.add_freejoint()
+    body = free_body(scene, name, pos=(0.0, 0.0, TABLE_Z + half_width))
     panel(body, (half_length, half_width, half_width), (0.0, 0.0, 0.0), rgba, name=name).mass = mass
-    body.add_site(name=f"{name}_grasp", pos=[-half_length + grip_from_end, 0.0, 0.0],
-                  size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=HIDDEN_GROUP)
+    grasp_site(body, f"{name}_grasp", (-half_length + grip_from_end, 0.0, 0.0))
     return body
 
 
@@ -164,8 +132,7 @@ def broom(scene: SceneBuilder, name: str, head_half, handle_length: float, lean:
     towards the frame's +y, so the broom rests against a holder on that side.
     Sites `<name>_grasp` (on the handle axis at `grip_height` above the floor
     of the head) and `<name>_head` (head underside) locate it for experts."""
-    body = scene.world.add_body(name=name, pos=[0.0, 0.0, TABLE_Z])
-    body.add_freejoint()
+    body = free_body(scene, name, pos=(0.0, 0.0, TABLE_Z))
     head = panel(body, head_half, (0.0, 0.0, head_half[2]), rgba, name=f"{name}_head")
     head.mass = 0.7 * mass
     axis = np.array([0.0, np.sin(lean), np.cos(lean)])
@@ -174,8 +141,6 @@ def broom(scene: SceneBuilder, name: str, head_half, handle_length: float, lean:
                  name=f"{name}_handle")
     handle.mass = 0.3 * mass
     grip = start + (grip_height - start[2]) / axis[2] * axis
-    body.add_site(name=f"{name}_grasp", pos=list(grip), size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
-                  group=HIDDEN_GROUP)
-    body.add_site(name=f"{name}_head", pos=[0.0, 0.0, 0.0], size=[0.005, 0, 0],
-                  rgba=[0, 1, 0, 0], group=HIDDEN_GROUP)
+    grasp_site(body, f"{name}_grasp", grip)
+    grasp_site(body, f"{name}_head", (0.0, 0.0, 0.0))
     return body

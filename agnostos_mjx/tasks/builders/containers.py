@@ -1,8 +1,9 @@
 """Containers and what goes in or on them: jars and lids, nesting cups, bulb
 holders, light bulbs and a lamp socket, a safe with shelves, mugs and a mug
-tree.  Plus the two helpers the container tasks share: spawning objects on
-a plane of the task root, and a success test whose target object or volume
-the variation picks.
+tree.  Plus what only the container tasks share: a root placement for a yaw
+range off zero, a success test whose target object or volume the variation
+picks, and a distractor colour draw (spawning, grasp sites, sensor volumes
+and down grasps: see `common`).
 
 Conventions: a piece's body origin is the centre of its bounding box (as
 RLBench's shape positions are), so the layout numbers of the spec carry over.
@@ -21,8 +22,9 @@ import numpy as np
 
 from agnostos_mjx.conditions import AnyOf, Condition, Detected
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
-from agnostos_mjx.tasks.base import TABLE_Z, WORKSPACE_CENTER, WORKSPACE_HALF, sample_on_plane
+from agnostos_mjx.tasks.base import TABLE_Z, WORKSPACE_CENTER, WORKSPACE_HALF
 from agnostos_mjx.tasks.builders.articulated import hinged_door
+from agnostos_mjx.tasks.builders.common import grasp_site, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
 from agnostos_mjx.world import OBJECT_COLLISION
 
@@ -31,27 +33,6 @@ INVISIBLE = (0.0, 0.0, 0.0, 0.0)
 
 
 # ---- sampling and conditions ----------------------------------------------------------------
-def spawn_on_root_plane(key: jax.Array, root: tuple[jnp.ndarray, jnp.ndarray], count: int,
-                        half_extents: tuple[float, float], plane_center: tuple[float, float],
-                        plane_half: tuple[float, float], *, yaw_range: float = jnp.pi,
-                        min_distance: float = 0.01, height: float = 0.0, tries: int = 64,
-                        ) -> list[tuple[jnp.ndarray, jnp.ndarray]]:
-    """RLBench's SpawnBoundary for objects on a plane of the task root:
-    `count` objects of footprint `half_extents` are sampled one after the
-    other (each avoiding those before it) and returned as world poses, the
-    origin `height` above the plane.  Crowded planes need more `tries`."""
-    root_pos, root_quat = root
-    placed, poses = [], []
-    for k in jax.random.split(key, count):
-        xy, yaw = sample_on_plane(k, half_extents, yaw_range, plane_center=plane_center,
-                                  plane_half=plane_half, others=tuple(placed),
-                                  min_distance=min_distance, tries=tries)
-        placed.append((xy, yaw, jnp.asarray(half_extents)))
-        local = jnp.array([xy[0], xy[1], height])
-        poses.append((root_pos + quat_rotate(root_quat, local), quat_mul(root_quat, yaw_quat(yaw))))
-    return poses
-
-
 def place_root_between(key: jax.Array, half_extents: tuple[float, float], yaw_min: float,
                        yaw_max: float, offset=(0.0, 0.0), tries: int = 64,
                        ) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -121,19 +102,6 @@ def jar_lid(body: mujoco.MjsBody, name: str, *, radius: float = 0.037, mass: flo
     box.mass = mass
 
 
-def square_yaw(yaw: jnp.ndarray, symmetry: float = jnp.pi / 2) -> jnp.ndarray:
-    """The yaw in (-symmetry/2, symmetry/2] equivalent to `yaw` for an object
-    with `symmetry`-fold rotational symmetry (a square contact box): lets the
-    expert align its fingers with the faces without twisting the wrist far."""
-    return jnp.mod(yaw + symmetry / 2, symmetry) - symmetry / 2
-
-
-def down_quat(yaw: jnp.ndarray) -> jnp.ndarray:
-    """Gripper pointing down, fingers closing along the world y axis turned by `yaw`."""
-    flip = jnp.array([0.0, 1.0, 0.0, 0.0])  # pi about x: euler_xyz_quat(pi, 0, 0)
-    return quat_mul(yaw_quat(yaw + jnp.pi), flip)
-
-
 # ---- light bulbs ---------------------------------------------------------------------------
 HOLDER_HALF = (0.05, 0.05, 0.0325)
 HOLDER_FLOOR = 0.018  # floor top above the holder's bottom
@@ -182,10 +150,8 @@ def light_bulb(body: mujoco.MjsBody, name: str, glass: str, *, mass: float = 1.0
                   rgba=[0.6, 0.6, 0.6, 1.0], mass=0.01, contype=OBJECT_COLLISION[0],
                   conaffinity=OBJECT_COLLISION[1], group=2)
     disc(body, 0.015, 0.006, (0, 0, BULB_BASE_Z + 0.018), (0.6, 0.6, 0.6))
-    body.add_site(name=glass, pos=[0, 0, BULB_GLASS_Z], size=[0.005, 0, 0], rgba=[0, 0, 0, 0],
-                  group=4)
-    body.add_site(name=f"{name}_base", pos=[0, 0, BULB_BASE_Z], size=[0.005, 0, 0],
-                  rgba=[0, 0, 0, 0], group=4)
+    grasp_site(body, glass, (0, 0, BULB_GLASS_Z))
+    grasp_site(body, f"{name}_base", (0, 0, BULB_BASE_Z))
 
 
 def lamp_with_socket(parent: mujoco.MjsBody, name: str, socket: str, pos) -> mujoco.MjsBody:
@@ -322,7 +288,7 @@ def mug(body: mujoco.MjsBody, name: str, *, mass: float = 0.3, rgba=WHITE) -> No
                        ((HANDLE_OUTER_X, 0, HANDLE_BOTTOM_Z), (inner, 0, HANDLE_BOTTOM_Z))):
         rod(body, start, end, HANDLE_RADIUS, rgba, collide=True).mass = 0.01
     for site, pos in ((f"{name}_hole", MUG_HOLE), (f"{name}_grasp", MUG_GRASP)):
-        body.add_site(name=site, pos=list(pos), size=[0.004, 0, 0], rgba=[0, 0, 0, 0], group=4)
+        grasp_site(body, site, pos)
 
 
 def spoke_frame(k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -360,8 +326,7 @@ def mug_tree(parent: mujoco.MjsBody, name: str, pos, spoke_names: Sequence[str],
         centre, axis = spoke_frame(k)
         rod(tree, centre - SPOKE_HALF_LENGTH * axis, centre + SPOKE_HALF_LENGTH * axis,
             SPOKE_RADIUS, rgba, collide=True)
-        tree.add_site(name=spoke, pos=list(centre), quat=list(z_to(axis)), size=list(sensor_half),
-                      type=G.mjGEOM_BOX, rgba=[0, 1, 0, 0], group=4)
+        sensor_volume(tree, spoke, centre, sensor_half, quat=z_to(axis))
     return tree
 
 
@@ -377,10 +342,10 @@ def hung_mug_pose(k: int, yaw: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 __all__ = [
-    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "MONEY_HALF", "SAFE_HALF", "SAFE_SHELVES",
-    "money_stack", "place_root_between", "safe", "HOLDER_HALF", "cup", "cup_geoms", "cup_radius", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT", "bulb_holder",
-    "detected_one_of", "down_quat", "jar", "jar_lid", "lamp_with_socket", "light_bulb",
-    "open_box", "open_box_geoms", "other_color", "spawn_on_root_plane", "square_yaw",
-    "MUG_GRASP", "MUG_HALF_HEIGHT", "MUG_HOLE", "MUG_RADIUS", "hung_mug_pose", "mug", "mug_tree",
+    "BULB_HALF_HEIGHT", "CUP_HALF_HEIGHT", "HOLDER_HALF", "JAR_HALF_HEIGHT", "LID_HALF_HEIGHT",
+    "MONEY_HALF", "MUG_GRASP", "MUG_HALF_HEIGHT", "MUG_HOLE", "MUG_RADIUS", "SAFE_HALF",
+    "SAFE_SHELVES", "bulb_holder", "cup", "cup_geoms", "cup_radius", "detected_one_of",
+    "hung_mug_pose", "jar", "jar_lid", "lamp_with_socket", "light_bulb", "money_stack", "mug",
+    "mug_tree", "open_box", "open_box_geoms", "other_color", "place_root_between", "safe",
     "spoke_frame", "z_to",
 ]

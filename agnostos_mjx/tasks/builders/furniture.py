@@ -1,7 +1,7 @@
 """Furniture and loose objects for the seen pick-and-place / articulated tasks:
-free graspable bodies, sensor volumes, a two-handle tap, a wine rack, a
-cupboard and a shape sorter with its shapes; plus the small yaw helpers the
-experts use to grasp these objects from above.
+a two-handle tap, a wine rack and bottle, a cupboard with groceries, and a
+shape sorter with its shapes (free bodies, sensor volumes, grasp sites and
+the experts' yaw helpers: see `common`).
 
 Everything is built from primitive geoms (boxes for contact; visual cylinders
 where the original is round), see `primitives`.
@@ -9,44 +9,12 @@ where the original is round), see `primitives`.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.math3d import euler_xyz_quat, quat_mul, yaw_quat
+from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
-
-
-def free_body(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
-    """A dynamic body on a free joint; its pose is set by the sampler
-    (Placement.bodies) and it is meant to be added to a task's graspables."""
-    body = scene.world.add_body(name=name)
-    body.add_freejoint()
-    return body
-
-
-def free_box(scene: SceneBuilder, name: str, half, rgba, mass: float) -> mujoco.MjsBody:
-    """A free cuboid of the given half sizes and mass (a block, a grocery box)."""
-    body = free_body(scene, name)
-    panel(body, half, (0.0, 0.0, 0.0), rgba, name=f"{name}_geom").mass = mass
-    return body
-
-
-def sensor_volume(body: mujoco.MjsBody, name: str, half, pos=(0.0, 0.0, 0.0)) -> str:
-    """An invisible box site standing for an RLBench proximity sensor volume
-    (tested by conditions.Detected with the same half sizes)."""
-    body.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half), pos=list(pos),
-                  rgba=[0.0, 1.0, 0.0, 0.0], group=4)
-    return name
-
-
-def grasp_site(body: mujoco.MjsBody, name: str, pos) -> str:
-    """An invisible marker (RLBench's `*_grasp_point` dummies): where the
-    expert puts the tip, and the point the attach test checks."""
-    body.add_site(name=name, pos=list(pos), size=[0.005, 0, 0], rgba=[0, 1, 0, 0], group=4)
-    return name
-
 
 CHROME = (0.75, 0.75, 0.78)
 
@@ -279,37 +247,6 @@ def grocery(scene: SceneBuilder, name: str, size, rgba, round_: bool = False,
     return body
 
 
-# ---- expert helpers: top-down grasps of these objects ---------------------------------------
-ARM_BASE_XY = (-0.268, -0.006)  # Panda link0 (spec section 2)
-DOWN = euler_xyz_quat(np.pi, 0.0, np.pi)  # pointing down, fingers along the world y
-
-
-def yaw_of(quat):
-    """Yaw of a frame that only turns about the vertical (an upright object)."""
-    return 2.0 * jnp.arctan2(quat[..., 3], quat[..., 0])
-
-
-def arm_yaw(pos):
-    """The gripper yaw that reaches `pos` pointing down with the least wrist
-    twist: along the arm, from its base."""
-    return jnp.arctan2(pos[..., 1] - ARM_BASE_XY[1], pos[..., 0] - ARM_BASE_XY[0])
-
-
-def nearest_yaw(angle, ref, period: float):
-    """The angle equal to `angle` modulo `period` nearest `ref`; `ref` itself
-    for period 0 (an object any yaw suits)."""
-    if period == 0.0:
-        return ref
-    return ref + (angle - ref) - period * jnp.round((angle - ref) / period)
-
-
-def down_quat(yaw):
-    """Gripper pointing down with its fingers closing across direction yaw + 90 deg,
-    i.e. along the y axis of a frame turned by `yaw`."""
-    return quat_mul(yaw_quat(yaw), jnp.asarray(DOWN))
-
-
-__all__ = ["ARM_BASE_XY", "CHROME", "CREAM", "DOWN", "WHITE", "WOOD", "arm_yaw", "cupboard",
-           "disc", "down_quat", "free_body", "free_box", "grasp_site", "grocery", "holed_plate",
-           "nearest_yaw", "octagonal_prism", "rod", "sensor_volume", "shape_sorter",
-           "sorter_shape", "two_handle_tap", "wine_bottle", "wine_rack", "yaw_of"]
+__all__ = ["CHROME", "CREAM", "WHITE", "WOOD", "cupboard", "disc",
+           "grocery", "holed_plate", "octagonal_prism", "rod", "shape_sorter",
+           "sorter_shape", "two_handle_tap", "wine_bottle", "wine_rack"]

@@ -1,39 +1,22 @@
-"""Household pieces for the pick-and-place tasks: free graspable objects,
-open containers (bins, umbrella stands, shelves), success volumes, and the
-small pose helpers their samplers and experts share.
-
-RLBench carries objects by a kinematic attach and checks success with sensor
-volumes; here a graspable is a free body (attached by a weld on close, see
-episode.py) and a volume is an invisible site read by `conditions.Detected`.
+"""Household pieces for the pick-and-place tasks: solid parts with explicit
+masses, open containers (bins, umbrella stands, shelves), and their success
+test.  Free bodies, sensor volumes, root-frame poses, grasps and spawning
+come from `common`.
 """
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
-from agnostos_mjx.tasks.base import sample_on_plane
+from agnostos_mjx.math3d import yaw_quat
+from agnostos_mjx.tasks.builders.common import IDENTITY, grasp_site
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.world import SceneBuilder
 
-# The gripper pointing down with its fingers closing along the world y axis.
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
-IDENTITY = (1.0, 0.0, 0.0, 0.0)
-
 
 # ---- scene pieces -------------------------------------------------------------------------
-def free_object(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
-    """A body with a free joint (free bodies must hang off the world body);
-    the sampler gives it a world pose every episode."""
-    body = scene.world.add_body(name=name)
-    body.add_freejoint()
-    return body
-
-
 def held_by_weld_only(scene: SceneBuilder, body: str) -> None:
     """Let the gripper pass through a graspable, so only the grasp weld holds
     it (RLBench parents a grasped object to the gripper).  For long, thin
@@ -90,54 +73,7 @@ def shelf_unit(body: mujoco.MjsBody, name: str, pos, half, shelf_top: float, hei
               rgba, name=f"{name}_side{(side + 1) // 2}")
     panel(body, (hx, wall / 2, height / 2), (x, y - hy + wall / 2, z + height / 2), rgba,
           name=f"{name}_back")
-    body.add_site(name=name, pos=[x, y, z + shelf_top], size=[0.005, 0, 0], rgba=[0, 0, 0, 0],
-                  group=4)
-
-
-def volume(body: mujoco.MjsBody, name: str, center, half) -> tuple[float, float, float]:
-    """An invisible box sensor volume (RLBench proximity sensor) as a site;
-    returns its half extents for `Detected`."""
-    body.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(center), size=list(half),
-                  rgba=[0, 1, 0, 0.2], group=4)
-    return tuple(half)
-
-
-# ---- poses ----------------------------------------------------------------------------------
-def to_world(pos, quat, local_pos, local_quat=IDENTITY) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """World pose of a pose given in the frame (pos, quat)."""
-    local_pos = jnp.asarray(local_pos, jnp.float32)
-    return pos + quat_rotate(quat, local_pos), quat_mul(quat, jnp.asarray(local_quat, jnp.float32))
-
-
-def place_on_boundary(key: jax.Array, root: tuple, plane_center, plane_half, half_extents,
-                      offset=(0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """RLBench's SpawnBoundary for an object on a spawn plane of its task
-    root: any yaw, its footprint (centred `offset` from its own origin)
-    inside the plane.  Returns the object's world pose."""
-    xy, yaw = sample_on_plane(key, half_extents, jnp.pi, plane_center=plane_center,
-                              plane_half=plane_half)
-    quat = yaw_quat(yaw)
-    local = jnp.concatenate([xy, jnp.zeros(1)]) - quat_rotate(quat, jnp.array([*offset, 0.0]))
-    return to_world(*root, local, quat)
-
-
-def yaw_of(quat) -> jnp.ndarray:
-    """Heading of a frame that stays upright (rotation about z only)."""
-    w, x, y, z = (quat[..., i] for i in range(4))
-    return jnp.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def down_grasp(yaw, pitch=0.0) -> jnp.ndarray:
-    """Gripper pointing down with its fingers closing along the heading `yaw`
-    + 90 deg (the y axis of a frame with that yaw).  The two-finger grasp is
-    symmetric under a half turn, so the yaw is wrapped into +-90 deg of the
-    start pose, which keeps the wrist joint far from its limits.  `pitch`
-    tilts the approach axis about the fingers towards the frame's +x (pi/2:
-    level, pointing along +x), e.g. to lay a held object down."""
-    wrapped = jnp.mod(yaw + jnp.pi / 2, jnp.pi) - jnp.pi / 2
-    same = jnp.cos(wrapped - yaw)  # +1, or -1 where the wrap turned the frame
-    tilt = axis_angle_quat(jnp.array([0.0, 1.0, 0.0]), -same * jnp.asarray(pitch, jnp.float32))
-    return quat_mul(yaw_quat(wrapped), quat_mul(tilt, DOWN))
+    grasp_site(body, name, (x, y, z + shelf_top))
 
 
 # ---- success ------------------------------------------------------------------------------

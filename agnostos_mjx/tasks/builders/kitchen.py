@@ -5,38 +5,22 @@ stick.
 Objects the gripper carries are free bodies in the world (MuJoCo free joints
 cannot hang under a mocap root): a builder creates them at the origin, the
 task declares their resting pose in its root frame and its sampler places them
-with `pose_in_root` next to the root it draws.  Static parts hang under the
-root.  Sensor volumes are box sites (`sensor_volume`) for `Detected`.
+with `common.pose_in_root` next to the root it draws.  Static parts hang
+under the root.  Sensor volumes are `common.sensor_volume` sites.
 """
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.math3d import quat_mul, quat_rotate
+from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
 from agnostos_mjx.world import SceneBuilder
 
 STEEL = (0.75, 0.75, 0.75)
 GREY = (0.6, 0.6, 0.6)
 DARK = (0.15, 0.15, 0.15)
-
-
-def pose_in_root(root_pos: jnp.ndarray, root_quat: jnp.ndarray, local_pos,
-                 local_quat=(1.0, 0.0, 0.0, 0.0)) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """World pose of a free body whose pose in the task-root frame is known."""
-    local_pos = jnp.asarray(local_pos, jnp.float32)
-    return (root_pos + quat_rotate(root_quat, local_pos),
-            quat_mul(root_quat, jnp.asarray(local_quat, jnp.float32)))
-
-
-def free_body(scene: SceneBuilder, name: str) -> mujoco.MjsBody:
-    """A body on a free joint (a graspable object), placed by the sampler."""
-    body = scene.world.add_body(name=name)
-    body.add_freejoint()
-    return body
 
 
 def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
@@ -105,17 +89,8 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
     disc(lid, knob_radius, 0.01, (0, 0, knob_z), WHITE, name=f"{lid_name}_knob")
     side = knob_radius / np.sqrt(2.0)
     hidden(panel(lid, (side, side, 0.01), (0, 0, knob_z), WHITE), mass=0.057)
-    lid.add_site(name=f"{lid_name}_grasp_point", pos=[0, 0, knob_z], size=[0.005, 0, 0],
-                 rgba=[0, 1, 0, 0], group=4)
+    grasp_site(lid, f"{lid_name}_grasp_point", (0, 0, knob_z))
     return lid_name, f"{lid_name}_grasp_point"
-
-
-def sensor_volume(parent: mujoco.MjsBody, name: str, pos, half) -> str:
-    """An invisible box site standing for an RLBench proximity-sensor volume
-    (a `Detected` condition tests against it).  `pos` is the box centre."""
-    parent.add_site(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(pos), size=list(half),
-                    rgba=[0, 1, 0, 0], group=4)
-    return name
 
 
 # ---- plugs and sockets (charger in a wall socket, USB stick in a computer) -----------------
@@ -145,8 +120,7 @@ def plug(scene: SceneBuilder, name: str, *, body_half, pins, pin_half: tuple[flo
     for i, (y, z) in enumerate(pins):
         stiff(panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
                     name=f"{name}_pin{i}")).mass = 0.1 * mass
-    body.add_site(name=f"{name}_grasp_point", pos=list(grasp_offset), size=[0.005, 0, 0],
-                  rgba=[0, 1, 0, 0], group=4)
+    grasp_site(body, f"{name}_grasp_point", grasp_offset)
     return f"{name}_grasp_point"
 
 
@@ -165,8 +139,7 @@ def wall_socket(parent: mujoco.MjsBody, name: str, *, face_x: float, plate_cente
           collide=False, name=f"{name}_plate")
     for y, z in holes:
         socket_tube(parent, (face_x, y, z), hole_half, depth)
-    parent.add_site(name=f"{name}_socket", pos=[face_x, cy, cz], size=[0.005, 0, 0],
-                    rgba=[0, 1, 0, 0], group=4)
+    grasp_site(parent, f"{name}_socket", (face_x, cy, cz))
     return f"{name}_socket"
 
 
@@ -191,8 +164,7 @@ def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=
     button.name = f"{name}_power"
     y, z = port
     socket_tube(case, (-hx, y, z - hz), port_half, port_depth, wall=0.002)
-    case.add_site(name=f"{name}_port", pos=[-hx, y, z - hz], size=[0.005, 0, 0], rgba=[0, 1, 0, 0],
-                  group=4)
+    grasp_site(case, f"{name}_port", (-hx, y, z - hz))
     return f"{name}_port"
 
 
@@ -228,14 +200,12 @@ def plate(scene: SceneBuilder, name: str, *, radius: float = 0.1, half_thickness
     for a in (np.pi / 8, 3 * np.pi / 8):
         hidden(panel(body, (half, half_thickness, half), (0, 0, 0), WHITE,
                      quat=(np.cos(a / 2), 0.0, np.sin(a / 2), 0.0)), mass=mass / 2)
-    body.add_site(name=f"{name}_grasp_point", pos=[0, 0, grasp_height], size=[0.005, 0, 0],
-                  rgba=[0, 1, 0, 0], group=4)
+    grasp_site(body, f"{name}_grasp_point", (0, 0, grasp_height))
     probes = [(0.0, 0.0)] + [(0.9 * radius * np.cos(a), 0.9 * radius * np.sin(a))
                              for a in np.arange(4) * np.pi / 2]
     names = []
     for i, (x, z) in enumerate(probes):
-        body.add_site(name=f"{name}_probe{i}", pos=[x, 0, z], size=[0.004, 0, 0],
-                      rgba=[0, 1, 0, 0], group=4)
+        grasp_site(body, f"{name}_probe{i}", (x, 0, z))
         names.append(f"{name}_probe{i}")
     return tuple(names)
 

@@ -5,7 +5,8 @@ watering can with a plant pot.
 Every prop is made of boxes, capsules and spheres (the contact pairs MJX-jax
 supports); round things that need a cylinder look get a visual disc.  Dynamic
 props are free bodies parented to the world: their task samples their pose
-every episode, so the builders place them at an arbitrary spot.
+every episode, so the builders place them at an arbitrary spot (free
+bodies, point markers and sensor volumes: see `common`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, panel, rod
 from agnostos_mjx.world import OBJECT_COLLISION, SceneBuilder
 
@@ -29,23 +31,6 @@ def capsule(body: mujoco.MjsBody, start, end, radius: float, rgba, mass: float =
     if mass:
         geom.mass = mass
     return geom
-
-
-def sensor_volume(body: mujoco.MjsBody, name: str, pos, half, rgba=(0.0, 1.0, 0.0),
-                  quat=(1.0, 0.0, 0.0, 0.0)) -> mujoco.MjsSite:
-    """An invisible box site standing in for an RLBench proximity sensor (a
-    `Detected` condition reads its pose; its half sizes live in the task)."""
-    return body.add_site(name=name, type=G.mjGEOM_BOX, pos=list(pos), size=list(half),
-                         quat=list(quat), rgba=[*rgba, 0.0], group=4)
-
-
-def free_body(scene: SceneBuilder, name: str, damping: float = 0.0,
-              gravcomp: float = 0.0) -> mujoco.MjsBody:
-    """A dynamic body on a free joint, parented to the world."""
-    body = scene.world.add_body(name=name, gravcomp=gravcomp)
-    joint = body.add_freejoint(name=f"{name}_free")
-    joint.damping = [damping, 0.0, 0.0]
-    return body
 
 
 # ---- beat_the_buzz ---------------------------------------------------------------------------
@@ -224,9 +209,9 @@ def watering_can(scene: SceneBuilder, name: str, *, half=(0.045, 0.035), height:
         geom.mass = mass / len(geoms)
     tip = (hx + 0.08, 0.0, height)
     rod(body, (hx, 0.0, 0.02), tip, 0.006, rgba)  # spout (visual)
-    body.add_site(name=f"{name}_handle", pos=[bar_x, 0, bar_z], group=4)
-    body.add_site(name=f"{name}_lip", pos=[hx, 0, height], group=4)
-    body.add_site(name=f"{name}_head", pos=list(tip), group=4)
+    grasp_site(body, f"{name}_handle", (bar_x, 0, bar_z))
+    grasp_site(body, f"{name}_lip", (hx, 0, height))
+    grasp_site(body, f"{name}_head", tip)
     return body
 
 
@@ -253,4 +238,4 @@ def plant_pot(parent: mujoco.MjsBody, name: str, center, *, half: float = 0.085,
         parent.add_geom(type=G.mjGEOM_ELLIPSOID, size=[0.025, 0.012, 0.004],
                         pos=[x + dx, y + dy, soil + dz], rgba=[*leaf, 1.0], contype=0,
                         conaffinity=0, group=1)
-    parent.add_site(name=f"{name}_soil", pos=[x, y, soil], group=4)
+    grasp_site(parent, f"{name}_soil", (x, y, soil))
