@@ -93,7 +93,7 @@ class EvalConfig:
     llm_model: str | None = None
     llm_cache: str | None = None
     llm_concurrency: int = 64
-    selection: str = "lang+vis.out"
+    selection: str = "auto"
     num_demos: int = 18
     memory: str | None = None
     compare: str | None = None
@@ -188,9 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "--resume reuse answers, a shipped cache replays a run offline")
     llm.add_argument("--llm-concurrency", type=_positive_int, default=64,
                      help="LLM requests in flight at once")
-    llm.add_argument("--selection", default="lang+vis.out",
-                     help="in-context demo selection: random, text, or dynamics features "
-                          "lang, vis.in, vis.out joined with '+'")
+    llm.add_argument("--selection", default="auto",
+                     help="in-context demo selection: random, text (instruction trigrams), "
+                          "dynamics features lang, vis.in, vis.out joined with '+', or auto "
+                          "(lang+vis.out when the memory has dynamics features, else text)")
     llm.add_argument("--num-demos", type=_positive_int, default=18,
                      help="K, in-context demonstrations per prompt")
     llm.add_argument("--memory", default=None,

@@ -19,7 +19,7 @@ from agnostos_mjx.control import ACTION_BOUNDS
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.policies.xicm import queries_for
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
-from agnostos_mjx.xicm.selection import make_selector
+from agnostos_mjx.xicm.selection import make_selector, resolve_selection
 
 if TYPE_CHECKING:
     from agnostos_mjx.episode import EnvState, Episodes
@@ -41,14 +41,12 @@ def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.nd
 class RetrievalPolicy(PlanningPolicy):
     name = "retrieval"
 
-    def __init__(self, selection: str = "lang+vis.out", memory: str | None = None) -> None:
+    def __init__(self, selection: str = "auto", memory: str | None = None) -> None:
         super().__init__()
         self.memory = DemoMemory.load(memory or default_memory_path())
-        if selection != "random" and "lang" in selection and not self.memory.features:
-            selection = "text"  # a memory without dynamics features ranks by instruction text
-        self.selection = selection
-        self.selector = make_selector(selection, self.memory)
-        self.name = f"retrieval[{selection}]"
+        self.selection = resolve_selection(selection, self.memory)
+        self.selector = make_selector(self.selection, self.memory)
+        self.name = f"retrieval[{self.selection}]"
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
         task = episodes.task

@@ -19,7 +19,7 @@ from agnostos_mjx.scene_text import query_texts
 from agnostos_mjx.textualise import decode_action
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.prompt import messages, parse_actions
-from agnostos_mjx.xicm.selection import Query, make_selector
+from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
 
 if TYPE_CHECKING:
     from agnostos_mjx.episode import EnvState, Episodes
@@ -44,7 +44,7 @@ class XICMPolicy(PlanningPolicy):
     name = "xicm"
 
     def __init__(self, llm_url: str | None = None, llm_model: str | None = None,
-                 selection: str = "lang+vis.out", num_demos: int = 18,
+                 selection: str = "auto", num_demos: int = 18,
                  memory: str | None = None, llm_cache: str | None = None,
                  concurrency: int = 64, timeout_s: float = 60.0, retries: int = 4,
                  temperature: float = 0.1, top_p: float = 0.001,
@@ -68,10 +68,10 @@ class XICMPolicy(PlanningPolicy):
             client.preflight()
         self.client = client
         self.memory = DemoMemory.load(memory or default_memory_path())
-        self.selection = selection
-        self.selector = make_selector(selection, self.memory)
+        self.selection = resolve_selection(selection, self.memory)
+        self.selector = make_selector(self.selection, self.memory)
         self.num_demos = num_demos
-        self.name = f"xicm[{selection},k={num_demos}]"
+        self.name = f"xicm[{self.selection},k={num_demos}]"
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
         from agnostos_mjx.episode import Outcome

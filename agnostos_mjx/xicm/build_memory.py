@@ -19,7 +19,7 @@ from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter, setup_logging
 from agnostos_mjx.data.bank import BankError, DemoBank
-from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
+from agnostos_mjx.xicm.memory import DemoMemory, MemoryFileError, default_memory_path
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -31,6 +31,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="dynamics-model checkpoint; adds lang / vis.in / vis.out features")
     p.add_argument("--out", type=Path, default=default_memory_path(), help="memory file")
+    p.add_argument("--extend", type=Path, default=None,
+                   help="an existing memory to append the bank's demos to (e.g. new tasks)")
     a = p.parse_args(argv)
     setup_logging(False)
     try:
@@ -41,7 +43,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             features = bank_features(bank, a.checkpoint)
         memory = DemoMemory.from_bank(bank, features)
-    except BankError as err:
+        if a.extend is not None:
+            memory = DemoMemory.concat(DemoMemory.load(a.extend), memory)
+    except (BankError, MemoryFileError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -74,6 +74,16 @@ class DemoMemory:
         arrays = {k: np.asarray(v) for k, v in rows.items()}
         return cls(**arrays, features=dict(features or {}))
 
+    @classmethod
+    def concat(cls, *memories: DemoMemory) -> DemoMemory:
+        """One memory from several (e.g. an existing memory and a bank of new tasks);
+        features are kept only where every part has them."""
+        names = [k for k in cls.__dataclass_fields__ if k != "features"]
+        arrays = {k: np.concatenate([getattr(m, k) for m in memories]) for k in names}
+        common = set.intersection(*(set(m.features) for m in memories))
+        features = {k: np.concatenate([m.features[k] for m in memories]) for k in sorted(common)}
+        return cls(**arrays, features=features)
+
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "features"}
         arrays.update({f"feature:{k}": v.astype(np.float16) for k, v in self.features.items()})

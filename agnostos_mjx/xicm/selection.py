@@ -15,6 +15,7 @@ front frame) and returns memory indices, most similar first.  Modes:
 
 from __future__ import annotations
 
+import logging
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ import numpy as np
 
 from agnostos_mjx.xicm.memory import DemoMemory
 
+log = logging.getLogger("agnostos_mjx.xicm")
 TEXT_DIM = 4096
 FEATURE_PARTS = ("lang", "vis.in", "vis.out")
 
@@ -77,6 +79,21 @@ class TextSelector:
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
         return [top_k(self._vectors @ text_vector(q.instruction), k) for q in queries]
+
+
+DEFAULT_FEATURES = "lang+vis.out"  # the paper's best combination
+
+
+def resolve_selection(mode: str, memory: DemoMemory) -> str:
+    """'auto' -> the paper's lang+vis.out when the memory carries dynamics
+    features, else the model-free 'text' ranking (logged)."""
+    if mode != "auto":
+        return mode
+    if memory.features:
+        return DEFAULT_FEATURES
+    log.warning("the demo memory has no dynamics features: selecting demos by instruction "
+                "text ('text'); build a memory with --checkpoint for X-ICM's lang+vis.out")
+    return "text"
 
 
 def make_selector(mode: str, memory: DemoMemory, **kwargs) -> Selector:

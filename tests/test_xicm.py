@@ -1,0 +1,84 @@
+"""The seen-demo memory, demo selection and the retrieval baseline's transfer."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from agnostos_mjx.policies.retrieval import transfer
+from agnostos_mjx.xicm.memory import DemoMemory, MemoryFileError, default_memory_path
+from agnostos_mjx.xicm.selection import (
+    Query,
+    RandomSelector,
+    TextSelector,
+    make_selector,
+    resolve_selection,
+)
+
+
+@pytest.fixture(scope="module")
+def memory() -> DemoMemory:
+    return DemoMemory.load(default_memory_path())
+
+
+def test_shipped_memory_holds_seen_demos_in_xicm_text(memory):
+    from agnostos_mjx.tasks import SEEN
+
+    assert len(memory) >= 3000
+    assert set(memory.task.tolist()) <= set(SEEN) and len(set(memory.task.tolist())) >= 16
+    pattern = re.compile(r"^\['instruction': [^,]+.*\]>\[(\[\d+(, \d+){6}\](, )?)+\], $")
+    for i in range(0, len(memory), 97):
+        assert pattern.match(str(memory.text[i])), memory.text[i]
+        n = int(memory.n_keys[i])
+        assert n >= 1 and np.isfinite(memory.key_pos[i, :n]).all()
+
+
+def test_random_selection_is_seeded_and_distinct(memory):
+    sel = RandomSelector(memory)
+    a, b, c = sel.select([Query("x", 1), Query("x", 1), Query("x", 2)], 18)
+    assert len(set(a.tolist())) == 18 and a.tolist() == b.tolist() and a.tolist() != c.tolist()
+
+
+def test_text_selection_ranks_matching_instructions_first(memory):
+    [top] = TextSelector(memory).select([Query("open the bottom drawer", 0)], 5)
+    assert str(memory.task[top[0]]) == "open_drawer"
+    assert str(memory.instruction[top[0]]) == "open the bottom drawer"
+
+
+def test_selection_modes_resolve_or_fail_clearly(memory):
+    assert resolve_selection("auto", memory) == ("lang+vis.out" if memory.features else "text")
+    assert resolve_selection("random", memory) == "random"
+    bare = replace(memory, features={})
+    with pytest.raises(ValueError, match="needs dynamics features"):
+        make_selector("lang+vis.out", bare)
+    with pytest.raises(ValueError, match="unknown selection"):
+        make_selector("colour", bare)
+
+
+def test_memory_round_trip_concat_and_errors(memory, tmp_path):
+    part = DemoMemory(**{k: getattr(memory, k)[:3] for k in memory.__dataclass_fields__
+                         if k != "features"}, features={"lang": np.ones((3, 4), np.float32)})
+    both = DemoMemory.concat(part, part)
+    assert len(both) == 6 and both.features["lang"].shape == (6, 4)
+    both.save(tmp_path / "m.npz")
+    back = DemoMemory.load(tmp_path / "m.npz")
+    assert back.text.tolist() == both.text.tolist() and "lang" in back.features
+    with pytest.raises(MemoryFileError, match="no demo memory"):
+        DemoMemory.load(tmp_path / "missing.npz")
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(MemoryFileError, match="unreadable"):
+        DemoMemory.load(tmp_path / "bad.npz")
+
+
+def test_transfer_moves_actions_with_the_matched_object():
+    demo_objects = np.array([[0.3, 0.0, 0.8], [0.5, 0.2, 0.8], [np.nan] * 3])
+    query_objects = np.array([[0.2, -0.1, 0.8], [0.4, 0.3, 0.9]])
+    keys = np.array([[0.3, 0.0, 0.9], [0.52, 0.2, 0.85]])
+    moved = transfer(keys, demo_objects, query_objects)
+    np.testing.assert_allclose(moved[0], [0.2, -0.1, 0.9], atol=1e-6)  # with object 0
+    np.testing.assert_allclose(moved[1], [0.42, 0.3, 0.95], atol=1e-6)  # with object 1
+    far = transfer(np.array([[5.0, 5.0, 5.0]]), demo_objects, query_objects)
+    assert (far <= np.array([0.7, 0.5, 1.752]) + 1e-6).all()  # clipped to the action bounds
