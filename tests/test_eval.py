@@ -120,3 +120,21 @@ def test_help(capsys: pytest.CaptureFixture) -> None:
     for flag in ("--policy", "--tasks", "--seeds", "--episodes", "--batch", "--backend",
                  "--variations", "--out", "--resume", "--quiet"):
         assert flag in out
+
+
+def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
+    from agnostos_mjx.paper import published
+    from agnostos_mjx.report_plot import plot_summary
+
+    records = (_records("lamp_on", "unseen_level1", 0, [True, False])
+               + _records("beat_the_buzz", "unseen_level2", 0, [False, False]))
+    summary = ev.aggregate(records)
+    ref = published("X-ICM 72B")
+    md = ev.format_markdown(summary, "t", ref, "X-ICM 72B")
+    assert "| success % mean (std) | X-ICM 72B (published) |" in md
+    assert "| lamp_on | unseen_level1 | 50.0 (0.0) | 74.7 |" in md
+    assert "| All (unseen) | 2 | 25.0 (0.0) | 30.1 |" in md
+    assert plot_summary(summary, tmp_path / "r.png", "t", ref, "X-ICM 72B")
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(KeyError, match="unknown published method"):
+        published("GPT")
