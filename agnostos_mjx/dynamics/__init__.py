@@ -2,6 +2,7 @@
 
 Modules: config (presets), data (FramePairs), autoencoder, text, unet, diffusion
 (schedule, loss, DDIM), checkpoint (orbax), pipeline (trained models, batched
-inference), features (vis.in / vis.out / lang, selection, cached index).
+inference), export (the compact float16 shipping format), features (vis.in /
+vis.out / lang, selection, cached index).
 Training entry points live in agnostos_mjx.train.
 """

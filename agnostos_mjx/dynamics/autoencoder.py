@@ -72,9 +72,12 @@ class Decoder(nnx.Module):
 
 
 class Autoencoder(nnx.Module):
-    def __init__(self, cfg: AutoencoderConfig, *, rngs: nnx.Rngs):
+    """`decoder=False` builds the encoder alone: all that feature extraction needs
+    (the shipped export, agnostos_mjx.dynamics.export, has no decoder weights)."""
+
+    def __init__(self, cfg: AutoencoderConfig, *, decoder: bool = True, rngs: nnx.Rngs):
         self.encoder = Encoder(cfg, rngs=rngs)
-        self.decoder = Decoder(cfg, rngs=rngs)
+        self.decoder = Decoder(cfg, rngs=rngs) if decoder else None
 
     def encode(self, frames: jax.Array) -> tuple[jax.Array, jax.Array]:
         """uint8 frames (B,128,128,3) -> mean and log-variance (B,16,16,4)."""
@@ -84,6 +87,8 @@ class Autoencoder(nnx.Module):
 
     def decode(self, z: jax.Array) -> jax.Array:
         """Latents (B,16,16,4) -> images in [-1, 1]."""
+        if self.decoder is None:
+            raise ValueError("this autoencoder has no decoder (an export keeps the encoder only)")
         return self.decoder(z)
 
 

@@ -1,5 +1,5 @@
-"""A trained autoencoder + dynamics model, loaded from their run directories,
-with the batched inference calls the features and the evaluation need."""
+"""A trained autoencoder + dynamics model, loaded from their run directories or
+from an export, with the batched inference calls the features and the evaluation need."""
 
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ from agnostos_mjx.dynamics.config import (
     to_dict,
 )
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, ddim_sample
+from agnostos_mjx.dynamics.export import is_export, load_export
 from agnostos_mjx.dynamics.layers import abstract
 from agnostos_mjx.dynamics.text import tokenize
 
@@ -110,8 +111,19 @@ class Pipeline:
     def load(
         cls, run: str | Path, ae_run: str | Path | None = None, chunk: int = 64, **sampling: Any
     ) -> Pipeline:
-        """Load a dynamics run (and the autoencoder it was trained on, or `ae_run`).
-        `sampling` overrides sampling fields: sample_steps, image_guidance, text_guidance, sample_seed."""
+        """Load a dynamics run (and the autoencoder it was trained on, or `ae_run`), or an
+        export directory (python -m agnostos_mjx.train.export: float16 weights cast back to
+        float32, no decoder).  `sampling` overrides sampling fields: sample_steps,
+        image_guidance, text_guidance, sample_seed."""
+        if not Path(run).is_dir():
+            raise CheckpointError(
+                f"no dynamics model at {Path(run).absolute()}: expected an export "
+                "(export.json + params.npz) or a training run directory (checkpoints/)"
+            )
+        if is_export(run):
+            if ae_run is not None:
+                raise CheckpointError(f"{run} is an export: it holds its own encoder, drop ae_run")
+            return load_export(run, chunk, **sampling)
         meta = _meta(run, DYN_KIND)
         m = meta["model"]
         text, unet = from_dict(TextConfig, m["text"]), from_dict(UNetConfig, m["unet"])

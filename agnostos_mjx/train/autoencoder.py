@@ -1,6 +1,7 @@
 """Stage 1: train the KL autoencoder on first and last frames of the training demos.
 
 python -m agnostos_mjx.train.autoencoder --bank BANK --out runs/ae
+python -m agnostos_mjx.train.autoencoder --bank BANK --preset ship --out runs/ae_ship
 python -m agnostos_mjx.train.autoencoder --synthetic 64 --quick --out /tmp/ae
 """
 
@@ -26,7 +27,7 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.pipeline import autoencoder_meta
-from agnostos_mjx.train.common import add_data_flags, load_data, save_grid, train
+from agnostos_mjx.train.common import add_data_flags, load_data, preset, save_grid, train
 
 
 def train_autoencoder(
@@ -81,8 +82,9 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
-    cfg = apply_flags(args, "ae", AE_QUICK if args.quick else AE_DEFAULT)
-    tcfg = apply_flags(args, "train", TRAIN_QUICK if args.quick else AE_TRAIN_DEFAULT)
+    chosen = preset(args)
+    cfg = apply_flags(args, "ae", chosen.ae)
+    tcfg = apply_flags(args, "train", chosen.ae_train)
     train_autoencoder(load_data(args), cfg, tcfg, args.out, progress=not args.no_progress)
     print(f"autoencoder run in {args.out}")
 

@@ -21,7 +21,7 @@ import optax
 from flax import nnx
 
 from agnostos_mjx.dynamics.checkpoint import Checkpoints
-from agnostos_mjx.dynamics.config import TrainConfig, to_dict
+from agnostos_mjx.dynamics.config import PRESETS, Preset, TrainConfig, to_dict
 from agnostos_mjx.dynamics.data import FramePairs, synthetic
 from agnostos_mjx.dynamics.layers import abstract, create
 
@@ -170,7 +170,7 @@ class _progress:
 
 
 def add_data_flags(parser: argparse.ArgumentParser, training: bool = True) -> None:
-    """--bank / --data / --synthetic (and, for training, --quick and --no-progress)."""
+    """--bank / --data / --synthetic (and, for training, --preset, --quick and --no-progress)."""
     g = parser.add_argument_group("data (one of --bank, --data, --synthetic)")
     g.add_argument(
         "--bank",
@@ -195,11 +195,27 @@ def add_data_flags(parser: argparse.ArgumentParser, training: bool = True) -> No
         return
     g = parser.add_argument_group("run")
     g.add_argument(
-        "--quick", action="store_true", help="tiny widths, 20 steps, 8 DDIM steps: a CPU smoke run"
+        "--preset",
+        choices=tuple(PRESETS),
+        default="default",
+        help="model and training sizes: 'default' (the measured model), 'ship' (small enough "
+        "to export into the package, <= 30 MB) or 'quick'; single flags below override it",
+    )
+    g.add_argument(
+        "--quick",
+        action="store_true",
+        help="same as --preset quick: tiny widths, 20 steps, 8 DDIM steps: a CPU smoke run",
     )
     g.add_argument(
         "--no-progress", action="store_true", help="no progress bar (losses still go to log.jsonl)"
     )
+
+
+def preset(args: argparse.Namespace) -> Preset:
+    """The configs named by --preset (or --quick)."""
+    if args.quick and args.preset not in ("default", "quick"):
+        raise SystemExit(f"--quick and --preset {args.preset} contradict each other")
+    return PRESETS["quick" if args.quick else args.preset]
 
 
 def load_data(args: argparse.Namespace) -> FramePairs:

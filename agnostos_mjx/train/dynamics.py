@@ -3,6 +3,7 @@ space of a trained autoencoder: predict each demo's last frame from its first
 frame and instruction.
 
     python -m agnostos_mjx.train.dynamics --bank BANK --ae runs/ae --out runs/dyn
+    python -m agnostos_mjx.train.dynamics --bank BANK --preset ship --ae runs/ae_ship --out runs/dyn_ship
     python -m agnostos_mjx.train.dynamics --synthetic 64 --quick --ae /tmp/ae --out /tmp/dyn
 """
 
@@ -34,7 +35,7 @@ from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, diffusion_loss
 from agnostos_mjx.dynamics.pipeline import Pipeline, dynamics_meta, load_autoencoder
 from agnostos_mjx.dynamics.text import tokenize
-from agnostos_mjx.train.common import add_data_flags, load_data, save_grid, train
+from agnostos_mjx.train.common import add_data_flags, load_data, preset, save_grid, train
 
 
 def train_dynamics(
@@ -116,11 +117,11 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
-    q = args.quick
-    text = apply_flags(args, "text", TEXT_QUICK if q else TEXT_DEFAULT)
-    unet = apply_flags(args, "unet", UNET_QUICK if q else UNET_DEFAULT)
-    diffusion = apply_flags(args, "diffusion", DIFFUSION_QUICK if q else DIFFUSION_DEFAULT)
-    tcfg = apply_flags(args, "train", TRAIN_QUICK if q else DYN_TRAIN_DEFAULT)
+    chosen = preset(args)
+    text = apply_flags(args, "text", chosen.text)
+    unet = apply_flags(args, "unet", chosen.unet)
+    diffusion = apply_flags(args, "diffusion", chosen.diffusion)
+    tcfg = apply_flags(args, "train", chosen.dyn_train)
     train_dynamics(
         load_data(args),
         args.ae,

@@ -7,6 +7,7 @@
     demo's top-K (K = 18) that come from its own task, per selection mode.
 
     python -m agnostos_mjx.train.evaluate --run runs/dyn --bank BANK
+    python -m agnostos_mjx.train.evaluate --run EXPORT_DIR --bank BANK --json eval.json
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from agnostos_mjx.dynamics.data import FramePairs
+from agnostos_mjx.dynamics.export import is_export
 from agnostos_mjx.dynamics.features import (
     DEFAULT_K,
     FeatureIndex,
@@ -107,7 +109,8 @@ def parser() -> argparse.ArgumentParser:
         "--run",
         type=Path,
         required=True,
-        help="dynamics run directory (python -m agnostos_mjx.train.dynamics)",
+        help="dynamics run directory (python -m agnostos_mjx.train.dynamics) or an export "
+        "(python -m agnostos_mjx.train.export; then give --json, nothing is written into it)",
     )
     p.add_argument(
         "--ae",
@@ -137,7 +140,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--index",
         type=Path,
-        help="feature index cache (default RUN/index.npz); rebuilt when model or bank change",
+        help="feature index cache (default RUN/index.npz, none for an export); rebuilt when "
+        "model or bank change",
     )
     p.add_argument("--json", type=Path, help="where to write the results (default RUN/eval.json)")
     return p
@@ -154,12 +158,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
         if v is not None
     }
+    exported = is_export(args.run)
+    if exported and args.json is None:
+        raise SystemExit(f"--run {args.run} is an export (shipped files): give --json PATH")
     pipe = Pipeline.load(args.run, args.ae, chunk=args.batch, **sampling)
     result = evaluate(
         pipe,
         load_data(args),
         args.holdout_every,
-        args.index or args.run / "index.npz",
+        args.index or (None if exported else args.run / "index.npz"),
         args.k,
         args.metric,
     )

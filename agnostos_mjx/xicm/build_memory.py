@@ -7,7 +7,7 @@ file shipped with the package).
 Examples::
 
     python -m agnostos_mjx.xicm.build_memory --bank data/seen_bank
-    python -m agnostos_mjx.xicm.build_memory --bank data/seen_bank --checkpoint ckpt/dynamics
+    python -m agnostos_mjx.xicm.build_memory --bank data/seen_bank --checkpoint agnostos_mjx/assets/dynamics
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                             "object centres, selection features).")
     p.add_argument("--bank", type=Path, required=True, help="demonstration bank directory")
     p.add_argument("--checkpoint", type=Path, default=None,
-                   help="dynamics-model checkpoint; adds lang / vis.in / vis.out features")
+                   help="dynamics model: an export (python -m agnostos_mjx.train.export) or a "
+                        "training run directory; adds lang / vis.in / vis.out features")
     p.add_argument("--out", type=Path, default=default_memory_path(), help="memory file")
     p.add_argument("--extend", type=Path, default=None,
                    help="an existing memory to append the bank's demos to (e.g. new tasks)")
@@ -39,9 +40,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         bank = DemoBank(a.bank)
         features = None
         if a.checkpoint is not None:
+            from agnostos_mjx.dynamics.checkpoint import CheckpointError
             from agnostos_mjx.xicm.dynamics_selector import bank_features
 
-            features = bank_features(bank, a.checkpoint)
+            try:
+                features = bank_features(bank, a.checkpoint)
+            except CheckpointError as err:
+                print(f"error: {err}", file=sys.stderr)
+                return 2
         memory = DemoMemory.from_bank(bank, features)
         if a.extend is not None:
             memory = DemoMemory.concat(DemoMemory.load(a.extend), memory)
