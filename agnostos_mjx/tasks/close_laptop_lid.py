@@ -7,7 +7,6 @@ import math
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -18,9 +17,10 @@ from agnostos_mjx.tasks.base import (
     place_root,
 )
 from agnostos_mjx.tasks.builders.appliances import LAPTOP_HINGE, laptop
+from agnostos_mjx.tasks.builders.common import DOWN_ACROSS
 
 # Gripper pointing down, fingers (closed into a fist) along the hinge axis.
-FIST = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)
+FIST = DOWN_ACROSS
 # The push in the hinge's (angle from upright towards the keyboard, radius)
 # polar coordinates: behind the lid's top edge, then over and down (RLBench's
 # 11-point arc of radius 0.24 m about the hinge).

@@ -5,7 +5,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,11 +15,12 @@ from agnostos_mjx.tasks.base import (
     place_root,
 )
 from agnostos_mjx.tasks.builders import hinged_door, panel
+from agnostos_mjx.tasks.builders.common import DOWN_ACROSS
 
 OPEN_ANGLE = 0.6981317  # 40 degrees, as the model saves it
 FRAME_RGBA = (0.85, 0.85, 1.0)
 # Gripper pointing down, fingers across the push direction.
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)
+DOWN = DOWN_ACROSS
 
 
 class CloseMicrowave(Task):

@@ -15,7 +15,7 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import grasp_site, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN_ACROSS, grasp_site, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.furniture import wine_bottle, wine_rack
 
 LOCATIONS = ("middle", "left", "right")
@@ -30,7 +30,7 @@ VOLUME_HALF = (0.02, 0.10, 0.02)
 # Horizontal, pointing along the root's +x, fingers closing along y (wp0/wp1);
 # then pointing down with the bottle lying along +y, base first (wp3/wp4).
 SIDE = euler_xyz_quat(0.0, jnp.pi / 2, 0.0)
-LAID = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)
+LAID = DOWN_ACROSS
 
 
 class PlaceWineAtRackLocation(Task):

@@ -17,7 +17,7 @@ from agnostos_mjx.tasks.base import (
     sample_on_plane,
 )
 from agnostos_mjx.tasks.builders.articulated import drawer_chest
-from agnostos_mjx.tasks.builders.common import free_box, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN_ACROSS, free_box, pose_in_root, sensor_volume
 
 LEVELS = ("bottom", "middle", "top")
 ROOT = "put_item_in_drawer_root"
@@ -31,7 +31,7 @@ VOLUME_HALF = (0.15, 0.15, 0.0375)
 # Gripper horizontal, approaching the handle along the chest's -y, fingers
 # closing vertically around the bar (as in open_drawer); and pointing down.
 HORIZONTAL = euler_xyz_quat(jnp.pi / 2, 0.0, 0.0)
-DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)  # fingers along the chest's x
+DOWN = DOWN_ACROSS  # fingers along the chest's x
 PULL = 0.20  # RLBench's wp3: the drawer is pulled 0.20 m, then released
 BACK_OFF = 0.04  # RLBench backs off 0.113 m (wp4); enough to clear the bar, and in reach
 # Where the chest centre is drawn (centre, half extents), world frame.

@@ -6,7 +6,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import Detected, Grasped, all_of
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
+from agnostos_mjx.math3d import quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,7 +16,7 @@ from agnostos_mjx.tasks.base import (
     key_actions,
     place_root,
 )
-from agnostos_mjx.tasks.builders.common import free_body, sensor_volume
+from agnostos_mjx.tasks.builders.common import DOWN_ACROSS, free_body, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import panel
 from agnostos_mjx.tasks.builders.props import spatula
 
@@ -30,7 +30,7 @@ SUCCESS_CENTER, SUCCESS_HALF = (0.125, -0.1, 0.148), (0.1, 0.1, 0.025)
 PUSH = 0.15  # RLBench pushes 0.20 m; our blade is 0.13 m long and stops under the cube
 LIFT = 0.125
 # Pointing down, fingers across the handle (along the root's x).
-GRASP = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)
+GRASP = DOWN_ACROSS
 
 
 class ScoopWithSpatula(Task):

@@ -5,7 +5,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,
@@ -16,9 +15,10 @@ from agnostos_mjx.tasks.base import (
     place_root,
 )
 from agnostos_mjx.tasks.builders.appliances import toilet
+from agnostos_mjx.tasks.builders.common import DOWN_ACROSS
 
 # Gripper pointing down, fingers (closed into a fist) along the hinge axis.
-FIST = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)
+FIST = DOWN_ACROSS
 # Root-frame key points: above and behind the raised seat, down behind its
 # top edge (RLBench's wp0), forward past upright (wp1), then on along the
 # seat's arc until it lies on the bowl (RLBench lets it fall after wp2/wp3).

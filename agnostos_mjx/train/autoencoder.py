@@ -27,7 +27,14 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.pipeline import autoencoder_meta
-from agnostos_mjx.train.common import add_data_flags, load_data, preset, save_grid, train
+from agnostos_mjx.train.common import (
+    add_data_flags,
+    load_data,
+    preset,
+    run_parser,
+    save_grid,
+    train,
+)
 
 
 def train_autoencoder(
@@ -63,17 +70,7 @@ def train_autoencoder(
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m agnostos_mjx.train.autoencoder",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument(
-        "--out",
-        type=Path,
-        required=True,
-        help="run directory: checkpoints/, log.jsonl, samples/, config.json; resumes if it holds checkpoints",
-    )
+    p = run_parser("python -m agnostos_mjx.train.autoencoder", __doc__)
     add_data_flags(p)
     add_flags(p, "ae", AE_DEFAULT, AE_QUICK)
     add_flags(p, "train", AE_TRAIN_DEFAULT, TRAIN_QUICK)

@@ -169,6 +169,19 @@ class _progress:
 # ---- data and CLI pieces shared by the entry points ----
 
 
+def run_parser(prog: str, doc: str | None) -> argparse.ArgumentParser:
+    """The parser every training entry point starts from: --out, the run directory."""
+    p = argparse.ArgumentParser(prog=prog, description=doc,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="run directory: checkpoints/, log.jsonl, samples/, config.json; resumes if it holds checkpoints",
+    )
+    return p
+
+
 def add_data_flags(parser: argparse.ArgumentParser, training: bool = True) -> None:
     """--bank / --data / --synthetic (and, for training, --preset, --quick and --no-progress)."""
     g = parser.add_argument_group("data (one of --bank, --data, --synthetic)")

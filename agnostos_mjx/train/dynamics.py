@@ -35,7 +35,14 @@ from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, diffusion_loss
 from agnostos_mjx.dynamics.pipeline import Pipeline, dynamics_meta, load_autoencoder
 from agnostos_mjx.dynamics.text import tokenize
-from agnostos_mjx.train.common import add_data_flags, load_data, preset, save_grid, train
+from agnostos_mjx.train.common import (
+    add_data_flags,
+    load_data,
+    preset,
+    run_parser,
+    save_grid,
+    train,
+)
 
 
 def train_dynamics(
@@ -90,17 +97,7 @@ def train_dynamics(
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m agnostos_mjx.train.dynamics",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument(
-        "--out",
-        type=Path,
-        required=True,
-        help="run directory: checkpoints/, log.jsonl, samples/, config.json; resumes if it holds checkpoints",
-    )
+    p = run_parser("python -m agnostos_mjx.train.dynamics", __doc__)
     p.add_argument(
         "--ae",
         type=Path,

@@ -29,6 +29,8 @@ HIDDEN_GROUP = 4
 # The gripper pointing down with its fingers closing along the y axis of the
 # frame it is composed with (the world's, or a root's via `frame_quat`).
 DOWN = euler_xyz_quat(jnp.pi, 0.0, jnp.pi)
+# Pointing down with the fingers across DOWN's: they close along the world/root x axis.
+DOWN_ACROSS = euler_xyz_quat(jnp.pi, 0.0, jnp.pi / 2)
 # Panda link0 on the table (spec section 2).
 ROBOT_BASE_XY = (-0.268, -0.006)
 
