@@ -109,11 +109,11 @@ class StepResult:
 class Episodes:
     """Runs batches of episodes of one task on one backend."""
 
-    def __init__(self, task: Task, backend: str = "auto"):
+    def __init__(self, task: Task, backend: str = "auto", threads: int | None = None):
         self.task = task
         self.scene: SceneModel = build_scene(task)
         self.backend_name = resolve_backend(backend)
-        self.backend = make_backend(self.backend_name, self.scene.model)
+        self.backend = make_backend(self.backend_name, self.scene.model, threads)
         self.kin = PandaKinematics.from_model(self.scene.model)
         self.dt = float(self.scene.model.opt.timestep)
         self.nu = self.scene.model.nu

@@ -28,7 +28,11 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import collections
+import concurrent.futures
+import copy
 import csv
+import functools
 import io
 import json
 import logging
@@ -93,6 +97,7 @@ class EvalConfig:
     llm_model: str | None = None
     llm_cache: str | None = None
     llm_concurrency: int = 64
+    overlap_tasks: int = 3
     selection: str = "auto"
     num_demos: int = 18
     memory: str | None = None
@@ -188,6 +193,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "--resume reuse answers, a shipped cache replays a run offline")
     llm.add_argument("--llm-concurrency", type=_positive_int, default=64,
                      help="LLM requests in flight at once")
+    llm.add_argument("--overlap-tasks", type=_positive_int, default=3,
+                     help="tasks evaluated at once when the policy waits on an LLM: while one "
+                          "task's requests are in flight the others simulate (1: one task at "
+                          "a time; results do not depend on it)")
     llm.add_argument("--selection", default="auto",
                      help="in-context demo selection: random, text (instruction trigrams), "
                           "dynamics features lang, vis.in, vis.out joined with '+', or auto "
@@ -209,7 +218,8 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       variations=a.variations, out=a.out, resume=a.resume,
                       fail_fast=a.fail_fast, quiet=a.quiet, llm_url=a.llm_url,
                       llm_model=a.llm_model, llm_cache=a.llm_cache,
-                      llm_concurrency=a.llm_concurrency, selection=a.selection,
+                      llm_concurrency=a.llm_concurrency, overlap_tasks=a.overlap_tasks,
+                      selection=a.selection,
                       num_demos=a.num_demos, memory=a.memory, compare=a.compare)
 
 
@@ -411,6 +421,17 @@ def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
              on_batch, progress: Progress | None = None, done_before: int = 0) -> list[dict]:
     """Run `pending` (seed, episode) pairs of one task in chunks of cfg.batch;
     `on_batch(records)` is called after every chunk.  Returns the records."""
+    from agnostos_mjx.policies.planning import run_blocking
+
+    tick = None if progress is None else (lambda n: progress.update(done_before + n))
+    return run_blocking(task_steps(task, policy, pending, cfg, on_batch, tick))
+
+
+def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on_batch,
+               tick=None):
+    """`run_task` as a generator that yields the futures the policy waits on (see
+    PlanningPolicy.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
+    `tick(episodes_done)` reports progress within the task."""
     from agnostos_mjx.episode import Episodes, Outcome
 
     t0 = time.perf_counter()
@@ -442,7 +463,10 @@ def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
             for _ in range(task.max_key_actions):
                 if env.done.all():
                     break
-                actions = policy.act(runner, env)
+                if hasattr(policy, "act_steps"):
+                    actions = yield from policy.act_steps(runner, env)
+                else:
+                    actions = policy.act(runner, env)
                 running = env.outcome == Outcome.RUNNING
                 env, _ = runner.step(env, actions)
                 # A policy may say why a world got no action (bad LLM output, LLM error).
@@ -450,8 +474,8 @@ def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
                 if reasons is not None:
                     ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
                     env.outcome = np.where(ended, reasons, env.outcome)
-                if progress is not None:
-                    progress.update(done_before + len(out) + int(env.done[:n].sum()))
+                if tick is not None:
+                    tick(len(out) + int(env.done[:n].sum()))
         except Exception:
             if cfg.fail_fast:
                 raise
@@ -476,11 +500,38 @@ def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
                 records[-1]["policy_info"] = policy.episode_info(i)
         out += records
         on_batch(records)
-        if progress is not None:
-            progress.update(done_before + len(out), force=True)
+        if tick is not None:
+            tick(len(out))
         rate = 100.0 * np.mean([r["success"] for r in records])
         log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, n, wall, rate)
     return out
+
+
+def run_interleaved(jobs: Sequence, limit: int, on_done=None) -> list:
+    """Run generators of futures (task_steps) with up to `limit` started at once: whenever
+    one waits on a future, the next ready one runs.  Everything runs on the calling thread
+    (physics and JAX stay single-threaded); only the awaited work (LLM requests) runs
+    elsewhere.  `on_done(index, value)` is called as each finishes; returns the values."""
+    pending = collections.deque(enumerate(jobs))
+    active: list[list] = []  # [index, generator, future or None]
+    values: list = [None] * len(jobs)
+    while pending or active:
+        while pending and len(active) < limit:
+            active.append([*pending.popleft(), None])
+        ready = [slot for slot in active if slot[2] is None or slot[2].done()]
+        if not ready:
+            concurrent.futures.wait([slot[2] for slot in active],
+                                    return_when=concurrent.futures.FIRST_COMPLETED)
+            continue
+        for slot in ready:
+            try:
+                slot[2] = slot[1].send(None)
+            except StopIteration as stop:
+                values[slot[0]] = stop.value
+                active.remove(slot)
+                if on_done is not None:
+                    on_done(slot[0], stop.value)
+    return values
 
 
 def evaluate(cfg: EvalConfig) -> dict:
@@ -580,13 +631,20 @@ def evaluate(cfg: EvalConfig) -> dict:
         all_records.extend(records)
         atomic_write(episodes_path, _jsonl(all_records))
 
-    done = 0
+    todo = [t for t in tasks if plan[t.name]]
+    # One policy copy per task running at once: copies share the heavy parts (LLM client,
+    # memory, selector); reset() gives each its own per-episode state.
+    overlap = cfg.overlap_tasks if hasattr(policy, "act_steps") else 1
     with progress_bar(total, enabled=not cfg.quiet) as progress:
-        for task in tasks:
-            if not plan[task.name]:
-                continue
-            done += len(run_task(task, policy, plan[task.name], cfg, on_batch, progress, done))
-            write_results(final=False)
+        done = {t.name: 0 for t in todo}
+
+        def tick(name: str, n: int) -> None:
+            done[name] = n
+            progress.update(sum(done.values()))
+
+        jobs = [task_steps(t, copy.copy(policy) if overlap > 1 else policy, plan[t.name], cfg,
+                           on_batch, functools.partial(tick, t.name)) for t in todo]
+        run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
     return write_results(final=True)
 
 

@@ -150,3 +150,31 @@ def test_cli_show_prints_text(bank_dir, capsys):
     out = capsys.readouterr().out
     assert out.startswith("['instruction': open the middle drawer, {'drawer': [")
     assert main([str(bank_dir), "--task", "open_drawer", "--index", "7"]) == 2
+
+
+def test_worker_processes_make_the_same_bank(bank_dir, tmp_path):
+    """Two spawned processes, one chunk each: the bank equals the in-process one."""
+    report = gen.generate(replace(config(tmp_path), workers=2))
+    assert report["workers"] == 2
+    _same_bank(bank_dir, tmp_path)
+
+
+def test_chunk_planning_covers_gaps_and_replaces_given_up_demos(tmp_path):
+    cfg = replace(config(tmp_path, demos=10), batch=4)
+    fresh = gen.plan_chunks(cfg, "t", {}, have=0)
+    assert [(c.start, c.stop) for c in fresh] == [(0, 4), (4, 8), (8, 10)]
+    # a run interrupted after two out-of-order chunks finished
+    partial = gen.plan_chunks(cfg, "t", {"done": [[0, 4], [8, 10]]}, have=6)
+    assert [(c.start, c.stop) for c in partial] == [(4, 8)]
+    # everything ran but two demos were given up: fresh indices after the last one
+    top_up = gen.plan_chunks(cfg, "t", {"done": [[0, 10]]}, have=8)
+    assert [(c.start, c.stop) for c in top_up] == [(10, 12)]
+    assert gen.plan_chunks(cfg, "t", {"done": [[0, 10]]}, have=10) == []
+    # banks of the first format recorded a next index instead of intervals
+    assert [(c.start, c.stop) for c in gen.plan_chunks(cfg, "t", {"next_index": 8}, 8)] == [(8, 10)]
+    assert gen._add_interval([[0, 4], [8, 10]], 4, 8) == [[0, 10]]
+
+
+def test_workers_need_the_native_backend(tmp_path):
+    with pytest.raises(ValueError, match="needs --backend native"):
+        gen.resolve_workers(replace(config(tmp_path), backend="warp", workers=2))

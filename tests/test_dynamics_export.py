@@ -1,6 +1,6 @@
 """The compact shipping format of the dynamics model (quick preset, CPU): an export
 gives the features of the run it came from, is small, holds no decoder, fails
-clearly when damaged; the `ship` preset's export fits the package's budget."""
+clearly when damaged; the default preset's export fits the package's budget."""
 
 from __future__ import annotations
 
@@ -163,21 +163,25 @@ def test_damaged_export_is_a_clear_error(exported, tmp_path):
         eval_cli.main(["--run", str(exported), "--synthetic", "4"])
 
 
-def test_ship_preset_export_fits_the_budget():
-    """From shapes only (the default preset, 48.6 M parameters, would be ~97 MB)."""
-    ship = PRESETS["ship"]
+def test_default_preset_export_fits_the_budget():
+    """From shapes only (the large preset, 48.6 M parameters, would be ~97 MB)."""
+    ship = PRESETS["default"]
     assert ship.unet.channels == (64, 128, 128) and ship.text.width == 192
-    assert ship.ae == PRESETS["default"].ae  # only its encoder is shipped
+    assert ship.ae == PRESETS["large"].ae  # only its encoder is shipped
+    large = PRESETS["large"]
+    assert parameter_count(large.ae, large.text, large.unet) > 40e6
     n = parameter_count(ship.ae, ship.text, ship.unet)
     assert 14e6 < n < 15e6  # float16: 2 bytes each
     assert 2 * n < size_bound(ship.ae, ship.text, ship.unet) <= SHIP_BUDGET
 
 
 def test_preset_flag_on_the_training_entry_points():
-    args = ["--out", "x", "--synthetic", "4", "--preset", "ship"]
-    assert preset(ae_cli.parser().parse_args(args)).ae == PRESETS["ship"].ae
+    args = ["--out", "x", "--synthetic", "4", "--preset", "large"]
+    assert preset(ae_cli.parser().parse_args(args)).ae == PRESETS["large"].ae
     dyn = dyn_cli.parser().parse_args([*args, "--ae", "a"])
-    assert preset(dyn) == PRESETS["ship"] and preset(dyn).unet.channels == (64, 128, 128)
+    assert preset(dyn) == PRESETS["large"] and preset(dyn).unet.channels == (128, 256, 256)
+    plain = dyn_cli.parser().parse_args(["--out", "x", "--ae", "a"])
+    assert preset(plain) == PRESETS["default"] and preset(plain).dyn_train.steps == 7_000
     quick = dyn_cli.parser().parse_args(["--out", "x", "--ae", "a", "--quick"])
     assert preset(quick) == PRESETS["quick"]
     with pytest.raises(SystemExit, match="contradict"):

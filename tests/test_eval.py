@@ -138,3 +138,38 @@ def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(KeyError, match="unknown published method"):
         published("GPT")
+
+
+def test_run_interleaved_runs_others_while_one_waits():
+    import concurrent.futures
+
+    from agnostos_mjx.eval import run_interleaved
+
+    events: list[str] = []
+    gate: concurrent.futures.Future = concurrent.futures.Future()
+
+    def waits():
+        events.append("a:start")
+        yield gate  # not done until b has run
+        events.append("a:end")
+        return "a"
+
+    def runs():
+        events.append("b:run")
+        gate.set_result(None)
+        return "b"
+        yield  # noqa: B901
+
+    finished = []
+    values = run_interleaved([waits(), runs()], limit=2,
+                             on_done=lambda i, v: finished.append((i, v)))
+    assert values == ["a", "b"]
+    assert events == ["a:start", "b:run", "a:end"] and finished == [(1, "b"), (0, "a")]
+    done: concurrent.futures.Future = concurrent.futures.Future()
+    done.set_result(None)
+
+    def lone():
+        yield done
+        return "c"
+
+    assert run_interleaved([lone()], limit=1) == ["c"]

@@ -221,3 +221,32 @@ def test_vllm_engine_without_vllm_is_a_clear_error(monkeypatch):
 
     with pytest.raises(LLMConfigError, match="needs vLLM"):
         VLLMEngine(LLMConfig(url="vllm:", model="Qwen/Qwen2.5-7B-Instruct"))
+
+
+def test_tasks_overlap_while_their_requests_wait(memory_file, tmp_path):
+    """With --overlap-tasks 2 the second task simulates and sends its requests while the
+    first task's requests are in flight; the episodes are the same as one task at a time."""
+    from agnostos_mjx import eval as ev
+
+    runs = {}
+    for overlap in (1, 2):
+        with ScriptedLLMServer(press_the_button, latency_s=0.5) as server:
+            out = tmp_path / f"overlap{overlap}"
+            assert ev.main(["--llm-url", server.url, "--llm-model", "scripted", "--tasks",
+                            "lamp_on,lamp_off", "--seeds", "0", "--episodes", "2", "--batch",
+                            "2", "--backend", "native", "--quiet", "--selection", "random",
+                            "--num-demos", "2", "--memory", str(memory_file), "--out", str(out),
+                            "--overlap-tasks", str(overlap)]) == 0
+            times = dict(server.times)
+        records = [json.loads(line) for line in (out / "episodes.jsonl").open()]
+        for r in records:
+            r.pop("batch_wall_s")
+        runs[overlap] = sorted(records, key=lambda r: (r["task"], r["episode"]))
+        lamp_on = {i for i, r in enumerate(server.requests)
+                   if "turn on" in r["messages"][-1]["content"]}
+        assert lamp_on and len(lamp_on) < len(server.requests)
+        first_answered = max(times[i][1] for i in lamp_on)
+        other_arrived = min(times[i][0] for i in times if i not in lamp_on)
+        overlapped = other_arrived < first_answered
+        assert overlapped == (overlap == 2)
+    assert runs[1] == runs[2]

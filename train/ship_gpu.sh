@@ -5,7 +5,7 @@
 #   train/ship_gpu.sh finish BANK RUNS OUT      dynamics to its last step, evaluate, export,
 #                                               evaluate the export, build the seen memory
 set -euo pipefail
-PRESET=${PRESET:-ship}  # PRESET=quick: a CPU smoke run of the same stages
+PRESET=${PRESET:-default}  # PRESET=quick: a CPU smoke run of the same stages
 stage=${1:?usage: train/ship_gpu.sh train|finish BANK RUNS ...}
 BANK=${2:?BANK}
 RUNS=${3:?RUNS}

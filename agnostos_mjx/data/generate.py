@@ -11,9 +11,16 @@ Recording follows RLBench: an observation every 0.05 s (every 10th physics
 step); key actions are the PerAct keyframes of that recording (gripper
 changes and arm stops), in continuous form and as X-ICM's 7 integers.
 
-Interrupting is safe: each batch rewrites the task's archive and then the
-manifest atomically, and a rerun with the same --out continues where the
-last one stopped (settings must match; a mismatch is an error, not a mix).
+Work is split into chunks of demo indices (`--chunk`, default `--batch`); with the
+native backend, `--workers` processes run chunks in parallel (one per core by
+default: the experts' control loop is serial Python, so processes scale where
+MuJoCo's threads alone do not).  Scene keys depend only on (seed, task, index,
+attempt), so the bank does not depend on workers, chunks or batch size.
+
+Interrupting is safe: each finished chunk rewrites its task's archive and then
+the manifest (which records the index intervals run) atomically, and a rerun
+with the same --out runs only what is missing (settings must match; a
+mismatch is an error, not a mix).
 
 Examples::
 
@@ -24,8 +31,12 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
+import itertools
 import json
 import logging
+import multiprocessing
+import os
 import sys
 import time
 import zlib
@@ -72,6 +83,8 @@ class GenerateConfig:
     max_attempts: int = 10
     frame_dt: float = FRAME_DT
     quiet: bool = False
+    workers: int = 1  # processes (native backend); 0: one per core
+    chunk: int = 0  # demos per unit of work (0: --batch)
 
 
 def demo_keys(seed: int, task: str, indices: np.ndarray, attempts: np.ndarray) -> jax.Array:
@@ -155,7 +168,9 @@ def _merge(old: dict[str, np.ndarray] | None, new: dict[str, list], meta: dict,
         if old is not None:
             arr = old[k] if arr is None else np.concatenate([old[k], arr])
         merged[k] = arr
-    order = np.argsort(merged["index"], kind="stable")
+    # Keep one row per demo index: a chunk rerun after an interruption between the
+    # archive write and the manifest write regenerates demos the archive already has.
+    _, order = np.unique(merged["index"], return_index=True)
     merged = {k: v[order] for k, v in merged.items()}
     trajs = [trajs[i] for i in order]
     merged["traj"] = np.concatenate(trajs) if trajs else np.zeros((0, 8), np.float32)
@@ -205,36 +220,37 @@ def _load_existing(cfg: GenerateConfig, entry: dict | None) -> dict[str, np.ndar
         return read_shard(cfg.out / entry["file"])
 
 
-def generate_task(cfg: GenerateConfig, task, manifest: dict, bar=None) -> dict:
-    """Generate (or finish) one task's demos; returns its manifest entry."""
-    from agnostos_mjx.episode import Episodes, Outcome
+@dataclass(frozen=True)
+class Chunk:
+    """Demo indices [start, stop) of one task: the unit of work a process runs."""
 
-    entry = manifest["tasks"].get(task.name)
-    old = _load_existing(cfg, entry)
-    have = 0 if old is None else len(old["index"])
-    entry = dict(entry or {"file": f"{task.name}.npz", "failed_attempts": 0, "given_up": 0,
-                           "next_index": 0, "seconds": 0.0})
-    if have >= cfg.demos:
-        entry["demos"] = have
-        return entry
-    episodes = Episodes(task, cfg.backend)
-    from agnostos_mjx.render import camera_names
+    task: str
+    start: int
+    stop: int
 
-    known = camera_names(episodes.scene.model)
-    if unknown := [c for c in cfg.cameras if c not in known]:
-        raise ValueError(f"unknown camera(s) {unknown}; the scene has {', '.join(known)}")
+
+@dataclass
+class ChunkResult:
+    chunk: Chunk
+    demos: dict[str, list]  # see _demo_arrays
+    failed_attempts: int
+    given_up: int
+    seconds: float
+
+
+def run_chunk(cfg: GenerateConfig, chunk: Chunk, episodes) -> ChunkResult:
+    """Run the expert on a chunk's demos in batches until each succeeds or runs out
+    of attempts; nothing is written (the caller merges and stores)."""
+    from agnostos_mjx.episode import Outcome
+
+    task = episodes.task
     stride = max(1, round(cfg.frame_dt / episodes.dt))
-    meta = {"task": task.name, "split": task.split.value, "format_version": FORMAT_VERSION,
-            "cameras": list(cfg.cameras), "image_size": cfg.image_size,
-            "frame_dt": stride * episodes.dt, "traj_fields": list(TRAJ_FIELDS)}
     t0 = time.perf_counter()
-    next_index = entry["next_index"]
-    while have < cfg.demos:
-        n = min(cfg.batch, cfg.demos - have)
-        indices = np.arange(next_index, next_index + n)
-        attempts = np.zeros(n, np.int64)
-        pending = np.ones(n, bool)
-        new: dict[str, list] | None = None
+    result = ChunkResult(chunk, {}, 0, 0, 0.0)
+    for first_index in range(chunk.start, chunk.stop, cfg.batch):
+        indices = np.arange(first_index, min(first_index + cfg.batch, chunk.stop))
+        attempts = np.zeros(len(indices), np.int64)
+        pending = np.ones(len(indices), bool)
         while pending.any():
             todo = np.nonzero(pending)[0]
             size = _pad_batch(len(todo), cfg.batch)
@@ -248,65 +264,205 @@ def generate_task(cfg: GenerateConfig, task, manifest: dict, bar=None) -> dict:
             env = episodes.run_expert(env0, record)
             ok = env.outcome == Outcome.SUCCESS
             ok[len(todo):] = False  # padding worlds are duplicates
-            last = {c: episodes.render(env, c, cfg.image_size, cfg.image_size)
-                    for c in cfg.cameras}
-            frames = {c: (first[c], last[c]) for c in cfg.cameras}
+            frames = {c: (first[c], episodes.render(env, c, cfg.image_size, cfg.image_size))
+                      for c in cfg.cameras}
             arrays = _demo_arrays(episodes, env, record, frames, indices[rows],
                                   attempts[rows], ok, stride)
-            new = arrays if new is None else {k: new[k] + arrays[k] for k in new}
+            for k, rows_k in arrays.items():
+                result.demos.setdefault(k, []).extend(rows_k)
             failed = ~ok[:len(todo)]
-            entry["failed_attempts"] += int(failed.sum())
+            result.failed_attempts += int(failed.sum())
             pending[todo[ok[:len(todo)]]] = False
             attempts[todo[failed]] += 1
             exhausted = pending & (attempts >= cfg.max_attempts)
             if exhausted.any():
                 log.warning("%s: demos %s failed %d attempts; skipped", task.name,
                             indices[exhausted].tolist(), cfg.max_attempts)
-                entry["given_up"] += int(exhausted.sum())
+                result.given_up += int(exhausted.sum())
                 pending &= ~exhausted
-        merged = _merge(old, new, meta, list(task.objects))
-        entry["sha256"] = write_shard(cfg.out / entry["file"], merged)
-        added = len(merged["index"]) - have
-        old, have = merged, len(merged["index"])
-        next_index += n
-        entry.update(demos=have, next_index=int(next_index),
-                     seconds=round(entry["seconds"] + time.perf_counter() - t0, 2))
-        t0 = time.perf_counter()
-        manifest["tasks"][task.name] = entry
-        write_manifest(cfg.out, manifest)
-        if bar is not None:
-            bar.update(bar.done + added)
-    return entry
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def _covered(entry: dict) -> list[list[int]]:
+    """Index intervals [start, stop) already run (banks of format 1 stored `next_index`)."""
+    if "done" in entry:
+        return [list(r) for r in entry["done"]]
+    return [[0, int(entry.get("next_index", 0))]] if entry.get("next_index") else []
+
+
+def _add_interval(done: list[list[int]], start: int, stop: int) -> list[list[int]]:
+    merged: list[list[int]] = []
+    for a, b in sorted([*done, [start, stop]]):
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    return merged
+
+
+def _gaps(done: list[list[int]], stop: int) -> list[tuple[int, int]]:
+    """Parts of [0, stop) not covered by `done`."""
+    gaps, cursor = [], 0
+    for a, b in done:
+        if a > cursor:
+            gaps.append((cursor, min(a, stop)))
+        cursor = max(cursor, b)
+    if cursor < stop:
+        gaps.append((cursor, stop))
+    return [(a, b) for a, b in gaps if a < b]
+
+
+def plan_chunks(cfg: GenerateConfig, task: str, entry: dict, have: int) -> list[Chunk]:
+    """Chunks still to run for a task: the uncovered part of [0, demos), or, once that
+    is covered but demos were given up, fresh indices after the last one run."""
+    done = _covered(entry)
+    gaps = _gaps(done, cfg.demos)
+    if not gaps and have < cfg.demos:
+        end = max((b for _, b in done), default=0)
+        gaps = [(end, end + cfg.demos - have)]
+    size = cfg.chunk or cfg.batch
+    return [Chunk(task, a, min(a + size, b)) for a, b in gaps for a in range(a, b, size)]
+
+
+class _TaskStore:
+    """One task's archive and manifest entry; every added chunk is written atomically
+    (archive first, then the manifest), so an interruption loses at most running chunks."""
+
+    def __init__(self, cfg: GenerateConfig, task, manifest: dict):
+        self.cfg, self.task, self.manifest = cfg, task, manifest
+        entry = manifest["tasks"].get(task.name)
+        self.archive = _load_existing(cfg, entry)
+        self.entry = dict(entry or {"file": f"{task.name}.npz", "failed_attempts": 0,
+                                    "given_up": 0, "seconds": 0.0})
+        self.entry["done"] = _covered(self.entry)
+        self.entry.pop("next_index", None)
+        self.entry["demos"] = self.have
+
+    @property
+    def have(self) -> int:
+        return 0 if self.archive is None else len(self.archive["index"])
+
+    def add(self, result: ChunkResult, frame_dt: float) -> int:
+        before = self.have
+        if result.demos.get("index"):
+            meta = {"task": self.task.name, "split": self.task.split.value,
+                    "format_version": FORMAT_VERSION, "cameras": list(self.cfg.cameras),
+                    "image_size": self.cfg.image_size, "frame_dt": frame_dt,
+                    "traj_fields": list(TRAJ_FIELDS)}
+            self.archive = _merge(self.archive, result.demos, meta, list(self.task.objects))
+            self.entry["sha256"] = write_shard(self.cfg.out / self.entry["file"], self.archive)
+        e = self.entry
+        e["done"] = _add_interval(e["done"], result.chunk.start, result.chunk.stop)
+        e["failed_attempts"] += result.failed_attempts
+        e["given_up"] += result.given_up
+        e["seconds"] = round(e["seconds"] + result.seconds, 2)
+        e["demos"] = self.have
+        self.manifest["tasks"][self.task.name] = e
+        write_manifest(self.cfg.out, self.manifest)
+        return self.have - before
+
+
+# Per worker process: the scenes it has built (a process runs chunks of several tasks).
+_WORKER_EPISODES: dict[str, object] = {}
+
+
+def _worker_init(threads: int) -> None:
+    os.environ["JAX_PLATFORMS"] = "cpu"  # native workers must not grab the GPU
+    setup_logging(quiet=True)  # warnings (e.g. given-up demos) still show
+    _WORKER_EPISODES["threads"] = threads  # type: ignore[assignment]
+
+
+def _worker_run(cfg: GenerateConfig, chunk: Chunk) -> ChunkResult:
+    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    if chunk.task not in _WORKER_EPISODES:
+        threads = int(_WORKER_EPISODES.get("threads", 1))  # type: ignore[arg-type]
+        _WORKER_EPISODES[chunk.task] = Episodes(get_task(chunk.task), cfg.backend, threads)
+    return run_chunk(cfg, chunk, _WORKER_EPISODES[chunk.task])
+
+
+def resolve_workers(cfg: GenerateConfig) -> int:
+    """--workers 0 means one process per core for the native backend, else 1."""
+    from agnostos_mjx.physics import resolve_backend
+
+    backend = resolve_backend(cfg.backend)
+    if cfg.workers == 0:
+        return (os.cpu_count() or 1) if backend == "native" else 1
+    if cfg.workers > 1 and backend != "native":
+        raise ValueError(f"--workers {cfg.workers} needs --backend native (one {backend} "
+                         "process drives the whole accelerator)")
+    return cfg.workers
 
 
 def generate(cfg: GenerateConfig) -> dict:
     """Generate every requested task; returns a report (also written to report.json)."""
+    from agnostos_mjx.episode import Episodes
     from agnostos_mjx.tasks import get_task
 
-    tasks = [get_task(t) for t in cfg.tasks]
+    tasks = {name: get_task(name) for name in cfg.tasks}
     manifest = _open_bank(cfg)
+    stores = {name: _TaskStore(cfg, task, manifest) for name, task in tasks.items()}
+    workers = resolve_workers(cfg)
     total = cfg.demos * len(tasks)
-    done_before = sum(min(manifest["tasks"].get(t.name, {}).get("demos", 0), cfg.demos)
-                      for t in tasks)
     t0 = time.perf_counter()
+    counted = lambda: sum(min(s.have, cfg.demos) for s in stores.values())  # noqa: E731
     with progress_bar(total, enabled=not cfg.quiet, unit="demos") as bar:
-        bar.update(done_before, force=True)
-        for task in tasks:
-            entry = generate_task(cfg, task, manifest, bar)
-            manifest["tasks"][task.name] = entry
-            write_manifest(cfg.out, manifest)
-            bar.update(sum(min(manifest["tasks"].get(t.name, {}).get("demos", 0), cfg.demos)
-                           for t in tasks))
+        bar.update(counted(), force=True)
+        for _round in range(cfg.max_attempts):  # later rounds only replace given-up demos
+            per_task = [plan_chunks(cfg, n, s.entry, s.have) for n, s in stores.items()]
+            if not any(per_task):
+                break
+            frame_dt = _scene_checks(cfg, tasks, {g[0].task for g in per_task if g})
+            if workers == 1:  # task by task, one runner alive at a time
+                for group in filter(None, per_task):
+                    episodes = Episodes(tasks[group[0].task], cfg.backend)
+                    _collect((run_chunk(cfg, c, episodes) for c in group), stores, frame_dt,
+                             bar, counted)
+                continue
+            # Round-robin over tasks so that every task's chunks start early.
+            chunks = [c for group in itertools.zip_longest(*per_task) for c in group if c]
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            with concurrent.futures.ProcessPoolExecutor(
+                    workers, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_worker_init, initargs=(threads,)) as pool:
+                futures = [pool.submit(_worker_run, cfg, c) for c in chunks]
+                _collect((f.result() for f in concurrent.futures.as_completed(futures)),
+                         stores, frame_dt, bar, counted)
     wall = time.perf_counter() - t0
-    report = {"out": str(cfg.out), "wall_seconds": round(wall, 2),
-              "demos": sum(manifest["tasks"][t.name]["demos"] for t in tasks),
-              "backend": cfg.backend, "tasks": {t.name: manifest["tasks"][t.name] for t in tasks}}
+    report = {"out": str(cfg.out), "wall_seconds": round(wall, 2), "workers": workers,
+              "demos": sum(s.have for s in stores.values()), "backend": cfg.backend,
+              "tasks": {name: manifest["tasks"][name] for name in tasks}}
     report["markdown"] = format_report(report)
     from agnostos_mjx.cli import atomic_write
 
     atomic_write(cfg.out / "report.json", json.dumps(report, indent=1) + "\n")
     atomic_write(cfg.out / "report.md", report["markdown"])
     return report
+
+
+def _scene_checks(cfg: GenerateConfig, tasks: dict, names: set[str]) -> dict[str, float]:
+    """Check the cameras exist and return each task's recording interval, from the scene
+    models alone (cheap: no runner is built)."""
+    from agnostos_mjx.render import camera_names
+    from agnostos_mjx.world import build_scene
+
+    frame_dt = {}
+    for name in sorted(names):
+        model = build_scene(tasks[name]).model
+        known = camera_names(model)
+        if unknown := [c for c in cfg.cameras if c not in known]:
+            raise ValueError(f"unknown camera(s) {unknown}; the scene has {', '.join(known)}")
+        dt = float(model.opt.timestep)
+        frame_dt[name] = max(1, round(cfg.frame_dt / dt)) * dt
+    return frame_dt
+
+
+def _collect(results, stores: dict, frame_dt: dict, bar, counted) -> None:
+    for result in results:
+        stores[result.chunk.task].add(result, frame_dt[result.chunk.task])
+        bar.update(counted())
 
 
 def format_report(report: dict) -> str:
@@ -339,6 +495,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "(front, left_shoulder, right_shoulder, overhead, wrist)")
     p.add_argument("--max-attempts", type=int, default=10,
                    help="scenes tried per demo before it is skipped (counted in the report)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="processes running chunks of demos in parallel, native backend only "
+                        "(0: one per CPU core for native, 1 for MJX); results do not depend "
+                        "on it")
+    p.add_argument("--chunk", type=int, default=0,
+                   help="demos per unit of work handed to a process (0: --batch)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, warnings only")
     return p
 
@@ -351,12 +513,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.demos < 1 or args.batch < 1 or args.image_size < 8 or args.max_attempts < 1:
             raise ValueError("--demos, --batch, --max-attempts must be >= 1, --image-size >= 8")
+        if args.workers < 0 or args.chunk < 0:
+            raise ValueError("--workers and --chunk must be >= 0")
         cfg = GenerateConfig(
             out=args.out, tasks=tuple(t.name for t in parse_tasks(args.tasks)),
             demos=args.demos, seed=args.seed, backend=args.backend, batch=args.batch,
             image_size=args.image_size,
             cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
-            max_attempts=args.max_attempts, quiet=args.quiet)
+            max_attempts=args.max_attempts, quiet=args.quiet, workers=args.workers,
+            chunk=args.chunk)
         report = generate(cfg)
     except (KeyError, ValueError, BankError) as err:
         print(f"error: {err.args[0] if isinstance(err, KeyError) else err}", file=sys.stderr)

@@ -117,6 +117,10 @@ class ChatClient:
         self.cache = ResponseCache(config.cache_dir) if config.cache_dir else None
         self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=config.concurrency,
                                                            thread_name_prefix="llm")
+        # Runs whole batches in the background (submit_batch); the requests themselves
+        # still share the bounded pool above.
+        self._batches = concurrent.futures.ThreadPoolExecutor(max_workers=8,
+                                                              thread_name_prefix="llm-batch")
         self.stats = {"requests": 0, "cache_hits": 0, "retries": 0, "failures": 0}
 
     # ---- HTTP (blocking, runs on the pool) --------------------------------------------
@@ -205,6 +209,11 @@ class ChatClient:
         """Blocking helper: all requests in flight at once (bounded by the pool)."""
         return asyncio.run(self.complete_many(batch))
 
+    def submit_batch(self, batch: list[Messages]) -> concurrent.futures.Future:
+        """`complete_batch` in the background: the evaluator simulates other tasks while
+        this batch waits on the server (the future's result is the list of Completions)."""
+        return self._batches.submit(self.complete_batch, batch)
+
     def preflight(self) -> None:
         """Fail early and clearly: server reachable, key accepted, model served."""
         cfg = self.config
@@ -229,4 +238,5 @@ class ChatClient:
                                  f"{', '.join(map(str, served))}")
 
     def close(self) -> None:
+        self._batches.shutdown(wait=False, cancel_futures=True)
         self._pool.shutdown(wait=False, cancel_futures=True)

@@ -32,6 +32,8 @@ class ScriptedLLMServer:
         self.faults, self.api_key, self.hang_s = faults, api_key, hang_s
         self.retry_after_s = retry_after_s
         self.requests: list[dict] = []
+        # (arrival, answered) monotonic times per request number: shows what overlapped
+        self.times: dict[int, tuple[float, float]] = {}
         self._lock = threading.Lock()
         server = self
 
@@ -72,9 +74,16 @@ class ScriptedLLMServer:
                 payload = json.loads(self.rfile.read(length) or b"{}")
                 if not self._authorised():
                     return
+                arrival = time.monotonic()
                 with server._lock:
                     number = len(server.requests)
                     server.requests.append(payload)
+                try:
+                    self._answer(number, payload)
+                finally:
+                    server.times[number] = (arrival, time.monotonic())
+
+            def _answer(self, number: int, payload: dict) -> None:
                 messages = payload.get("messages", [])
                 fault = server.faults(number, messages) if server.faults else None
                 time.sleep(server.latency_s)

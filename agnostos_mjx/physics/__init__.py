@@ -33,12 +33,13 @@ def resolve_backend(name: str) -> str:
     return name
 
 
-def make_backend(name: str, model: mujoco.MjModel) -> Backend:
+def make_backend(name: str, model: mujoco.MjModel, threads: int | None = None) -> Backend:
+    """`threads`: CPU threads of the native backend (default: all cores); ignored by MJX."""
     name = resolve_backend(name)
     if name == "native":
         from agnostos_mjx.physics.native import NativeBackend
 
-        return NativeBackend(model)
+        return NativeBackend(model, threads)
     from agnostos_mjx.physics.mjx_backend import MjxBackend
 
     return MjxBackend(model, impl=name)

@@ -9,8 +9,10 @@ again only when the previous plan is used up before success.
 
 from __future__ import annotations
 
+import concurrent.futures
 from collections import deque
-from typing import TYPE_CHECKING
+from collections.abc import Generator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -48,6 +50,13 @@ class PlanningPolicy:
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
         raise NotImplementedError
 
+    def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray
+                   ) -> Generator[concurrent.futures.Future, Any, list[PlanResult]]:
+        """`plan` as a generator that yields the futures it waits on (LLM batches), so
+        the evaluator can simulate other tasks meanwhile.  Default: no waiting."""
+        return self.plan(episodes, env, worlds)
+        yield  # noqa: B901 - makes this a generator
+
     def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
               episode_seeds: list[int] | None = None) -> None:
         b = len(instructions)
@@ -63,11 +72,17 @@ class PlanningPolicy:
         return (int(self._seeds[world]) * 1_000_003 + int(self._replans[world])) & 0x7FFFFFFF
 
     def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
+        return run_blocking(self.act_steps(episodes, env))
+
+    def act_steps(self, episodes: Episodes, env: EnvState
+                  ) -> Generator[concurrent.futures.Future, Any, KeyActions]:
+        """`act` as a generator over the futures planning waits on (see plan_steps)."""
         b = len(self._queues)
         need = np.array([not env.done[i] and not self._queues[i] for i in range(b)])
         worlds = np.nonzero(need)[0]
         if len(worlds):
-            for w, result in zip(worlds, self.plan(episodes, env, worlds)):
+            results = yield from self.plan_steps(episodes, env, worlds)
+            for w, result in zip(worlds, results):
                 self._replans[w] += 1
                 self._logs[w].append(result.info)
                 if result.size:
@@ -87,3 +102,14 @@ class PlanningPolicy:
     def episode_info(self, world: int) -> dict:
         """What the evaluator stores with the episode record."""
         return {"plans": self._logs[world]}
+
+
+def run_blocking(steps: Generator[concurrent.futures.Future, Any, Any]) -> Any:
+    """Drive a generator of futures to its return value, waiting on each future."""
+    try:
+        future = next(steps)
+        while True:
+            concurrent.futures.wait([future])
+            future = steps.send(None)
+    except StopIteration as stop:
+        return stop.value

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from agnostos_mjx.llm.client import ChatClient, LLMConfig, LLMConfigError, SamplingParams
-from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
+from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult, run_blocking
 from agnostos_mjx.scene_text import query_texts
 from agnostos_mjx.textualise import decode_action
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
@@ -74,6 +74,9 @@ class XICMPolicy(PlanningPolicy):
         self.name = f"xicm[{self.selection},k={num_demos}]"
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
+        return run_blocking(self.plan_steps(episodes, env, worlds))
+
+    def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray):
         from agnostos_mjx.episode import Outcome
 
         variations = env.variation[worlds]
@@ -83,7 +86,13 @@ class XICMPolicy(PlanningPolicy):
                                       self.num_demos)
         batch = [messages([str(self.memory.text[i]) for i in idx], q)
                  for idx, q in zip(chosen, query_lines)]
-        answers = self.client.complete_batch(batch)
+        submit = getattr(self.client, "submit_batch", None)
+        if submit is None:  # e.g. the in-process vLLM engine: one blocking batch
+            answers = self.client.complete_batch(batch)
+        else:
+            future = submit(batch)
+            yield future  # the evaluator runs other tasks until the answers are in
+            answers = future.result()
         results = []
         for idx, msgs, answer in zip(chosen, batch, answers):
             info = {"selected": [f"{self.memory.task[i]}#{i}" for i in idx],

@@ -1,7 +1,7 @@
 """Stage 1: train the KL autoencoder on first and last frames of the training demos.
 
 python -m agnostos_mjx.train.autoencoder --bank BANK --out runs/ae
-python -m agnostos_mjx.train.autoencoder --bank BANK --preset ship --out runs/ae_ship
+python -m agnostos_mjx.train.autoencoder --bank BANK --out runs/ae
 python -m agnostos_mjx.train.autoencoder --synthetic 64 --quick --out /tmp/ae
 """
 

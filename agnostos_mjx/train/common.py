@@ -211,8 +211,9 @@ def add_data_flags(parser: argparse.ArgumentParser, training: bool = True) -> No
         "--preset",
         choices=tuple(PRESETS),
         default="default",
-        help="model and training sizes: 'default' (the measured model), 'ship' (small enough "
-        "to export into the package, <= 30 MB) or 'quick'; single flags below override it",
+        help="model and training sizes: 'default' (the shipped model: 14.7 M parameters, "
+        "about 12 min on one H200), 'large' (a 45 M-parameter model, 2.4x slower, too big "
+        "to ship) or 'quick' (CPU smoke run); single flags below override it",
     )
     g.add_argument(
         "--quick",

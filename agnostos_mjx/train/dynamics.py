@@ -3,7 +3,7 @@ space of a trained autoencoder: predict each demo's last frame from its first
 frame and instruction.
 
     python -m agnostos_mjx.train.dynamics --bank BANK --ae runs/ae --out runs/dyn
-    python -m agnostos_mjx.train.dynamics --bank BANK --preset ship --ae runs/ae_ship --out runs/dyn_ship
+    python -m agnostos_mjx.train.dynamics --bank BANK --ae runs/ae --out runs/dyn
     python -m agnostos_mjx.train.dynamics --synthetic 64 --quick --ae /tmp/ae --out /tmp/dyn
 """
 

@@ -5,7 +5,7 @@ and the UNet, as float16 in one compressed params.npz - and export.json (configs
 sampling settings, format version).  `Pipeline.load`, the X-ICM `DynamicsSelector`,
 `build_memory --checkpoint` and `evaluate --run` all read the export directory.
 
-    python -m agnostos_mjx.train.export --run runs/dyn_ship --out agnostos_mjx/assets/dynamics
+    python -m agnostos_mjx.train.export --run runs/dyn --out agnostos_mjx/assets/dynamics
 """
 
 from __future__ import annotations
