@@ -82,3 +82,39 @@ def test_transfer_moves_actions_with_the_matched_object():
     np.testing.assert_allclose(moved[1], [0.42, 0.3, 0.95], atol=1e-6)  # with object 1
     far = transfer(np.array([[5.0, 5.0, 5.0]]), demo_objects, query_objects)
     assert (far <= np.array([0.7, 0.5, 1.752]) + 1e-6).all()  # clipped to the action bounds
+
+
+def test_packed_features_keep_similarities_and_rankings():
+    from agnostos_mjx.dynamics.features import similarity
+    from agnostos_mjx.xicm.memory import _pack_feature, _unpack_feature
+
+    rng = np.random.default_rng(0)
+    lang_rows = rng.normal(size=(5, 64)).astype(np.float32)
+    features = {"lang": lang_rows[rng.integers(0, 5, 300)],  # few distinct rows, as lang
+                "vis.out": rng.normal(size=(300, 64)).astype(np.float32)}
+    packed = {k: _pack_feature(v) for k, v in features.items()}
+    assert packed["lang"]["codes"].shape == (5, 64) and packed["lang"]["codes"].dtype == np.int8
+    back = {k: _unpack_feature(p) for k, p in packed.items()}
+    queries = {k: v[:20] for k, v in features.items()}
+    exact = similarity(queries, features, "lang+vis.out", "cosine")
+    approx = similarity(queries, back, "lang+vis.out", "cosine")
+    assert np.abs(exact - approx).max() < 5e-3
+    top = lambda s: np.argsort(-s, axis=1, kind="stable")[:, :18]  # noqa: E731
+    overlap = np.mean([len(set(a) & set(b)) / 18 for a, b in zip(top(exact), top(approx))])
+    assert overlap > 0.95
+
+
+def test_shipped_model_selects_demos_of_the_querys_task(memory, bank_dir):
+    """The shipped export and memory, end to end on CPU: a push_buttons first frame and
+    instruction (from the tiny test bank, other seeds) retrieves push_buttons demos."""
+    from agnostos_mjx.data import DemoBank
+    from agnostos_mjx.xicm.dynamics_selector import DynamicsSelector
+
+    assert set(memory.features) == {"lang", "vis.in", "vis.out"}
+    demo = next(d for d in DemoBank(bank_dir).demos() if d.task == "push_buttons")
+    frame = DemoBank(bank_dir).arrays("push_buttons")["rgb_front_first"][0]
+    frame = np.kron(frame, np.ones((4, 4, 1), np.uint8))  # the tiny bank is 32 x 32
+    selector = DynamicsSelector(memory, "lang+vis.out")
+    (chosen,) = selector.select([Query(demo.instruction, 0, frame)], 18)
+    tasks = memory.task[chosen].tolist()
+    assert tasks.count("push_buttons") >= 15, tasks

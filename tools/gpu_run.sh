@@ -2,7 +2,8 @@
 # Steps run on the lent GPU machine after tools/gpu_setup.sh (see README "GPU").
 #   bash tools/gpu_run.sh oracle-native      oracle reports of every implemented task, native CPU
 #   bash tools/gpu_run.sh oracle-warp TASKS  oracle on TASKS with the warp backend
-#   bash tools/gpu_run.sh bank DEMOS         the seen-task bank (native physics, EGL rendering)
+#   bash tools/gpu_run.sh bank DEMOS         the seen-task bank (native physics in 16 processes, EGL)
+#   bash tools/gpu_run.sh bank-warp TASKS DEMOS   a bank of TASKS with the warp backend
 #   bash tools/gpu_run.sh default BACKEND     the main job (python -m agnostos_mjx.eval --batch 75)
 # Outputs go to $OUT (what comes back) and /tmp/agnostos (kept while the machine is warm).
 set -e
@@ -25,8 +26,12 @@ case "$1" in
   bank)
     tasks=$(python3 -c "from agnostos_mjx.tasks import list_tasks; print(','.join(list_tasks('seen')))")
     t0=$SECONDS; python3 -m agnostos_mjx.data.generate --out /tmp/agnostos/bank \
-      --tasks "$tasks" --demos "$2" --batch 200 --backend native --quiet 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
-    cp /tmp/agnostos/bank/report.md /tmp/agnostos/bank/manifest.json "$OUT"/ ;;
+      --tasks "$tasks" --demos "$2" --batch 50 --workers 16 --backend native --quiet 2>&1 | tail -30; echo "wall $((SECONDS - t0)) s"
+    mkdir -p "$OUT/bank"; cp /tmp/agnostos/bank/report.md /tmp/agnostos/bank/manifest.json "$OUT/bank/" ;;
+  bank-warp)
+    t0=$SECONDS; python3 -m agnostos_mjx.data.generate --out /tmp/agnostos/bank_warp \
+      --tasks "$2" --demos "$3" --batch 200 --backend warp --quiet 2>&1 | grep -v "solver iterations\|warn_overflow" | tail -30; echo "wall $((SECONDS - t0)) s"
+    mkdir -p "$OUT/bank_warp"; cp /tmp/agnostos/bank_warp/report.md /tmp/agnostos/bank_warp/manifest.json "$OUT/bank_warp/" ;;
   default)
     t0=$SECONDS; python3 -m agnostos_mjx.eval --batch 75 --backend "$2" --resume --quiet \
       --compare "X-ICM 7B" --out /tmp/agnostos/default_$2 2>&1 | grep -v "solver iterations\|warn_overflow" | tail -45

@@ -23,7 +23,7 @@ case "$stage" in
     OUT=${4:?OUT}
     mkdir -p "$OUT"
     python -m agnostos_mjx.train.dynamics --preset "$PRESET" --bank "$BANK" --ae "$RUNS/ae" \
-      --out "$RUNS/dyn" --no-progress
+      --out "$RUNS/dyn" --no-progress ${STEPS:+--steps "$STEPS"}
     echo "dynamics done at $((SECONDS - t0)) s"
     python -m agnostos_mjx.train.evaluate --run "$RUNS/dyn" --bank "$BANK"
     echo "evaluate done at $((SECONDS - t0)) s"

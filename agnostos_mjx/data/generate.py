@@ -368,7 +368,12 @@ _WORKER_EPISODES: dict[str, object] = {}
 
 
 def _worker_init(threads: int) -> None:
-    os.environ["JAX_PLATFORMS"] = "cpu"  # native workers must not grab the GPU
+    # Native workers keep JAX on the CPU: sixteen processes must not each claim the GPU.
+    # XLA reads its flags when the backend starts (after this), jax_platforms likewise.
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_optimization_level" not in flags:  # see agnostos_mjx._tune_cpu_xla
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=1".strip()
+    jax.config.update("jax_platforms", "cpu")
     setup_logging(quiet=True)  # warnings (e.g. given-up demos) still show
     _WORKER_EPISODES["threads"] = threads  # type: ignore[assignment]
 
