@@ -384,3 +384,18 @@ def test_ddim_with_an_oracle_denoiser_recovers_the_target(prediction, schedule):
     noise = jax.random.normal(jax.random.key(0), x0.shape)
     out = ddim_sample(oracle, cfg, jnp.zeros_like(x0), jnp.asarray(ids), jnp.asarray(mask), noise)
     np.testing.assert_allclose(out, x0, atol=1e-3)
+
+
+def test_map_chunks_pads_to_few_shapes():
+    from agnostos_mjx.dynamics.batching import map_chunks
+
+    shapes = set()
+
+    def fn(x):
+        shapes.add(x.shape[0])
+        return x * 2
+
+    for n in range(1, 20):
+        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8)
+        np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
+    assert shapes == {1, 2, 4, 8}
