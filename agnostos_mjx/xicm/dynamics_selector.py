@@ -8,6 +8,7 @@ the memory holds the same features of every seen demo, computed once by
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -15,6 +16,8 @@ import numpy as np
 
 from agnostos_mjx.xicm.memory import DemoMemory
 from agnostos_mjx.xicm.selection import Query, top_k
+
+log = logging.getLogger("agnostos_mjx.xicm")
 
 
 def default_checkpoint_path() -> Path:
@@ -49,6 +52,13 @@ class DynamicsSelector:
         self.memory, self.mode, self.metric = memory, mode, metric
         self.name = mode
         self.pipeline = load_pipeline(checkpoint)
+        import jax
+
+        if jax.default_backend() == "cpu" and "vis.out" in self.parts:
+            log.warning("dynamics features run on the CPU here: about 2-4 s per query (50 DDIM "
+                        "steps x 3 guided passes per core), and every (re)plan queries; a full "
+                        "evaluation takes hours this way. Use a GPU, or --selection lang / "
+                        "text for a fast run without the diffusion sampler")
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
         from agnostos_mjx.dynamics.features import extract, similarity
