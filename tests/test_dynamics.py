@@ -399,3 +399,13 @@ def test_map_chunks_pads_to_few_shapes():
         out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8)
         np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
     assert shapes == {1, 2, 4, 8}
+
+
+def test_dynamics_benchmark_quick_mode(tmp_path):
+    from agnostos_mjx.dynamics import bench
+
+    assert bench.main(["--quick", "--out", str(tmp_path / "b.json")]) == 0
+    result = json.loads((tmp_path / "b.json").read_text())
+    assert result["training"]["steps_per_s"] > 0
+    assert [r["batch"] for r in result["features"]] == [1, 4]
+    assert all(r["queries_per_s"] > 0 for r in result["features"])
