@@ -18,12 +18,18 @@ def _tune_cpu_xla() -> None:
 
     if os.environ.get("AGNOSTOS_XLA_TUNE", "1") == "0":
         return
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_optimization_level" in flags:
-        return
     if importlib.util.find_spec("jax_plugins") is not None:  # a GPU plugin is installed
         return
-    os.environ["XLA_FLAGS"] = (flags + " --xla_backend_optimization_level=1").strip()
+    lower_cpu_optimisation()
+
+
+def lower_cpu_optimisation() -> None:
+    """Add --xla_backend_optimization_level=1 to XLA_FLAGS unless the user set a level.
+    Takes effect for a JAX backend started after the call (data.generate's CPU workers
+    call it themselves, since a GPU plugin makes the import-time tuning skip)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_optimization_level" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " --xla_backend_optimization_level=1").strip()
 
 
 _tune_cpu_xla()

@@ -87,14 +87,19 @@ def bench_physics(runner, batch: int, steps: int, min_time: float) -> dict[str, 
     t0 = time.perf_counter()
     _block(runner.backend.run(env.physics, ctrl))
     warmup = time.perf_counter() - t0
-    calls, wall = 0, 0.0
-    while calls == 0 or wall < min_time:
-        t0 = time.perf_counter()
-        _block(runner.backend.run(env.physics, ctrl))
-        wall += time.perf_counter() - t0
-        calls += 1
-    return {"steps_per_s": batch * steps * calls / wall, "physics_wall_s": wall / calls,
+    seconds, calls = seconds_per_call(lambda: runner.backend.run(env.physics, ctrl), min_time)
+    return {"steps_per_s": batch * steps / seconds, "physics_wall_s": seconds,
             "physics_calls": calls, "warmup_s": warmup}
+
+
+def seconds_per_call(fn, min_time: float) -> tuple[float, int]:
+    """Mean wall seconds of `fn()` (already warmed up; results waited for), repeated for
+    at least `min_time` s; and the number of calls."""
+    calls, t0 = 0, time.perf_counter()
+    while calls == 0 or time.perf_counter() - t0 < min_time:
+        _block(fn())
+        calls += 1
+    return (time.perf_counter() - t0) / calls, calls
 
 
 def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float]:

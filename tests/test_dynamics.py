@@ -409,3 +409,4 @@ def test_dynamics_benchmark_quick_mode(tmp_path):
     assert result["training"]["steps_per_s"] > 0
     assert [r["batch"] for r in result["features"]] == [1, 4]
     assert all(r["queries_per_s"] > 0 for r in result["features"])
+

@@ -15,7 +15,9 @@ Work is split into chunks of demo indices (`--chunk`, default `--batch`); with t
 native backend, `--workers` processes run chunks in parallel (one per core by
 default: the experts' control loop is serial Python, so processes scale where
 MuJoCo's threads alone do not).  Scene keys depend only on (seed, task, index,
-attempt), so the bank does not depend on workers, chunks or batch size.
+attempt), and the bank does not depend on the number of workers.  It does depend on
+--batch and --chunk: the expert moves a batch's worlds in lockstep, so a world waits
+(and is recorded) until its batch's slowest move ends.
 
 Interrupting is safe: each finished chunk rewrites its task's archive and then
 the manifest (which records the index intervals run) atomically, and a rerun
@@ -220,6 +222,11 @@ def _load_existing(cfg: GenerateConfig, entry: dict | None) -> dict[str, np.ndar
         return read_shard(cfg.out / entry["file"])
 
 
+def _stride(cfg: GenerateConfig, dt: float) -> int:
+    """Physics steps per recorded frame."""
+    return max(1, round(cfg.frame_dt / dt))
+
+
 @dataclass(frozen=True)
 class Chunk:
     """Demo indices [start, stop) of one task: the unit of work a process runs."""
@@ -244,7 +251,7 @@ def run_chunk(cfg: GenerateConfig, chunk: Chunk, episodes) -> ChunkResult:
     from agnostos_mjx.episode import Outcome
 
     task = episodes.task
-    stride = max(1, round(cfg.frame_dt / episodes.dt))
+    stride = _stride(cfg, episodes.dt)
     t0 = time.perf_counter()
     result = ChunkResult(chunk, {}, 0, 0, 0.0)
     for first_index in range(chunk.start, chunk.stop, cfg.batch):
@@ -365,17 +372,19 @@ class _TaskStore:
 
 # Per worker process: the scenes it has built (a process runs chunks of several tasks).
 _WORKER_EPISODES: dict[str, object] = {}
+_WORKER_THREADS = [1]  # MuJoCo threads per worker, set by _worker_init
 
 
 def _worker_init(threads: int) -> None:
     # Native workers keep JAX on the CPU: sixteen processes must not each claim the GPU.
     # XLA reads its flags when the backend starts (after this), jax_platforms likewise.
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_optimization_level" not in flags:  # see agnostos_mjx._tune_cpu_xla
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=1".strip()
+    from agnostos_mjx import lower_cpu_optimisation
+
+    if os.environ.get("AGNOSTOS_XLA_TUNE", "1") != "0":
+        lower_cpu_optimisation()
     jax.config.update("jax_platforms", "cpu")
     setup_logging(quiet=True)  # warnings (e.g. given-up demos) still show
-    _WORKER_EPISODES["threads"] = threads  # type: ignore[assignment]
+    _WORKER_THREADS[0] = threads
 
 
 def _worker_run(cfg: GenerateConfig, chunk: Chunk) -> ChunkResult:
@@ -383,8 +392,8 @@ def _worker_run(cfg: GenerateConfig, chunk: Chunk) -> ChunkResult:
     from agnostos_mjx.tasks import get_task
 
     if chunk.task not in _WORKER_EPISODES:
-        threads = int(_WORKER_EPISODES.get("threads", 1))  # type: ignore[arg-type]
-        _WORKER_EPISODES[chunk.task] = Episodes(get_task(chunk.task), cfg.backend, threads)
+        _WORKER_EPISODES[chunk.task] = Episodes(get_task(chunk.task), cfg.backend,
+                                                _WORKER_THREADS[0])
     return run_chunk(cfg, chunk, _WORKER_EPISODES[chunk.task])
 
 
@@ -460,7 +469,7 @@ def _scene_checks(cfg: GenerateConfig, tasks: dict, names: set[str]) -> dict[str
         if unknown := [c for c in cfg.cameras if c not in known]:
             raise ValueError(f"unknown camera(s) {unknown}; the scene has {', '.join(known)}")
         dt = float(model.opt.timestep)
-        frame_dt[name] = max(1, round(cfg.frame_dt / dt)) * dt
+        frame_dt[name] = _stride(cfg, dt) * dt
     return frame_dt
 
 

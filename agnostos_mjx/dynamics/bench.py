@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -32,6 +31,7 @@ import jax
 import numpy as np
 from flax import nnx
 
+from agnostos_mjx.bench import seconds_per_call
 from agnostos_mjx.cli import HelpFormatter, atomic_write
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.config import FEATURE_DIM, LATENT_CHANNELS, LATENT_SIZE, PRESETS
@@ -43,16 +43,6 @@ from agnostos_mjx.dynamics.text import tokenize
 
 TARGET_STEPS_PER_S = 20.0
 TARGET_QUERIES_PER_S = 75.0
-
-
-def _timed(fn, min_time: float) -> float:
-    """Seconds per call of `fn` (already warmed up), over at least `min_time` s."""
-    calls, t0 = 0, time.perf_counter()
-    while True:
-        jax.block_until_ready(fn())
-        calls += 1
-        if time.perf_counter() - t0 >= min_time:
-            return (time.perf_counter() - t0) / calls
 
 
 def bench_training(preset: str, min_time: float) -> dict[str, float]:
@@ -80,7 +70,7 @@ def bench_training(preset: str, min_time: float) -> dict[str, float]:
 
     one()  # compile
     jax.block_until_ready(one())  # and a second call: optax's state may change weak types once
-    seconds = _timed(one, min_time)
+    seconds, _ = seconds_per_call(one, min_time)
     return {"preset": preset, "batch": b, "steps_per_s": 1.0 / seconds}
 
 
@@ -92,7 +82,7 @@ def bench_features(pipeline: Pipeline, batches: Sequence[int], min_time: float) 
         words = [f"press the button number {i}" for i in range(n)]
         call = lambda f=frames, w=words: extract(pipeline, f, w, ("lang", "vis.out"))  # noqa: E731
         call()  # compile this size
-        seconds = _timed(call, min_time)
+        seconds, _ = seconds_per_call(call, min_time)
         rows.append({"batch": n, "queries_per_s": n / seconds, "seconds_per_call": seconds})
     return rows
 
