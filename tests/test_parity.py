@@ -94,3 +94,38 @@ def test_lamp_on_expert_succeeds_on_both_backends():
             env, _ = ep.step(env, jax.tree.map(lambda x, k=k: x[:, k], actions))
         outcomes[backend] = Outcome(int(env.outcome[0]))
     assert outcomes == {"native": Outcome.SUCCESS, "jax": Outcome.SUCCESS}
+
+
+def test_warp_steps_run_with_the_garbage_collector_paused(monkeypatch):
+    """A collection during Warp's graph capture can unload an XLA module and break the
+    capture, so the warp path must run (and finish) its step with gc off; other
+    backends leave gc alone."""
+    import gc
+
+    from agnostos_mjx.physics.mjx_backend import MjxBackend, gc_paused
+
+    ep = native_episodes()
+    env = ep.reset(jax.random.PRNGKey(3)[None], [0])
+    backend = MjxBackend(ep.scene.model, impl="jax")
+    seen = []
+
+    def fake_runner(state, ctrl):
+        seen.append(gc.isenabled())
+        return state, ctrl
+
+    monkeypatch.setattr(backend, "_runner", lambda batch, nstep: fake_runner)
+    ctrl = np.zeros((1, 2, ep.scene.model.nu))
+    backend.run(env.physics, ctrl)
+    backend.impl = "warp"
+    backend.run(env.physics, ctrl)
+    assert seen == [True, False] and gc.isenabled()
+    with pytest.raises(RuntimeError), gc_paused():  # restored after an error too
+        raise RuntimeError
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with gc_paused():
+            pass
+        assert not gc.isenabled()  # a caller that had it off keeps it off
+    finally:
+        gc.enable()

@@ -5,8 +5,9 @@
 #   bash tools/gpu_run.sh bank DEMOS         the seen-task bank (native physics in 16 processes, EGL)
 #   bash tools/gpu_run.sh bank-warp TASKS DEMOS   a bank of TASKS with the warp backend
 #   bash tools/gpu_run.sh default BACKEND     the main job (python -m agnostos_mjx.eval --batch 75)
-#   bash tools/gpu_run.sh start BACKEND...    the main job per BACKEND, detached: it runs on
-#                                             between calls while the machine stays warm
+#   bash tools/gpu_run.sh start BACKEND...    the main job per BACKEND, one after the other,
+#                                             detached: it runs on between calls while the
+#                                             machine stays warm (start twice to overlap)
 #   bash tools/gpu_run.sh collect SECONDS     wait up to SECONDS for detached runs, then bring
 #                                             back each run's folder (log, results, episodes)
 # Outputs go to $OUT (what comes back) and /tmp/agnostos (kept while the machine is warm).
@@ -44,23 +45,24 @@ case "$1" in
   start)
     # Run from a private copy: the call's working tree may be replaced by the next call.
     mkdir -p /tmp/agnostos/src && cp -r agnostos_mjx scenes pyproject.toml /tmp/agnostos/src/
+    job=""
     for b in "${@:2}"; do
       mkdir -p /tmp/agnostos/default_$b
-      (cd /tmp/agnostos/src && PYTHONPATH=/tmp/site:/tmp/agnostos/src \
-        XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 setsid nohup bash -c "t0=\$SECONDS; \
-        python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume --quiet \
-          --compare 'X-ICM 7B' --out /tmp/agnostos/default_$b 2>&1 \
-          | grep --line-buffered -v 'solver iterations\|warn_overflow'; \
-        echo \"exit \${PIPESTATUS[0]} wall \$((SECONDS - t0)) s\"" \
-        >> /tmp/agnostos/default_$b/log.txt 2>&1 < /dev/null &)
-      echo "started $b"
-    done ;;
+      job+="t0=\$SECONDS; python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume \
+        --quiet --compare 'X-ICM 7B' --out /tmp/agnostos/default_$b 2>&1 \
+        | grep --line-buffered -v 'solver iterations\|warn_overflow\|linesearch iterations' \
+        >> /tmp/agnostos/default_$b/log.txt; echo \"exit \${PIPESTATUS[0]} wall \$((SECONDS - t0)) s\" \
+        >> /tmp/agnostos/default_$b/log.txt; "
+    done
+    (cd /tmp/agnostos/src && PYTHONPATH=/tmp/site:/tmp/agnostos/src \
+      XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 setsid nohup bash -c "$job" > /dev/null 2>&1 < /dev/null &)
+    echo "started ${*:2} (one after the other)" ;;
   collect)
     end=$((SECONDS + $2))
-    while pgrep -f "agnostos_mjx.eval" > /dev/null && [ $SECONDS -lt $end ]; do sleep 5; done
+    while pgrep -f "agnostos_mjx[.]eval" > /dev/null && [ $SECONDS -lt $end ]; do sleep 5; done
     for d in /tmp/agnostos/default_*/; do
       n=$(basename "$d"); echo "== $n"; tail -8 "$d/log.txt"
       tar -C /tmp/agnostos -czf "$OUT/$n.tgz" "$n"
     done
-    pgrep -fa "agnostos_mjx.eval" | cut -c1-120 || echo "no run still going" ;;
+    pgrep -fa "agnostos_mjx[.]eval" | cut -c1-120 || echo "no run still going" ;;
 esac

@@ -8,7 +8,10 @@ is the one batched model field.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import gc
+from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -112,5 +115,28 @@ class MjxBackend:
     def run(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
         state = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if x.dtype != bool else jnp.asarray(x), state)
         ctrl = jnp.asarray(ctrl, jnp.float32)
-        new, sens = self._runner(state.batch, int(ctrl.shape[1]))(state, ctrl)
-        return new, sens
+        runner = self._runner(state.batch, int(ctrl.shape[1]))
+        if self.impl != "warp":
+            return runner(state, ctrl)
+        with gc_paused():
+            return jax.block_until_ready(runner(state, ctrl))
+
+
+@contextlib.contextmanager
+def gc_paused() -> Iterator[None]:
+    """Keep Python's cyclic garbage collector off while Warp captures CUDA graphs.
+
+    Warp runs the MJX step as Python code inside an XLA FFI callback and captures it
+    into a CUDA graph.  A collection there may free an old XLA executable (e.g. the
+    previous task's runner); XLA then unloads its CUDA module, which is illegal while a
+    stream captures, and the capture fails ("Warp CUDA error 901 ... during capture",
+    seen on an H200 in the 19th task of a default run).  The caller waits for the
+    result inside this block, so the callback has finished before collection resumes.
+    """
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
