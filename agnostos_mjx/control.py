@@ -33,6 +33,7 @@ from agnostos_mjx.world import ARM_JOINTS, FINGER_OPEN, HOME_QPOS
 # Valid targets for the tip: PerAct's scene bounds in x and y, and from the
 # table top up 1 m in z (the AGNOSTOS RLBench fork's boundary check).
 ACTION_BOUNDS = ((-0.3, -0.5, 0.752), (0.7, 0.5, 1.752))
+BOUNDS_TOL = 1e-5  # m
 IK_POS_TOL = 0.005  # m
 IK_ROT_TOL = np.deg2rad(3.0)
 CART_SEGMENTS = 12
@@ -209,7 +210,9 @@ def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
     norm = xp.linalg.norm(xp.where(finite[:, None], target_quat, 1.0), axis=-1, keepdims=True)
     target_quat = xp.where(finite[:, None] & (norm > 1e-6), target_quat / xp.maximum(norm, 1e-6),
                            xp.asarray([1.0, 0.0, 0.0, 0.0]))
-    inside = xp.all((target_pos >= lo) & (target_pos <= hi), -1)
+    # Bounds are inclusive up to float32 rounding: a target clipped to the bounds in float32
+    # (0.752 -> 0.75199997) must not count as outside the float64 bounds.
+    inside = xp.all((target_pos >= lo - BOUNDS_TOL) & (target_pos <= hi + BOUNDS_TOL), -1)
     q_goal, ok_goal, _, _ = solve_ik(kin, q0, target_pos, target_quat)
 
     # Cartesian-linear path: chain IK along the straight line, warm-started.

@@ -41,7 +41,7 @@ import sys
 import time
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -168,7 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worlds simulated at once; the episodes of all seeds of a task are "
                         "pooled and run in chunks of this size")
     p.add_argument("--backend", default="auto", choices=BACKENDS,
-                   help="physics backend (auto: warp on a CUDA GPU, else native MuJoCo)")
+                   help="physics backend (auto: MJX-warp on a CUDA GPU for batches of >= 4096 "
+                        "worlds, else native MuJoCo on all CPU threads, which is faster "
+                        "below that and bit-reproducible)")
     p.add_argument("--variations", type=_variation_mode, default="protocol",
                    help="protocol: unseen tasks use variation 0, seen tasks sample one per "
                         "episode; all: sample for every task; zero: always 0; N: always N")
@@ -572,7 +574,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                          f"{e.args[0] if isinstance(e, KeyError) else e}") from None
     policy_name = getattr(policy, "name", cfg.policy)
     log.info("policy %s (%s.%s)", policy_name, type(policy).__module__, type(policy).__qualname__)
-    backend = resolve_backend(cfg.backend)
+    backend = resolve_backend(cfg.backend, cfg.batch)
 
     out_dir.mkdir(parents=True, exist_ok=True)
     all_records = load_records(episodes_path) if cfg.resume else []
@@ -642,7 +644,8 @@ def evaluate(cfg: EvalConfig) -> dict:
             done[name] = n
             progress.update(sum(done.values()))
 
-        jobs = [task_steps(t, copy.copy(policy) if overlap > 1 else policy, plan[t.name], cfg,
+        run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
+        jobs = [task_steps(t, copy.copy(policy) if overlap > 1 else policy, plan[t.name], run_cfg,
                            on_batch, functools.partial(tick, t.name)) for t in todo]
         run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
     return write_results(final=True)

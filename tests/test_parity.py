@@ -129,3 +129,19 @@ def test_warp_steps_run_with_the_garbage_collector_paused(monkeypatch):
         assert not gc.isenabled()  # a caller that had it off keeps it off
     finally:
         gc.enable()
+
+
+def test_auto_backend_uses_warp_only_for_large_batches(monkeypatch):
+    """Measured on the H200 host: native threads beat MJX-warp below a few thousand
+    worlds, so `auto` picks warp only from WARP_MIN_BATCH worlds and only where warp runs."""
+    import agnostos_mjx.physics as physics
+
+    monkeypatch.setattr(physics, "warp_available", lambda: True)
+    assert physics.resolve_backend("auto", 75) == "native"
+    assert physics.resolve_backend("auto") == "native"
+    assert physics.resolve_backend("auto", physics.WARP_MIN_BATCH) == "warp"
+    assert physics.resolve_backend("warp", 1) == "warp"
+    monkeypatch.setattr(physics, "warp_available", lambda: False)
+    assert physics.resolve_backend("auto", 10**6) == "native"
+    with pytest.raises(ValueError, match="unknown backend"):
+        physics.resolve_backend("mjx")

@@ -161,6 +161,12 @@ def test_plan_arm_statuses(kin):
     # 1.5 m from the base, outside the bounds: the workspace check comes first.
     assert plan(kin, (1.2, 0.0, 1.0), DOWN)[2] == Status.OUT_OF_WORKSPACE
     assert plan(kin, (0.3, 0.0, 0.70), DOWN)[2] == Status.OUT_OF_WORKSPACE  # below the table
+    # On the bound after float32 rounding (0.752 -> 0.75199997) is inside: the retrieval
+    # baseline clips its targets to the bounds in float32, and comparing them with the
+    # float64 bounds once failed such episodes as out_of_workspace on the native backend.
+    on_table = np.clip(np.float32([0.3, 0.0, 0.7]), *np.float32(ACTION_BOUNDS))
+    assert plan(kin, on_table, DOWN)[2] != Status.OUT_OF_WORKSPACE
+    assert plan(kin, (0.3, 0.0, 0.752 - 1e-3), DOWN)[2] == Status.OUT_OF_WORKSPACE
     assert plan(kin, (0.3, 0.6, 1.0), DOWN)[2] == Status.OUT_OF_WORKSPACE
     assert plan(kin, (np.nan, 0.0, 1.0), DOWN)[2] == Status.INVALID_ACTION
     assert plan(kin, (0.3, 0.0, 1.0), (np.nan, 0.0, 0.0, 1.0))[2] == Status.INVALID_ACTION

@@ -1,10 +1,10 @@
 #!/bin/bash
 # Install the carried wheels on the lent GPU machine in consecutive calls (the machine
 # stays warm 30 s between calls). The tree that travels is ~39 MB (the shipped model and
-# memory), so each call carries at most ~25 MB beside it:
+# memory), so each call carries at most ~20 MB beside it (64 MiB per call):
 #   call 0, carrying .whl .gl:            bash tools/gpu_setup.sh 0    mujoco & co, EGL libraries
-#   call k = 1..N, carrying .gl .warp/pk: bash tools/gpu_setup.sh k    one 25 MB part of warp-lang
-# The last part (N = number of .warp/p* folders made by `split -b 25M`) assembles and installs
+#   call k = 1..N, carrying .gl .warp/pk: bash tools/gpu_setup.sh k    one 20 MB part of warp-lang
+# The last part (N = number of .warp/p* folders made by `split -b 20M`) assembles and installs
 # warp-lang. Then: export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_run.sh does).
 # Native-only work (no warp backend) needs call 0 only.
 set -e
@@ -17,7 +17,7 @@ if [ "$1" = 0 ]; then
 fi
 mkdir -p /tmp/w
 cp .warp/p"$1"/* /tmp/w/
-if [ "$1" = "${2:-6}" ]; then  # the last part: give N as the 2nd argument if not 6
+if [ "$1" = "${2:-8}" ]; then  # the last part: give N as the 2nd argument if not 8
   whl=/tmp/warp_lang-1.18.0-py3-none-manylinux_2_28_x86_64.whl
   cat /tmp/w/part_* > "$whl"
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site "$whl"

@@ -43,7 +43,7 @@ import sys
 import time
 import zlib
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from datetime import datetime
 from pathlib import Path
 
@@ -413,8 +413,10 @@ def resolve_workers(cfg: GenerateConfig) -> int:
 def generate(cfg: GenerateConfig) -> dict:
     """Generate every requested task; returns a report (also written to report.json)."""
     from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.physics import resolve_backend
     from agnostos_mjx.tasks import get_task
 
+    cfg = replace(cfg, backend=resolve_backend(cfg.backend, cfg.batch))
     tasks = {name: get_task(name) for name in cfg.tasks}
     manifest = _open_bank(cfg)
     stores = {name: _TaskStore(cfg, task, manifest) for name, task in tasks.items()}
@@ -501,7 +503,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--demos", type=int, default=200, help="successful demos per task")
     p.add_argument("--seed", type=int, default=0, help="bank seed (scenes derive from it)")
     p.add_argument("--backend", default="auto", choices=("auto", "native", "jax", "warp"),
-                   help="physics backend (auto: warp on a CUDA GPU, else native MuJoCo)")
+                   help="physics backend (auto: MJX-warp on a CUDA GPU for batches of >= 4096 "
+                        "worlds, else native MuJoCo, which is faster below that)")
     p.add_argument("--batch", type=int, default=100, help="worlds simulated at once")
     p.add_argument("--image-size", type=int, default=128, help="square RGB frame size")
     p.add_argument("--cameras", default="front",

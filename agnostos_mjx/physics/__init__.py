@@ -9,6 +9,12 @@ import mujoco
 from agnostos_mjx.physics.base import Backend, PhysicsState
 
 BACKENDS = ("auto", "native", "jax", "warp")
+# `auto` picks MJX-warp only from this many worlds per batch: below it, native MuJoCo on
+# the GPU host's CPU threads is faster (H200 host, lamp_on: 1.41M vs 96k env-steps/s at
+# batch 75, 1.49M vs 428k at 1,024, 1.35M vs 2.10M at 8,192; eval/reports/gpu_probe_h200.json;
+# the default run, 23 tasks x 75 episodes: 669 s native vs ~1,000 s warp) and is
+# bit-reproducible, which warp's atomics are not.
+WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
 
@@ -25,11 +31,14 @@ def warp_available() -> bool:
     return True
 
 
-def resolve_backend(name: str) -> str:
+def resolve_backend(name: str, batch: int | None = None) -> str:
+    """`auto` means warp for batches of at least WARP_MIN_BATCH worlds on a CUDA GPU with
+    mujoco-warp, else native; an unknown `batch` counts as small."""
     if name not in BACKENDS:
         raise ValueError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
     if name == "auto":
-        return "warp" if warp_available() else "native"
+        big = batch is not None and batch >= WARP_MIN_BATCH
+        return "warp" if big and warp_available() else "native"
     return name
 
 
@@ -45,4 +54,5 @@ def make_backend(name: str, model: mujoco.MjModel, threads: int | None = None) -
     return MjxBackend(model, impl=name)
 
 
-__all__ = ["Backend", "PhysicsState", "BACKENDS", "make_backend", "resolve_backend"]
+__all__ = ["Backend", "PhysicsState", "BACKENDS", "WARP_MIN_BATCH", "make_backend",
+           "resolve_backend"]
