@@ -52,9 +52,7 @@ frame rendered and its instruction taken, exactly as the policies query the mode
 column shows the first-frame latent and the right column the predicted last-frame latent (three
 of the four latent channels as RGB): where they differ is where the model expects the scene to
 change. About 2 s per query on a CPU core, much less on a GPU."""),
-    nbf.v4.new_code_cell("""import jax
-
-from agnostos_mjx.dynamics.features import extract, similarity
+    nbf.v4.new_code_cell("""from agnostos_mjx.dynamics.features import extract, similarity
 from agnostos_mjx.episode import Episodes
 from agnostos_mjx.eval import episode_keys
 from agnostos_mjx.tasks import parse_tasks
@@ -78,9 +76,12 @@ latent_out = features['vis.out'].reshape(-1, 16, 16, 4)"""),
 rows = 6
 fig, axes = plt.subplots(rows, 3, figsize=(7, 2.3 * rows))
 for r, i in enumerate(np.linspace(0, len(unseen) - 1, rows).astype(int)):
-    axes[r, 0].imshow(frames[i]); axes[r, 0].set_title(instructions[i][:32], fontsize=8)
-    axes[r, 1].imshow(as_rgb(latent_in[i])); axes[r, 1].set_title('vis.in', fontsize=8)
-    axes[r, 2].imshow(as_rgb(latent_out[i])); axes[r, 2].set_title('vis.out (predicted)', fontsize=8)
+    axes[r, 0].imshow(frames[i])
+    axes[r, 0].set_title(instructions[i][:32], fontsize=8)
+    axes[r, 1].imshow(as_rgb(latent_in[i]))
+    axes[r, 1].set_title('vis.in', fontsize=8)
+    axes[r, 2].imshow(as_rgb(latent_out[i]))
+    axes[r, 2].set_title('vis.out (predicted)', fontsize=8)
     for a in axes[r]:
         a.axis('off')
 plt.tight_layout()"""),
