@@ -22,7 +22,7 @@ from agnostos_mjx.tasks.builders.appliances import (
     GRILL_X,
     grill,
 )
-from agnostos_mjx.tasks.builders.common import DOWN, free_body, pose_in_root
+from agnostos_mjx.tasks.builders.common import DOWN, free_body, grasp_site, pose_in_root
 from agnostos_mjx.tasks.builders.primitives import panel, rod
 
 MEATS = ("chicken", "steak")
@@ -69,8 +69,7 @@ class MeatOffGrill(Task):
     def build(self, scene) -> None:
         root = scene.mocap("meat_off_grill_root")
         grill(scene, root)
-        root.add_site(name="meat_off_grill_success", pos=list(SUCCESS_POS), size=[0.005, 0, 0],
-                      rgba=[0, 1, 0, 0], group=4)
+        grasp_site(root, "meat_off_grill_success", list(SUCCESS_POS))
         for name, y, shape in zip(MEATS, MEAT_Y, (_chicken, _steak)):
             shape(free_body(scene, name, pos=(0.25 + GRILL_CX, y, 1.2)))
 

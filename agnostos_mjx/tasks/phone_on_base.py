@@ -8,6 +8,7 @@ from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_action
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     free_body,
+    grasp_site,
     pose_in_root,
     sensor_volume,
     yaw_of,
@@ -52,8 +53,7 @@ class PhoneOnBase(Task):
         rim = (RIM_TOP - SLAB_TOP) / 2
         panel(base, (0.141, 0.066, rim), (0, -0.036, SLAB_TOP + rim), BASE_RGBA)  # keypad block
         panel(base, (0.141, 0.004, rim), (0, 0.106, SLAB_TOP + rim), BASE_RGBA)  # lip
-        base.add_site(name="phone_case_center", pos=[0, 0, 0.037], size=[0.005, 0, 0],
-                      rgba=[0, 0, 0, 0], group=4)
+        grasp_site(base, "phone_case_center", [0, 0, 0.037])
         sensor_volume(base, "success", SUCCESS_CENTER, SUCCESS_HALF)
         phone = free_body(scene, "phone")
         for sx in (-1, 1):  # earpiece and mouthpiece

@@ -10,6 +10,7 @@ from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_action
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     free_body,
+    grasp_site,
     pose_in_root,
     sensor_volume,
     yaw_of,
@@ -62,8 +63,7 @@ class PutBooksOnBookshelf(Task):
         for k, rgb in enumerate(BOOK_COLORS):
             book = free_body(scene, f"book{k}")
             solid(book, BOOK_HALF, (0, 0, 0), rgb, 0.15)
-            book.add_site(name=f"book{k}_grip", pos=[0, 0, BOOK_HALF[2] - GRIP_BELOW_TOP],
-                          size=[0.004, 0, 0], rgba=[0, 0, 0, 0], group=4)
+            grasp_site(book, f"book{k}_grip", [0, 0, BOOK_HALF[2] - GRIP_BELOW_TOP])
 
     def sample(self, key, variation) -> Placement:
         # RLBench turns the root by at most +-90 degrees and samples nothing else.

@@ -18,6 +18,7 @@ from agnostos_mjx.tasks.base import (
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     free_body,
+    grasp_site,
     pose_in_root,
     sensor_volume,
     spawn_on_root_plane,
@@ -75,8 +76,7 @@ class PutKnifeOnChoppingBoard(Task):
     def build(self, scene) -> None:
         root = scene.mocap("board_root")
         panel(root, BOARD_HALF, (*BOARD_CENTER, BOARD_HALF[2]), WHITE)
-        root.add_site(name="chopping_board", pos=[*BOARD_CENTER, 2 * BOARD_HALF[2]],
-                      size=[0.005, 0, 0], rgba=[0, 0, 0, 0], group=4)
+        grasp_site(root, "chopping_board", [*BOARD_CENTER, 2 * BOARD_HALF[2]])
         sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         block = scene.mocap("knife_block")
         hx, hy = BLOCK_HALF
@@ -98,8 +98,7 @@ class PutKnifeOnChoppingBoard(Task):
         solid(knife, (0.0015, 0.011, KNIFE_HALF_LENGTH - handle / 2),
               (0, 0, -handle / 2), STEEL, 0.04)
         held_by_weld_only(scene, "knife")
-        knife.add_site(name="knife_handle", pos=[0, 0, HANDLE_Z], size=[0.004, 0, 0],
-                       rgba=[0, 0, 0, 0], group=4)
+        grasp_site(knife, "knife_handle", [0, 0, HANDLE_Z])
 
     def sample(self, key, variation) -> Placement:
         k_root, k_block = jax.random.split(key)

@@ -10,6 +10,7 @@ from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_action
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     free_body,
+    grasp_site,
     pose_in_root,
     sensor_volume,
     yaw_of,
@@ -54,8 +55,7 @@ class PutRubbishInBin(Task):
     def build(self, scene) -> None:
         root = scene.mocap("bin_root")
         open_container(root, "bin", (*BIN_XY, 0.0), BIN_INNER, BIN_HEIGHT, GREY)
-        root.add_site(name="bin_center", pos=[*BIN_XY, BIN_HEIGHT / 2], size=[0.005, 0, 0],
-                      rgba=[0, 0, 0, 0], group=4)
+        grasp_site(root, "bin_center", [*BIN_XY, BIN_HEIGHT / 2])
         sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         rubbish = free_body(scene, "rubbish")
         solid(rubbish, RUBBISH_HALF, (0, 0, 0), PAPER, 0.42)

@@ -11,6 +11,7 @@ from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_action
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,
     free_body,
+    grasp_site,
     pose_in_root,
     sensor_volume,
     spawn_on_root_plane,
@@ -65,12 +66,10 @@ class PutToiletRollOnStand(Task):
         stand = scene.mocap("stand")
         panel(stand, (0.035, 0.035, 0.004), (POST_X, 0, 0.004), LIGHT_GREY)
         disc(stand, 0.05, 0.004, (POST_X, 0, 0.004), LIGHT_GREY)
-        stand.add_site(name="stand_base", pos=[POST_X, 0, POST_TOP / 2], size=[0.005, 0, 0],
-                       rgba=[0, 0, 0, 0], group=4)
+        grasp_site(stand, "stand_base", [POST_X, 0, POST_TOP / 2])
         panel(stand, (POST_HALF, POST_HALF, POST_TOP / 2), (POST_X, 0, POST_TOP / 2), LIGHT_GREY)
         panel(stand, SPINDLE_HALF, (0, 0, SPINDLE_Z), LIGHT_GREY, name="holder_spindle")
-        stand.add_site(name="holder", pos=[0, 0, SPINDLE_Z], size=[0.005, 0, 0],
-                       rgba=[0, 0, 0, 0], group=4)
+        grasp_site(stand, "holder", [0, 0, SPINDLE_Z])
         sensor_volume(stand, "success", SUCCESS_CENTER, SUCCESS_HALF)
         box = free_body(scene, "toilet_roll_box")
         solid(box, (BOX_HALF,) * 3, (0, 0, 0), (0.85, 0.85, 0.85), 1.0)

@@ -7,7 +7,13 @@ import jax.numpy as jnp
 
 from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
-from agnostos_mjx.tasks.builders.common import down_grasp, free_body, pose_in_root, sensor_volume
+from agnostos_mjx.tasks.builders.common import (
+    down_grasp,
+    free_body,
+    grasp_site,
+    pose_in_root,
+    sensor_volume,
+)
 from agnostos_mjx.tasks.builders.household import held_by_weld_only, open_container, placed, solid
 from agnostos_mjx.tasks.builders.primitives import rod
 
@@ -55,8 +61,7 @@ class PutUmbrellaInUmbrellaStand(Task):
     def build(self, scene) -> None:
         root = scene.mocap("stand_root")
         open_container(root, "stand", (*STAND_XY, 0.0), STAND_INNER, STAND_HEIGHT, GREY, sides=8)
-        root.add_site(name="stand_center", pos=[*STAND_XY, STAND_HEIGHT / 2], size=[0.005, 0, 0],
-                      rgba=[0, 0, 0, 0], group=4)
+        grasp_site(root, "stand_center", [*STAND_XY, STAND_HEIGHT / 2])
         sensor_volume(root, "success", SUCCESS_CENTER, SUCCESS_HALF)
         umbrella = free_body(scene, "umbrella")
         # Collision: a square-section body (it must not roll off the rim) and
@@ -67,8 +72,7 @@ class PutUmbrellaInUmbrellaStand(Task):
         rod(umbrella, (0, 0, -0.08), (0, 0, 0.05), CANOPY_RADIUS, CANOPY)
         rod(umbrella, (0, 0, 0.05), (0, 0, HALF_LENGTH - 0.012), 0.012, (0.15, 0.1, 0.05))
         for site, z in (("umbrella_grip", GRIP_Z), ("umbrella_probe", PROBE_Z)):
-            umbrella.add_site(name=site, pos=[0, 0, z], size=[0.004, 0, 0], rgba=[0, 0, 0, 0],
-                              group=4)
+            grasp_site(umbrella, site, [0, 0, z])
         held_by_weld_only(scene, "umbrella")
 
     def sample(self, key, variation) -> Placement:
