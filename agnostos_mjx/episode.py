@@ -97,6 +97,21 @@ def xicm_actions(ints) -> KeyActions:
     return KeyActions(pos, quat, grip, valid)
 
 
+def _rows(state: PhysicsState, rows: np.ndarray) -> PhysicsState:
+    return jax.tree.map(lambda x: np.asarray(x)[rows], state)
+
+
+def _put_rows(state: PhysicsState, rows: np.ndarray, part: PhysicsState) -> PhysicsState:
+    """`state` with the worlds `rows` replaced by those of `part` (a new tree)."""
+
+    def put(full, new):
+        out = np.array(full, copy=True)
+        out[rows] = new
+        return out
+
+    return jax.tree.map(put, state, part)
+
+
 @dataclass(frozen=True)
 class StepResult:
     """Per-step sensordata of the last key action (arm then gripper phase)."""
@@ -263,13 +278,36 @@ class Episodes:
         """The task's scripted expert, computed from the observation at reset."""
         return jax.tree.map(np.asarray, self._jit_expert(env.initial_obs, env.variation))
 
-    def _run_phase(self, env: EnvState, ctrl: np.ndarray, active: np.ndarray):
-        """Run one phase; update conditions, outcomes and the latest observation."""
-        state, sens = self.backend.run(env.physics, ctrl)
-        sens = np.asarray(sens)
+    def _simulate(self, env: EnvState, ctrl: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Advance world w by its own `steps[w]` physics steps under ctrl[w, :steps[w]] (0: the
+        world stays frozen), so a world's timeline never depends on the other worlds in its
+        batch, as in RLBench, which runs one episode at a time.  Returns sensordata (B, T, S)
+        for T = ctrl.shape[1], rows after a world's last step repeating its last row.
+
+        Worlds with equal step counts (a few buckets) run together; MJX runs pad a group to
+        the full batch with copies so their compiled shapes stay fixed."""
+        b, t = ctrl.shape[:2]
+        sens = np.repeat(np.asarray(env.obs.data)[:, None], t, axis=1)
+        physics = env.physics.numpy()
+        for n in np.unique(steps[steps > 0]):
+            idx = np.nonzero(steps == n)[0]
+            run = idx if self.backend_name == "native" else np.resize(idx, b)
+            state, s = self.backend.run(_rows(physics, run), ctrl[run, :n])
+            physics = _put_rows(physics, idx, _rows(state.numpy(), np.arange(len(idx))))
+            s = np.asarray(s)[: len(idx)]
+            sens[idx, :n] = s
+            sens[idx, n:] = s[:, -1:]
+        env.physics = physics
+        return sens
+
+    def _run_phase(self, env: EnvState, ctrl: np.ndarray, steps: np.ndarray):
+        """Run one phase (world w for steps[w] steps, see _simulate); update conditions,
+        outcomes and the latest observation."""
+        active = steps > 0
+        sens = self._simulate(env, ctrl, steps)
         t = sens.shape[1]
         attached = np.repeat(env.attached[:, None], t, axis=1)
-        valid = np.repeat(active[:, None], t, axis=1)
+        valid = np.arange(t)[None] < steps[:, None]
         carry, s_idx, f_idx = map(
             lambda x: jax.tree.map(np.asarray, x),
             self._jit_conditions(env.carry, sens, attached, valid, env.variation),
@@ -279,10 +317,9 @@ class Episodes:
         # A failure condition ends the episode unless success came first.
         failed = active & (f_idx >= 0) & ~(succeeded & (s_idx <= np.where(f_idx < 0, t, f_idx)))
         stop = succeeded & env.stop_at_success
-        end = np.where(stop, s_idx, np.where(failed, f_idx, t - 1))
-        last = sens[np.arange(len(end)), end]
+        end = np.where(stop, s_idx, np.where(failed, f_idx, steps - 1))
+        last = sens[np.arange(len(end)), np.maximum(end, 0)]
         data = np.where(active[:, None], last, np.asarray(env.obs.data))
-        env.physics = state.numpy()
         env.carry = carry
         env.obs = self._obs(data, env.attached)
         env.sim_steps = env.sim_steps + np.where(active, end + 1, 0).astype(np.int32)
@@ -314,13 +351,14 @@ class Episodes:
         active = active & ~bad
         env.key_actions = env.key_actions + active
         if active.any():
-            # Arm phase: move, then hold so the arm comes to rest.
-            seconds = float(duration[active].max()) + control.SETTLE_TIME
-            nstep = control.bucket_steps(seconds, self.dt)
+            # Arm phase: move, then hold so the arm comes to rest; each world for its own
+            # move's (bucketed) length.
+            steps = np.array([control.bucket_steps(float(d) + control.SETTLE_TIME, self.dt)
+                              for d in duration]) * active
             path = np.where(active[:, None, None], path, q0[:, None])
-            arm = control.arm_targets(path, np.maximum(duration, 1e-3), nstep, self.dt)
+            arm = control.arm_targets(path, np.maximum(duration, 1e-3), int(steps.max()), self.dt)
             ctrl = np.concatenate([arm, np.broadcast_to(env.gripper[:, None, None], (*arm.shape[:2], 1))], -1)
-            results.append(self._run_phase(env, ctrl, active))
+            results.append(self._run_phase(env, ctrl, steps))
 
         # Gripper phase, only for worlds whose gripper command changes.
         target = np.asarray(control.finger_target(np.asarray(actions.gripper)))
@@ -334,7 +372,7 @@ class Episodes:
             goal = np.where(moving, target, env.gripper)
             grip = control.gripper_targets(env.gripper, goal, nstep, self.dt)
             ctrl = np.concatenate([np.repeat(arm_hold[:, None], nstep, 1), grip[..., None]], -1)
-            results.append(self._run_phase(env, ctrl, moving))
+            results.append(self._run_phase(env, ctrl, nstep * moving))
             closing = moving & ~opening & ~env.done
             env.gripper = np.where(moving, target, env.gripper)
             if closing.any() and self.task.graspables:

@@ -15,9 +15,11 @@ Work is split into chunks of demo indices (`--chunk`, default `--batch`); with t
 native backend, `--workers` processes run chunks in parallel (one per core by
 default: the experts' control loop is serial Python, so processes scale where
 MuJoCo's threads alone do not).  Scene keys depend only on (seed, task, index,
-attempt), and the bank does not depend on the number of workers.  It does depend on
---batch and --chunk: the expert moves a batch's worlds in lockstep, so a world waits
-(and is recorded) until its batch's slowest move ends.
+attempt), and the bank does not depend on the number of workers, nor on --batch and
+--chunk: every world runs its own timeline (Episodes.step), so a demo is the same alone
+or in a batch, up to floating-point rounding that differs with the batch shape.  (Banks
+made before this, including the one behind the shipped memory, moved a batch's worlds in
+lockstep: a world was recorded holding still until its batch's slowest move ended.)
 
 Interrupting is safe: each finished chunk rewrites its task's archive and then
 the manifest (which records the index intervals run) atomically, and a rerun
