@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter, atomic_write
-from agnostos_mjx.eval import EPISODES_FILE, aggregate
+from agnostos_mjx.eval import EPISODES_FILE, aggregate, group_label
 
 Key = tuple[str, int, int]
 
@@ -100,7 +100,7 @@ def format_markdown(result: dict, labels: tuple[str, str]) -> str:
         lines += ["", f"| group | tasks | {la} % mean (std) | {lb} % mean (std) | {lb} - {la} |",
                   "|---|---|---|---|---|"]
         for name, g in result["groups"].items():
-            lines.append(f"| {'All (unseen)' if name == 'All' else name} | {g['tasks']} "
+            lines.append(f"| {group_label(name)} | {g['tasks']} "
                          f"| {g['a']:.1f} ({g['a_std']:.1f}) | {g['b']:.1f} ({g['b_std']:.1f}) "
                          f"| {g['b'] - g['a']:+.1f} |")
     same = sum(r["identical"] for r in result["tasks"].values())

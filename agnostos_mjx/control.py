@@ -200,19 +200,24 @@ def _smoothstep(xp, x):
     return x * x * (3.0 - 2.0 * x)
 
 
+def within_bounds(pos):
+    """Whether tip positions (..., 3) lie in ACTION_BOUNDS, inclusive up to float32 rounding:
+    a target clipped to the bounds in float32 (0.752 -> 0.75199997) is inside."""
+    xp = array_module(pos)
+    lo, hi = xp.asarray(ACTION_BOUNDS[0]), xp.asarray(ACTION_BOUNDS[1])
+    return xp.all((pos >= lo - BOUNDS_TOL) & (pos <= hi + BOUNDS_TOL), -1)
+
+
 def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
     """Plan the arm motion of B worlds (q0 (B, 7), targets (B, 3)/(B, 4)).
     Returns (path (B, CART_SEGMENTS+1, 7), duration (B,) seconds, status (B,))."""
     xp = array_module(q0, target_pos, target_quat)
-    lo, hi = xp.asarray(ACTION_BOUNDS[0]), xp.asarray(ACTION_BOUNDS[1])
     finite = xp.all(xp.isfinite(target_pos), -1) & xp.all(xp.isfinite(target_quat), -1)
     target_pos = xp.where(finite[:, None], target_pos, 0.0)
     norm = xp.linalg.norm(xp.where(finite[:, None], target_quat, 1.0), axis=-1, keepdims=True)
     target_quat = xp.where(finite[:, None] & (norm > 1e-6), target_quat / xp.maximum(norm, 1e-6),
                            xp.asarray([1.0, 0.0, 0.0, 0.0]))
-    # Bounds are inclusive up to float32 rounding: a target clipped to the bounds in float32
-    # (0.752 -> 0.75199997) must not count as outside the float64 bounds.
-    inside = xp.all((target_pos >= lo - BOUNDS_TOL) & (target_pos <= hi + BOUNDS_TOL), -1)
+    inside = within_bounds(target_pos)
     q_goal, ok_goal, _, _ = solve_ik(kin, q0, target_pos, target_quat)
 
     # Cartesian-linear path: chain IK along the straight line, warm-started.

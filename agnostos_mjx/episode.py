@@ -263,12 +263,11 @@ class Episodes:
         actions = self.expert_actions(env)
         q = np.asarray(env.obs.data[:, self._arm_q], np.float64)
         ok = np.ones(len(q), bool)
-        lo, hi = control.ACTION_BOUNDS
         for k in range(actions.pos.shape[1]):
             pos = actions.pos[:, k].astype(np.float64)
             quat = actions.quat[:, k].astype(np.float64)
             q_k, ok_k, _, _ = control.solve_ik(self.kin, q, pos, quat)
-            inside = np.all((pos >= lo) & (pos <= hi), -1)
+            inside = control.within_bounds(pos)
             valid = actions.valid[:, k]
             ok &= ~valid | (ok_k & inside)
             q = np.where(valid[:, None], q_k, q)

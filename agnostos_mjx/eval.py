@@ -335,6 +335,11 @@ def aggregate(records: Sequence[dict], tasks: Sequence[str] | None = None) -> di
     return {"tasks": per_task, "groups": groups}
 
 
+def group_label(name: str) -> str:
+    """How reports name a group (All covers the unseen tasks only)."""
+    return "All (unseen)" if name == "All" else name
+
+
 def _failures(outcomes: dict[str, int]) -> str:
     bad = [f"{k}: {v}" for k, v in outcomes.items() if k != "success"]
     return ", ".join(bad) if bad else "-"
@@ -360,8 +365,7 @@ def format_markdown(summary: dict, title: str = "", compare: dict[str, float] | 
                   f"|---|---|---{sep}|---|"]
         for name, g in summary["groups"].items():
             per_seed = ", ".join(f"{s}: {v:.1f}" for s, v in g["success_per_seed"].items())
-            label = "All (unseen)" if name == "All" else name
-            lines.append(f"| {label} | {len(g['tasks'])} | {g['success_mean']:.1f} "
+            lines.append(f"| {group_label(name)} | {len(g['tasks'])} | {g['success_mean']:.1f} "
                          f"({g['success_std']:.1f}){ref(name)} | {per_seed} |")
     return "\n".join(lines) + "\n"
 
