@@ -97,21 +97,6 @@ def xicm_actions(ints) -> KeyActions:
     return KeyActions(pos, quat, grip, valid)
 
 
-def _rows(state: PhysicsState, rows: np.ndarray) -> PhysicsState:
-    return jax.tree.map(lambda x: np.asarray(x)[rows], state)
-
-
-def _put_rows(state: PhysicsState, rows: np.ndarray, part: PhysicsState) -> PhysicsState:
-    """`state` with the worlds `rows` replaced by those of `part` (a new tree)."""
-
-    def put(full, new):
-        out = np.array(full, copy=True)
-        out[rows] = new
-        return out
-
-    return jax.tree.map(put, state, part)
-
-
 @dataclass(frozen=True)
 class StepResult:
     """Per-step sensordata of the last key action (arm then gripper phase)."""
@@ -280,23 +265,14 @@ class Episodes:
     def _simulate(self, env: EnvState, ctrl: np.ndarray, steps: np.ndarray) -> np.ndarray:
         """Advance world w by its own `steps[w]` physics steps under ctrl[w, :steps[w]] (0: the
         world stays frozen), so a world's timeline never depends on the other worlds in its
-        batch, as in RLBench, which runs one episode at a time.  Returns sensordata (B, T, S)
-        for T = ctrl.shape[1], rows after a world's last step repeating its last row.
-
-        Worlds with equal step counts (a few buckets) run together; MJX runs pad a group to
-        the full batch with copies so their compiled shapes stay fixed."""
-        b, t = ctrl.shape[:2]
-        sens = np.repeat(np.asarray(env.obs.data)[:, None], t, axis=1)
-        physics = env.physics.numpy()
-        for n in np.unique(steps[steps > 0]):
-            idx = np.nonzero(steps == n)[0]
-            run = idx if self.backend_name == "native" else np.resize(idx, b)
-            state, s = self.backend.run(_rows(physics, run), ctrl[run, :n])
-            physics = _put_rows(physics, idx, _rows(state.numpy(), np.arange(len(idx))))
-            s = np.asarray(s)[: len(idx)]
-            sens[idx, :n] = s
-            sens[idx, n:] = s[:, -1:]
-        env.physics = physics
+        batch, as in RLBench, which runs one episode at a time.  One backend call (MJX: one
+        masked scan of the longest move).  Returns sensordata (B, T, S) for T = ctrl.shape[1],
+        rows after a world's last step repeating its last row."""
+        state, sens = self.backend.run(env.physics, ctrl, steps)
+        sens = np.array(sens, copy=True)
+        frozen = steps == 0
+        sens[frozen] = np.asarray(env.obs.data)[frozen][:, None]
+        env.physics = state.numpy()
         return sens
 
     def _run_phase(self, env: EnvState, ctrl: np.ndarray, steps: np.ndarray):
