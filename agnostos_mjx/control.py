@@ -145,49 +145,170 @@ def _fori(xp, n: int, body, init, converged=None):
     return jax.lax.fori_loop(0, n, body, init)
 
 
+def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, pull: float = 1e-4):
+    """One damped-least-squares step from q (..., 7); returns (next q, position
+    error, rotation error), the errors measured at q (before the step).
+
+    Joints resting on a limit that the step would push further are taken out of
+    the solve (their columns zeroed and solved again), so the other joints make
+    up the motion instead of the clipped step stalling there."""
+    xp = array_module(q, target_pos, target_quat)
+    lower, upper = xp.asarray(kin.lower), xp.asarray(kin.upper)
+    weight = xp.asarray([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+    pos, quat, origins, axes = kin.forward(q)
+    pos_err, rot_err = target_pos - pos, quat_error(target_quat, quat)
+    err = xp.concatenate([pos_err, rot_err], -1) * weight
+    jac = _jacobian(pos, origins, axes) * weight[:, None]
+    # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2: a weak pull to mid-range
+    # that fades with the error (a constant pull would hold the tip ~1 mm off the target,
+    # so the solver could never stop early on convergence).
+    sq = xp.sum(err**2, -1)
+    lam2 = 1e-4 + 0.01 * sq
+    mu2 = pull * xp.minimum(1.0, sq / 1e-4)
+    pull_rhs = mu2[..., None] * (0.5 * (lower + upper) - q)
+
+    def solve(j):
+        jt = xp.swapaxes(j, -1, -2)
+        lhs = jt @ j + (lam2 + mu2)[..., None, None] * xp.eye(7)
+        rhs = (jt @ err[..., None])[..., 0] + pull_rhs
+        return xp.linalg.solve(lhs, rhs[..., None])[..., 0]
+
+    dq = solve(jac)
+    blocked = ((q <= lower + 1e-6) & (dq < 0)) | ((q >= upper - 1e-6) & (dq > 0))
+    dq = xp.where(blocked, 0.0, solve(jac * ~blocked[..., None, :]))
+    norm = xp.linalg.norm(dq, axis=-1, keepdims=True)
+    dq = dq * xp.minimum(1.0, 0.4 / (norm + 1e-9))
+    return (xp.clip(q + dq, lower, upper), xp.linalg.norm(pos_err, axis=-1),
+            xp.linalg.norm(rot_err, axis=-1))  # a rotation vector's norm is its angle
+
+
 def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
     """Damped least squares from q0 (..., 7); returns (q, pos error, rot error)."""
     xp = array_module(q0, target_pos, target_quat)
-    lower, upper = xp.asarray(kin.lower), xp.asarray(kin.upper)
-    rest = 0.5 * (lower + upper)
-    eye = xp.eye(7)
-    weight = xp.asarray([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
-
-    def body(_, q):
-        pos, quat, origins, axes = kin.forward(q)
-        err = xp.concatenate([target_pos - pos, quat_error(target_quat, quat)], -1) * weight
-        jac = _jacobian(pos, origins, axes) * weight[:, None]
-        jt = xp.swapaxes(jac, -1, -2)
-        # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2 (weak pull to mid-range)
-        lam2 = 1e-4 + 0.01 * xp.sum(err**2, -1)
-        mu2 = 1e-4
-        lhs = jt @ jac + (lam2 + mu2)[..., None, None] * eye
-        rhs = (jt @ err[..., None])[..., 0] + mu2 * (rest - q)
-        dq = xp.linalg.solve(lhs, rhs[..., None])[..., 0]
-        norm = xp.linalg.norm(dq, axis=-1, keepdims=True)
-        dq = dq * xp.minimum(1.0, 0.4 / (norm + 1e-9))
-        return xp.clip(q + dq, lower, upper)
 
     def converged(q):
         pos, quat = kin.tip_pose(q)
         return bool(np.all(np.linalg.norm(target_pos - pos, axis=-1) < 0.1 * IK_POS_TOL)
                     and np.all(quat_angle(target_quat, quat) < 0.1 * IK_ROT_TOL))
 
-    q = _fori(xp, iters, body, q0, converged)
+    q = _fori(xp, iters, lambda _, q: _dls_step(kin, q, target_pos, target_quat)[0], q0, converged)
     pos, quat = kin.tip_pose(q)
     return q, xp.linalg.norm(target_pos - pos, axis=-1), quat_angle(target_quat, quat)
 
 
-def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100):
-    """Batched IK (..., 7) with restarts from the warm start, home and two
-    wrist-flipped homes.  Returns (q, ok, pos_err, rot_err) of the solution
-    nearest the warm start among those within tolerance."""
-    xp = array_module(q_init, target_pos, target_quat)
+def _halton(n: int, dims: int) -> np.ndarray:
+    """The first n points (skipping 0) of the Halton sequence in [0, 1)^dims."""
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29][:dims]
+    out = np.zeros((n, dims))
+    for d, base in enumerate(primes):
+        for i in range(n):
+            k, f, x = i + 1, 1.0, 0.0
+            while k:
+                f /= base
+                x += f * (k % base)
+                k //= base
+            out[i, d] = x
+    return out
+
+
+SPREAD_SEEDS = 24  # fixed restarts spread over the joint ranges (Halton points)
+_SPREAD_UNIT = _halton(SPREAD_SEEDS, 7)
+
+
+def _spread_seeds(kin: PandaKinematics) -> np.ndarray:
+    """(SPREAD_SEEDS, 7) deterministic configurations covering the joint ranges
+    (5% in from each limit), so a restart exists near every IK branch."""
+    span = kin.upper - kin.lower
+    return kin.lower + 0.05 * span + 0.9 * span * _SPREAD_UNIT
+
+
+def _local_seeds(kin: PandaKinematics, q_init):
+    """(4, ..., 7): the warm start, home and home with the wrist turned by +-pi."""
+    xp = array_module(q_init)
     flip = xp.asarray([0, 0, 0, 0, 0, 0, np.pi])
     home = xp.broadcast_to(xp.asarray(kin.home), q_init.shape)
-    seeds = xp.clip(xp.stack([q_init, home, home + flip, home - flip]), kin.lower, kin.upper)
+    return xp.clip(xp.stack([q_init, home, home + flip, home - flip]), kin.lower, kin.upper)
+
+
+def _ok(pos_err, rot_err, scale: float = 1.0):
+    return (pos_err < scale * IK_POS_TOL) & (rot_err < scale * IK_ROT_TOL)
+
+
+STALL_CHECK = 10  # iterations between progress checks of a restart
+STALL_GAIN = 0.98  # a restart whose error did not fall below this fraction is dropped
+
+
+def _descend_np(kin: PandaKinematics, q0: np.ndarray, target: np.ndarray, target_pos: np.ndarray,
+                target_quat: np.ndarray, n_targets: int, iters: int):
+    """Damped least squares on rows q0 (R, 7) aimed at target_pos/quat[target].
+    A target's rows stop as soon as one of them converges tightly, and a row
+    stops once it stalls (a local minimum, or an unreachable target), so easy
+    batches cost a few steps and hopeless restarts little.  Returns (q, pos
+    error, rot error) per row, the errors at the returned q."""
+    q, pe, re = q0.copy(), np.full(len(q0), np.inf), np.full(len(q0), np.inf)
+    rows = np.arange(len(q0))
+    solved = np.zeros(n_targets, bool)
+    last = np.full(len(q0), np.inf)  # error at the previous progress check
+    for i in range(iters):
+        t = target[rows]
+        q_next, pe[rows], re[rows] = _dls_step(kin, q[rows], target_pos[t], target_quat[t])
+        solved[t[_ok(pe[rows], re[rows], 0.1)]] = True
+        keep = ~solved[t]
+        if i % STALL_CHECK == STALL_CHECK - 1:
+            err = pe[rows] / IK_POS_TOL + re[rows] / IK_ROT_TOL
+            keep &= err < STALL_GAIN * last[rows]
+            last[rows] = err
+        rows = rows[keep]
+        q[rows] = q_next[keep]
+        if not rows.size:
+            return q, pe, re
+    pos, quat = kin.tip_pose(q[rows])
+    t = target[rows]
+    pe[rows] = np.linalg.norm(target_pos[t] - pos, axis=-1)
+    re[rows] = quat_angle(target_quat[t], quat)
+    return q, pe, re
+
+
+def _solve_ik_np(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int):
+    """Numpy IK in two stages: the warm start alone, then (for the targets it
+    missed) its end point, home, the wrist flips and the spread seeds, all
+    batched; each target keeps the valid solution nearest the warm start."""
+    shape = q_init.shape[:-1]
+    q_init = q_init.reshape(-1, 7)
+    target_pos, target_quat = target_pos.reshape(-1, 3), target_quat.reshape(-1, 4)
+    n = len(q_init)
+    q, pe, re = _descend_np(kin, np.clip(q_init, kin.lower, kin.upper), np.arange(n),
+                            target_pos, target_quat, n, iters)
+    todo = np.flatnonzero(~_ok(pe, re))
+    if todo.size:
+        seeds = np.concatenate([q[todo][None], _local_seeds(kin, q_init[todo])[1:],
+                                np.broadcast_to(_spread_seeds(kin)[:, None],
+                                                (SPREAD_SEEDS, todo.size, 7))])
+        target = np.broadcast_to(todo, seeds.shape[:2]).reshape(-1)
+        qs, pes, res = _descend_np(kin, seeds.reshape(-1, 7), target, target_pos, target_quat,
+                                   n, iters)
+        ok = _ok(pes, res)
+        cost = np.where(ok, np.linalg.norm(qs - q_init[target], axis=-1), 1e3 + pes + res)
+        best = np.argmin(cost.reshape(len(seeds), todo.size), axis=0) * todo.size + np.arange(
+            todo.size)
+        q[todo], pe[todo], re[todo] = qs[best], pes[best], res[best]
+    return q.reshape(*shape, 7), _ok(pe, re).reshape(shape), pe.reshape(shape), re.reshape(shape)
+
+
+def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100):
+    """Batched IK (..., 7) with restarts from the warm start, home, two
+    wrist-flipped homes and SPREAD_SEEDS configurations spread over the joint
+    ranges.  Returns (q, ok, pos_err, rot_err) of the solution nearest the warm
+    start among those within tolerance.  Numpy stops each target at its first
+    converged restart; JAX (inside jit) runs every restart for `iters` steps."""
+    xp = array_module(q_init, target_pos, target_quat)
+    if xp is np:
+        return _solve_ik_np(kin, np.asarray(q_init, np.float64), np.asarray(target_pos, np.float64),
+                            np.asarray(target_quat, np.float64), iters)
+    spread = xp.broadcast_to(xp.asarray(_spread_seeds(kin))[:, None], (SPREAD_SEEDS, *q_init.shape))
+    seeds = xp.concatenate([_local_seeds(kin, q_init), spread])
     qs, pe, re = _ik_from(kin, seeds, target_pos[None], target_quat[None], iters)
-    ok = (pe < IK_POS_TOL) & (re < IK_ROT_TOL)
+    ok = _ok(pe, re)
     cost = xp.where(ok, xp.linalg.norm(qs - q_init[None], axis=-1), 1e3 + pe + re)
     best = xp.argmin(cost, axis=0)
     pick = lambda a: xp.take_along_axis(a, best[None, ..., None] if a.ndim == qs.ndim else  # noqa: E731
