@@ -145,13 +145,17 @@ def _fori(xp, n: int, body, init, converged=None):
     return jax.lax.fori_loop(0, n, body, init)
 
 
-def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, pull: float = 1e-4):
+def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, restart: bool = False):
     """One damped-least-squares step from q (..., 7); returns (next q, position
     error, rotation error), the errors measured at q (before the step).
 
-    Joints resting on a limit that the step would push further are taken out of
-    the solve (their columns zeroed and solved again), so the other joints make
-    up the motion instead of the clipped step stalling there."""
+    The plain step (warm start, Cartesian paths) keeps a constant weak pull to
+    mid-range: its fixed point is the posture the experts were tuned with, the
+    tip ~1 mm off the target.  A `restart` step, from a seed far from the
+    target, fades the pull with the error (so it converges exactly) and takes
+    joints resting on a limit that the step would push further out of the solve
+    (their columns zeroed, solved again), so the other joints make up the motion
+    instead of the clipped step stalling there."""
     xp = array_module(q, target_pos, target_quat)
     lower, upper = xp.asarray(kin.lower), xp.asarray(kin.upper)
     weight = xp.asarray([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
@@ -159,12 +163,10 @@ def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, pull: float = 1e
     pos_err, rot_err = target_pos - pos, quat_error(target_quat, quat)
     err = xp.concatenate([pos_err, rot_err], -1) * weight
     jac = _jacobian(pos, origins, axes) * weight[:, None]
-    # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2: a weak pull to mid-range
-    # that fades with the error (a constant pull would hold the tip ~1 mm off the target,
-    # so the solver could never stop early on convergence).
+    # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2 (weak pull to mid-range)
     sq = xp.sum(err**2, -1)
     lam2 = 1e-4 + 0.01 * sq
-    mu2 = pull * xp.minimum(1.0, sq / 1e-4)
+    mu2 = 1e-4 * (xp.minimum(1.0, sq / 1e-4) if restart else xp.ones_like(sq))
     pull_rhs = mu2[..., None] * (0.5 * (lower + upper) - q)
 
     def solve(j):
@@ -174,16 +176,19 @@ def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, pull: float = 1e
         return xp.linalg.solve(lhs, rhs[..., None])[..., 0]
 
     dq = solve(jac)
-    blocked = ((q <= lower + 1e-6) & (dq < 0)) | ((q >= upper - 1e-6) & (dq > 0))
-    dq = xp.where(blocked, 0.0, solve(jac * ~blocked[..., None, :]))
+    if restart:
+        blocked = ((q <= lower + 1e-6) & (dq < 0)) | ((q >= upper - 1e-6) & (dq > 0))
+        dq = xp.where(blocked, 0.0, solve(jac * ~blocked[..., None, :]))
     norm = xp.linalg.norm(dq, axis=-1, keepdims=True)
     dq = dq * xp.minimum(1.0, 0.4 / (norm + 1e-9))
     return (xp.clip(q + dq, lower, upper), xp.linalg.norm(pos_err, axis=-1),
             xp.linalg.norm(rot_err, axis=-1))  # a rotation vector's norm is its angle
 
 
-def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
-    """Damped least squares from q0 (..., 7); returns (q, pos error, rot error)."""
+def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int,
+             restart: bool = False):
+    """Damped least squares from q0 (..., 7) for a fixed number of steps (numpy
+    may stop once every row has converged); returns (q, pos error, rot error)."""
     xp = array_module(q0, target_pos, target_quat)
 
     def converged(q):
@@ -191,7 +196,8 @@ def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
         return bool(np.all(np.linalg.norm(target_pos - pos, axis=-1) < 0.1 * IK_POS_TOL)
                     and np.all(quat_angle(target_quat, quat) < 0.1 * IK_ROT_TOL))
 
-    q = _fori(xp, iters, lambda _, q: _dls_step(kin, q, target_pos, target_quat)[0], q0, converged)
+    q = _fori(xp, iters, lambda _, q: _dls_step(kin, q, target_pos, target_quat, restart)[0], q0,
+              converged)
     pos, quat = kin.tip_pose(q)
     return q, xp.linalg.norm(target_pos - pos, axis=-1), quat_angle(target_quat, quat)
 
@@ -236,27 +242,32 @@ def _ok(pos_err, rot_err, scale: float = 1.0):
 
 STALL_CHECK = 10  # iterations between progress checks of a restart
 STALL_GAIN = 0.98  # a restart whose error did not fall below this fraction is dropped
+STEP_TOL = 1e-4  # rad: a solution within tolerance whose step is smaller has converged
 
 
 def _descend_np(kin: PandaKinematics, q0: np.ndarray, target: np.ndarray, target_pos: np.ndarray,
-                target_quat: np.ndarray, n_targets: int, iters: int):
+                target_quat: np.ndarray, n_targets: int, iters: int, restart: bool):
     """Damped least squares on rows q0 (R, 7) aimed at target_pos/quat[target].
-    A target's rows stop as soon as one of them converges tightly, and a row
-    stops once it stalls (a local minimum, or an unreachable target), so easy
-    batches cost a few steps and hopeless restarts little.  Returns (q, pos
-    error, rot error) per row, the errors at the returned q."""
+    A row stops once it has converged (within tolerance and no longer moving)
+    or, out of tolerance, once it stalls (a local minimum, or an unreachable
+    target); with `restart` all rows of a target stop at its first converged
+    row.  Easy batches thus cost a few steps and hopeless restarts little.
+    Returns (q, pos error, rot error) per row, the errors at the returned q."""
     q, pe, re = q0.copy(), np.full(len(q0), np.inf), np.full(len(q0), np.inf)
     rows = np.arange(len(q0))
     solved = np.zeros(n_targets, bool)
     last = np.full(len(q0), np.inf)  # error at the previous progress check
     for i in range(iters):
         t = target[rows]
-        q_next, pe[rows], re[rows] = _dls_step(kin, q[rows], target_pos[t], target_quat[t])
-        solved[t[_ok(pe[rows], re[rows], 0.1)]] = True
-        keep = ~solved[t]
+        q_next, pe[rows], re[rows] = _dls_step(kin, q[rows], target_pos[t], target_quat[t],
+                                               restart)
+        ok = _ok(pe[rows], re[rows])
+        done = ok & (np.abs(q_next - q[rows]).max(-1) < STEP_TOL)
+        solved[t[done]] = restart
+        keep = ~done & ~solved[t]
         if i % STALL_CHECK == STALL_CHECK - 1:
             err = pe[rows] / IK_POS_TOL + re[rows] / IK_ROT_TOL
-            keep &= err < STALL_GAIN * last[rows]
+            keep &= ok | (err < STALL_GAIN * last[rows])
             last[rows] = err
         rows = rows[keep]
         q[rows] = q_next[keep]
@@ -269,45 +280,61 @@ def _descend_np(kin: PandaKinematics, q0: np.ndarray, target: np.ndarray, target
     return q, pe, re
 
 
-def _solve_ik_np(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int):
-    """Numpy IK in two stages: the warm start alone, then (for the targets it
-    missed) its end point, home, the wrist flips and the spread seeds, all
-    batched; each target keeps the valid solution nearest the warm start."""
+def _nearest_ok(q_init, qs, pe, re, n_seeds: int):
+    """Per target, the row (of n_seeds rows per target, seed-major) within
+    tolerance nearest the warm start, else the one with the smallest error."""
+    n = len(q_init)
+    cost = np.where(_ok(pe, re), np.linalg.norm(qs - np.tile(q_init, (n_seeds, 1)), axis=-1),
+                    1e3 + pe + re)
+    best = np.argmin(cost.reshape(n_seeds, n), axis=0) * n + np.arange(n)
+    return qs[best], pe[best], re[best]
+
+
+def _solve_ik_np(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int,
+                 spread: bool):
+    """Numpy IK in two stages: the warm start, home and the wrist flips (the
+    plain step, as the Cartesian paths use; the solution nearest the warm
+    start), then, for the targets these missed, restarts from the spread seeds,
+    batched; a restart's solution is kept only where the first stage failed."""
     shape = q_init.shape[:-1]
     q_init = q_init.reshape(-1, 7)
     target_pos, target_quat = target_pos.reshape(-1, 3), target_quat.reshape(-1, 4)
     n = len(q_init)
-    q, pe, re = _descend_np(kin, np.clip(q_init, kin.lower, kin.upper), np.arange(n),
-                            target_pos, target_quat, n, iters)
+    local = _local_seeds(kin, q_init)
+    qs, pes, res = _descend_np(kin, local.reshape(-1, 7), np.tile(np.arange(n), len(local)),
+                               target_pos, target_quat, n, iters, restart=False)
+    q, pe, re = _nearest_ok(q_init, qs, pes, res, len(local))
     todo = np.flatnonzero(~_ok(pe, re))
-    if todo.size:
-        seeds = np.concatenate([q[todo][None], _local_seeds(kin, q_init[todo])[1:],
-                                np.broadcast_to(_spread_seeds(kin)[:, None],
-                                                (SPREAD_SEEDS, todo.size, 7))])
-        target = np.broadcast_to(todo, seeds.shape[:2]).reshape(-1)
-        qs, pes, res = _descend_np(kin, seeds.reshape(-1, 7), target, target_pos, target_quat,
-                                   n, iters)
-        ok = _ok(pes, res)
-        cost = np.where(ok, np.linalg.norm(qs - q_init[target], axis=-1), 1e3 + pes + res)
-        best = np.argmin(cost.reshape(len(seeds), todo.size), axis=0) * todo.size + np.arange(
-            todo.size)
-        q[todo], pe[todo], re[todo] = qs[best], pes[best], res[best]
+    if spread and todo.size:
+        seeds = np.broadcast_to(_spread_seeds(kin)[:, None], (SPREAD_SEEDS, todo.size, 7))
+        qs, pes, res = _descend_np(kin, seeds.reshape(-1, 7), np.tile(np.arange(todo.size),
+                                                                      SPREAD_SEEDS),
+                                   target_pos[todo], target_quat[todo], todo.size, iters,
+                                   restart=True)
+        q[todo], pe[todo], re[todo] = _nearest_ok(q_init[todo], qs, pes, res, SPREAD_SEEDS)
     return q.reshape(*shape, 7), _ok(pe, re).reshape(shape), pe.reshape(shape), re.reshape(shape)
 
 
-def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100):
+def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100,
+             spread: bool = True):
     """Batched IK (..., 7) with restarts from the warm start, home, two
-    wrist-flipped homes and SPREAD_SEEDS configurations spread over the joint
-    ranges.  Returns (q, ok, pos_err, rot_err) of the solution nearest the warm
-    start among those within tolerance.  Numpy stops each target at its first
-    converged restart; JAX (inside jit) runs every restart for `iters` steps."""
+    wrist-flipped homes and (with `spread`) SPREAD_SEEDS configurations spread
+    over the joint ranges.  Returns (q, ok, pos_err, rot_err) of the solution
+    nearest the warm start among those within tolerance.  Numpy stops each
+    target at its first converged restart; JAX (inside jit) runs every restart
+    for `iters` steps.  `spread=False` asks whether a target is reachable near
+    the warm start's branch (how a scripted expert moves)."""
     xp = array_module(q_init, target_pos, target_quat)
     if xp is np:
         return _solve_ik_np(kin, np.asarray(q_init, np.float64), np.asarray(target_pos, np.float64),
-                            np.asarray(target_quat, np.float64), iters)
-    spread = xp.broadcast_to(xp.asarray(_spread_seeds(kin))[:, None], (SPREAD_SEEDS, *q_init.shape))
-    seeds = xp.concatenate([_local_seeds(kin, q_init), spread])
-    qs, pe, re = _ik_from(kin, seeds, target_pos[None], target_quat[None], iters)
+                            np.asarray(target_quat, np.float64), iters, spread)
+    starts = [(_local_seeds(kin, q_init), False)]
+    if spread:
+        starts.append((xp.broadcast_to(xp.asarray(_spread_seeds(kin))[:, None],
+                                       (SPREAD_SEEDS, *q_init.shape)), True))
+    runs = [_ik_from(kin, seeds, target_pos[None], target_quat[None], iters, restart)
+            for seeds, restart in starts]
+    qs, pe, re = (xp.concatenate(parts) for parts in zip(*runs, strict=True))
     ok = _ok(pe, re)
     cost = xp.where(ok, xp.linalg.norm(qs - q_init[None], axis=-1), 1e3 + pe + re)
     best = xp.argmin(cost, axis=0)
