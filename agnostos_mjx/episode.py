@@ -251,7 +251,7 @@ class Episodes:
         for k in range(actions.pos.shape[1]):
             pos = actions.pos[:, k].astype(np.float64)
             quat = actions.quat[:, k].astype(np.float64)
-            q_k, ok_k, _, _ = control.solve_ik(self.kin, q, pos, quat)
+            q_k, ok_k, _, _ = control.solve_ik(self.kin, q, pos, quat, spread=False)
             inside = control.within_bounds(pos)
             valid = actions.valid[:, k]
             ok &= ~valid | (ok_k & inside)
