@@ -164,3 +164,22 @@ def test_auto_backend_uses_warp_only_for_large_batches(monkeypatch):
     assert physics.resolve_backend("auto", 10**6) == "native"
     with pytest.raises(ValueError, match="unknown backend"):
         physics.resolve_backend("mjx")
+
+
+def test_device_reachability_matches_the_host_check():
+    """The jitted reachability scan (MJX backends' reset on an accelerator) accepts and
+    rejects the same scenes as the numpy check, including a key action out of reach."""
+    from agnostos_mjx.episode import reachable_device, reachable_host
+
+    ep = native_episodes()
+    keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(0), e))(np.arange(6))
+    env = ep.reset(keys, np.zeros(6, np.int32))
+    actions = ep.expert_actions(env)
+    pos = np.array(actions.pos)
+    pos[3, 1] = [0.7, 0.5, 1.7]  # a corner of the bounds the arm cannot reach
+    q = np.asarray(env.obs["arm_q"], np.float64)
+    host = reachable_host(ep.kin, q, pos, actions.quat, actions.valid)
+    device = jax.jit(functools.partial(reachable_device, ep.kin))(q, pos, actions.quat,
+                                                                  actions.valid)
+    np.testing.assert_array_equal(np.asarray(device), host)
+    assert host.sum() == 5 and not host[3]
