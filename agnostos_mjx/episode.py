@@ -226,7 +226,7 @@ class Episodes:
         self._jit_rows = b
         sampled = list(map(np.asarray, self._jit_sample(keys, variations)))
         env = self._settle(sampled, variations)
-        ok = self.expert_reachable(env)
+        ok = np.array(self.expert_reachable(env), copy=True)
         for attempt in range(1, placement_tries):
             if ok.all():
                 break

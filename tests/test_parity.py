@@ -128,7 +128,7 @@ def test_warp_steps_run_with_the_garbage_collector_paused(monkeypatch):
     backend = MjxBackend(ep.scene.model, impl="jax")
     seen = []
 
-    def fake_runner(state, ctrl):
+    def fake_runner(state, ctrl, steps):
         seen.append(gc.isenabled())
         return state, ctrl
 
