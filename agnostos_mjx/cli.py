@@ -196,20 +196,20 @@ def check_writable_dir(path: Path) -> str | None:
     left behind, so a run can check its output folder before it creates it."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        return f"{path} exists and is not a directory"
+        return f"{path} exists and is not a folder"
     base = path
     while not base.exists():
         if base.parent == base:
             break
         base = base.parent
     if not base.is_dir():
-        return f"cannot create {path}: {base} is not a directory"
+        return f"cannot create {path}: {base} is not a folder"
     try:
         probe = tempfile.mkdtemp(prefix=".write-probe-", dir=base)
         os.rmdir(probe)
     except OSError as err:
-        what = "write to" if base == path else f"create {path}: cannot write to"
-        return f"{what} {base} ({err.strerror or err})"
+        where = "" if base == path else f"cannot create {path}: "
+        return f"{where}cannot write to {base} ({err.strerror or err})"
     return None
 
 

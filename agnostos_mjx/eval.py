@@ -533,7 +533,7 @@ def resolve_out(cfg: EvalConfig, spec: str) -> Path:
     out_dir = Path(cfg.out)
     problem = check_writable_dir(out_dir)
     if problem:
-        raise UsageError(f"output folder: {problem}")
+        raise UsageError(f"--out: {problem}")
     if (out_dir / EPISODES_FILE).exists() and not cfg.resume:
         raise UsageError(f"{out_dir / EPISODES_FILE} exists; pass --resume to continue that "
                          f"run or choose another --out")
