@@ -878,7 +878,11 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
 
 if __name__ == "__main__":
     with InterruptGuard() as _guard:
-        _code = main(guard=_guard)
+        try:
+            _code = main(guard=_guard)
+        except KeyboardInterrupt:  # outside the run (printing the table, say)
+            _guard.announce()
+            _code = 130
     if _code == 130:
         hard_exit(_code)  # threads in native code must not delay the exit
     sys.exit(_code)
