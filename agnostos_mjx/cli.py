@@ -15,6 +15,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -80,6 +81,7 @@ class Progress:
         self._last = -1e9
         self._shown = False
         self._drawn: tuple | None = None  # (done, detail) at the last draw
+        self.lock = threading.RLock()  # the heartbeat thread draws too
 
     @property
     def work(self) -> float:
@@ -105,38 +107,54 @@ class Progress:
         if not self.enabled:
             return
         now = time.monotonic()
-        interval = 0.2 if self.tty else 30.0
         first = not self._shown
-        if not first and not force and done < self.total and now - self._last < interval:
+        if not first and not force and done < self.total and now - self._last < self.interval:
             return
         if not self.tty and self._drawn == (done, self.detail):
             return  # a log file gets only lines that say something new
-        self._last, self._drawn = now, (done, self.detail)
+        self._drawn = (done, self.detail)
         self._draw()
 
+    @property
+    def interval(self) -> float:
+        return 0.2 if self.tty else 30.0
+
+    def heartbeat(self) -> None:
+        """Redraw (elapsed time and ETA) when nothing was drawn for a while: one step of a
+        run (a batch's demo selection on a CPU) can take minutes."""
+        with self.lock:
+            if self.enabled and self._shown and \
+                    time.monotonic() - self._last >= max(self.interval, 1.0):
+                self._draw()
+
     def _draw(self) -> None:
-        if self.tty:
-            self.stream.write("\r\033[K" + self.line())
-        else:
-            self.stream.write(self.line() + "\n")
-        self.stream.flush()
-        self._shown = True
+        with self.lock:
+            if self.tty:
+                self.stream.write("\r\033[K" + self.line())
+            else:
+                self.stream.write(self.line() + "\n")
+            self.stream.flush()
+            self._shown = True
+            self._last = time.monotonic()
 
     def clear(self) -> None:
         """Erase the bar (before a log line) on a terminal."""
-        if self.enabled and self.tty and self._shown:
-            self.stream.write("\r\033[K")
-            self.stream.flush()
+        with self.lock:
+            if self.enabled and self.tty and self._shown:
+                self.stream.write("\r\033[K")
+                self.stream.flush()
 
     def redraw(self) -> None:
-        if self.enabled and self.tty and self._shown:
-            self._draw()
+        with self.lock:
+            if self.enabled and self.tty and self._shown:
+                self._draw()
 
     def close(self) -> None:
-        if self.enabled and self._shown and self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
-        self.enabled = False
+        with self.lock:
+            if self.enabled and self._shown and self.tty:
+                self.stream.write("\n")
+                self.stream.flush()
+            self.enabled = False
 
 
 def _hms(seconds: float) -> str:
@@ -151,10 +169,12 @@ class _BarAwareHandler(logging.StreamHandler):
 
     def emit(self, record: logging.LogRecord) -> None:
         bar = self.progress
-        if bar is not None:
+        if bar is None:
+            super().emit(record)
+            return
+        with bar.lock:
             bar.clear()
-        super().emit(record)
-        if bar is not None:
+            super().emit(record)
             bar.redraw()
 
 
@@ -177,13 +197,22 @@ def setup_logging(quiet: bool) -> None:
 
 @contextlib.contextmanager
 def progress_bar(total: int, enabled: bool = True, unit: str = "episodes"):
-    """A Progress bar that log lines (via setup_logging's handler) draw around."""
+    """A Progress bar that log lines (via setup_logging's handler) draw around, redrawn
+    by a heartbeat thread while the caller is busy."""
     bar = Progress(total, enabled=enabled, unit=unit)
     if _HANDLER is not None:
         _HANDLER.progress = bar
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(1.0):
+            bar.heartbeat()
+
+    threading.Thread(target=beat, name="progress-heartbeat", daemon=True).start()
     try:
         yield bar
     finally:
+        stop.set()
         bar.close()
         if _HANDLER is not None:
             _HANDLER.progress = None
@@ -245,7 +274,7 @@ class InterruptGuard:
 
     def __init__(self, grace_s: float = 3.0, stream: TextIO | None = None) -> None:
         self.grace_s, self.stream = grace_s, stream or sys.stderr
-        self.message = ""
+        self.message: str | Callable[[], str] = ""
         self._said = threading.Lock()
         self._announced = False
         self._read_fd = self._write_fd = -1
@@ -258,7 +287,8 @@ class InterruptGuard:
                 return
             self._announced = True
         with contextlib.suppress(Exception):
-            self.stream.write(self.message.rstrip("\n") + "\n")
+            text = self.message() if callable(self.message) else self.message
+            self.stream.write(text.rstrip("\n") + "\n")
             self.stream.flush()
 
     def __enter__(self) -> InterruptGuard:

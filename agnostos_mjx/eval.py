@@ -514,6 +514,14 @@ def resume_command(argv: Sequence[str], out: Path) -> str:
                        "--resume"])
 
 
+def interrupted_message(out_dir: Path, argv: Sequence[str]) -> str:
+    """What Ctrl-C prints: what is kept, and the command that continues the run."""
+    kept = len(load_records(out_dir / EPISODES_FILE))
+    where = (f"{kept} finished episode{'s' * (kept != 1)} saved in {out_dir / EPISODES_FILE}"
+             if kept else "no episode had finished")
+    return f"\ninterrupted; {where}; to continue: {resume_command(argv, out_dir)}"
+
+
 def latest_run(root: Path = Path("results")) -> Path | None:
     """The most recently changed run folder (one with episodes.jsonl) under `root`."""
     runs = [p.parent for p in root.glob(f"*/{EPISODES_FILE}")]
@@ -851,8 +859,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     try:
         out_dir = resolve_out(cfg, spec)
         existed = out_dir.exists()
-        message = (f"\ninterrupted; the finished episodes are in {out_dir / EPISODES_FILE}; "
-                   f"to continue: {resume_command(argv, out_dir)}")
+        message = functools.partial(interrupted_message, out_dir, argv)
         if guard is not None:
             guard.message = message
         results = evaluate(cfg)
@@ -863,7 +870,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         if guard is not None:
             guard.announce()
         else:
-            print(message, file=sys.stderr)
+            print(message(), file=sys.stderr)
         return 130
     except OSError as e:  # e.g. the disk filled up
         print(f"error: {e}", file=sys.stderr)
