@@ -189,6 +189,12 @@ def test_cli_show_reports_any_corruption_in_one_line(bank_dir, tmp_path, capsys,
     assert ("open_drawer.npz" if "manifest" not in damage else "manifest.json") in err
 
 
+def test_cli_generate_unwritable_out_is_one_line(capsys):
+    assert gen.main(["--out", "/proc/forbidden", "--tasks", "open_drawer", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot write to /proc" in err
+
+
 def test_worker_processes_make_the_same_bank(bank_dir, tmp_path):
     """Two spawned processes, one chunk each: the bank equals the in-process one."""
     report = gen.generate(replace(config(tmp_path), workers=2))
