@@ -300,10 +300,15 @@ def test_progress_moves_with_rounds_and_prints_at_once() -> None:
     assert first.count("\n") == 1 and "0/10 episodes  lamp_on batch 1/2" in first
     bar.update(0, detail="lamp_on batch 1/2 key action 1/25")
     assert stream.getvalue() == first  # nothing new, no line
+    bar.heartbeat()
+    assert stream.getvalue() == first  # drawn just now
+    bar._last -= 31.0  # a step that ran for half a minute: the heartbeat shows the time
+    bar.heartbeat()
+    assert stream.getvalue().count("\n") == 2
     bar.update(0, partial=2.5)
     assert bar.work == 2.5 and "ETA ?" not in bar.line() and "[######" in bar.line()
     bar.update(10, partial=3.0)
-    assert bar.work == 10 and stream.getvalue().count("\n") == 2  # the end always prints
+    assert bar.work == 10 and stream.getvalue().count("\n") == 3  # the end always prints
 
 
 REPO = Path(__file__).resolve().parents[1]
