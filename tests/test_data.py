@@ -96,7 +96,7 @@ def _interrupt_at(monkeypatch, name: str, call: int) -> None:
 
 
 @pytest.mark.parametrize("where, call", [
-    ("_demo_arrays", 2),  # killed while simulating the second task
+    pytest.param("_demo_arrays", 2, marks=pytest.mark.slow),  # killed simulating the 2nd task
     ("write_manifest", 1),  # killed between an archive write and its manifest write
 ])
 def test_interrupted_run_resumes_to_the_same_bank(bank_dir, tmp_path, monkeypatch, where, call):
