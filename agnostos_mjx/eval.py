@@ -705,22 +705,29 @@ def run_interleaved(jobs: Sequence, limit: int, on_done=None) -> list:
     pending = collections.deque(enumerate(jobs))
     active: list[list] = []  # [index, generator, future or None]
     values: list = [None] * len(jobs)
-    while pending or active:
-        while pending and len(active) < limit:
-            active.append([*pending.popleft(), None])
-        ready = [slot for slot in active if slot[2] is None or slot[2].done()]
-        if not ready:
-            concurrent.futures.wait([slot[2] for slot in active],
-                                    return_when=concurrent.futures.FIRST_COMPLETED)
-            continue
-        for slot in ready:
-            try:
-                slot[2] = slot[1].send(None)
-            except StopIteration as stop:
-                values[slot[0]] = stop.value
-                active.remove(slot)
-                if on_done is not None:
-                    on_done(slot[0], stop.value)
+    try:
+        while pending or active:
+            while pending and len(active) < limit:
+                active.append([*pending.popleft(), None])
+            ready = [slot for slot in active if slot[2] is None or slot[2].done()]
+            if not ready:
+                concurrent.futures.wait([slot[2] for slot in active],
+                                        return_when=concurrent.futures.FIRST_COMPLETED)
+                continue
+            for slot in ready:
+                try:
+                    slot[2] = slot[1].send(None)
+                except StopIteration as stop:
+                    values[slot[0]] = stop.value
+                    active.remove(slot)
+                    if on_done is not None:
+                        on_done(slot[0], stop.value)
+    except BaseException:  # Ctrl-C or a failure: cancel the work still waited on
+        for _, steps, future in active:
+            if future is not None:
+                future.cancel()
+            steps.close()
+        raise
     return values
 
 
@@ -773,7 +780,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         if earlier and earlier != {policy_name}:
             log.warning("%s holds episodes of policy %s; continuing with %s", out_dir,
                         ", ".join(sorted(earlier)), policy_name)
-    recorded = {(r["task"], int(r["seed"]), int(r["episode"])) for r in all_records}
+    recorded = {record_key(r) for r in all_records}
     plan = {t.name: [(s, e) for s in cfg.seeds for e in range(cfg.episodes)
                      if (t.name, s, e) not in recorded] for t in tasks}
     total = sum(map(len, plan.values()))

@@ -402,6 +402,7 @@ def test_map_chunks_pads_to_few_shapes():
     assert shapes == {1, 2, 4, 8}
 
 
+@pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores
 def test_dynamics_benchmark_quick_mode(tmp_path):
     from agnostos_mjx.dynamics import bench
 

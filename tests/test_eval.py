@@ -388,3 +388,24 @@ def test_interrupt_guard_exits_when_the_main_thread_is_stuck(signals: int, grace
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 130 and err == "resume with: x\n"
     assert "KeyboardInterrupt" in out and time.monotonic() - start < grace_s + 3.0
+
+
+def test_run_interleaved_cancels_waiting_work_when_interrupted() -> None:
+    import concurrent.futures
+
+    waiting: concurrent.futures.Future = concurrent.futures.Future()
+    closed: list[str] = []
+
+    def waits():
+        try:
+            yield waiting
+        finally:
+            closed.append("a")
+
+    def interrupted():
+        raise KeyboardInterrupt
+        yield  # noqa: B901
+
+    with pytest.raises(KeyboardInterrupt):
+        ev.run_interleaved([waits(), interrupted()], limit=2)
+    assert waiting.cancelled() and closed == ["a"]
