@@ -170,7 +170,8 @@ def _one_line_error(capsys: pytest.CaptureFixture) -> str:
 @pytest.mark.parametrize("case, expected", [
     ("unwritable", "cannot write to /proc"),
     ("file", "is not a folder"),
-    ("resume_without_out", "--resume needs --out"),
+    ("resume_without_out", "--resume needs --out DIR, the folder of the run to continue "
+                           "(the latest run is results/oracle-1)"),
     ("unknown_compare", "unknown published method 'GPT'"),
     ("unknown_policy", "cannot load policy 'no_such_module:Policy'"),
     ("existing_run", "--resume"),
@@ -184,6 +185,8 @@ def test_cli_errors_are_one_line_and_leave_no_folder(case: str, expected: str, t
     (tmp_path / "a_file").write_text("x")
     (tmp_path / "done").mkdir()
     (tmp_path / "done" / "episodes.jsonl").write_text("")
+    (tmp_path / "results" / "oracle-1").mkdir(parents=True)
+    (tmp_path / "results" / "oracle-1" / "episodes.jsonl").write_text("")
     if case in ("unwritable", "file", "resume_without_out"):  # found before loading models
         def no_loading(*args, **kwargs):
             raise AssertionError("loaded the policy before checking the command line")
