@@ -12,10 +12,27 @@ variation is sampled, its variation from ``fold_in(that key, 1)``.  The
 episodes of all seeds of a task are pooled and simulated `--batch` worlds at
 a time.
 
-Outputs in `--out`: episodes.jsonl (one record per episode, rewritten
-atomically after every batch, the basis of --resume), results.json (config,
-versions, aggregates and the episode records), results.csv (a row per task)
-and results.md (the table that is also printed).
+Outputs in `--out` (default ``results/<policy>-<timestamp>``, created when the
+run starts): episodes.jsonl (one JSON line per episode, appended and fsync'd as
+each world finishes, the basis of --resume: an interrupted run keeps every
+finished episode, and a torn last line is ignored), results.json (config,
+versions, aggregates and the episode records), results.csv, results.md (the
+table that is also printed) and results.png.
+
+results.csv has one row per task, then one per group (Level-1, Level-2, All =
+the unseen tasks, Seen), with these columns (success rates in percent)::
+
+    name, kind (task | group), split (task rows; empty for groups),
+    tasks (1, or the group's task count), seeds, episodes, successes,
+    success_pct_mean, success_pct_std (population std over seeds),
+    success_pct_seed<S> (one column per seed; empty where a task lacks it),
+    mean_key_actions, mean_sim_steps (task rows),
+    outcome_<label> (episode counts per outcome: success, max_steps, ...)
+
+so ``pandas.read_csv`` or ``csv.DictReader`` load it without parsing strings.
+
+Ctrl-C stops a run within seconds and prints the command that continues it
+(the same options with ``--out DIR --resume``); a second Ctrl-C exits at once.
 
 Examples::
 
@@ -36,7 +53,9 @@ import functools
 import io
 import json
 import logging
+import os
 import re
+import shlex
 import sys
 import time
 from collections import Counter, defaultdict
@@ -50,9 +69,13 @@ import numpy as np
 
 from agnostos_mjx.cli import (
     HelpFormatter,
+    InterruptGuard,
     Progress,
     atomic_write,
+    check_writable_dir,
+    hard_exit,
     progress_bar,
+    remove_empty_dirs,
     setup_logging,
     versions,
 )
@@ -176,9 +199,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="protocol: unseen tasks use variation 0, seen tasks sample one per "
                         "episode; all: sample for every task; zero: always 0; N: always N")
     p.add_argument("--out", default=None,
-                   help="output directory; default results/<policy>-<timestamp>")
+                   help="output directory; default results/<policy>-<timestamp>, <policy> "
+                        "being the policy run (retrieval or xicm under auto)")
     p.add_argument("--resume", action="store_true",
-                   help="continue the run in --out: skip episodes already in episodes.jsonl")
+                   help="continue the run in --out (required): skip episodes already in "
+                        "its episodes.jsonl")
     p.add_argument("--fail-fast", action="store_true",
                    help="re-raise policy exceptions instead of recording policy_error")
     p.add_argument("--quiet", action="store_true",
@@ -376,40 +401,157 @@ def format_markdown(summary: dict, title: str = "", compare: dict[str, float] | 
     return "\n".join(lines) + "\n"
 
 
+CSV_COLUMNS = ("name", "kind", "split", "tasks", "seeds", "episodes", "successes",
+               "success_pct_mean", "success_pct_std", "mean_key_actions", "mean_sim_steps")
+
+
+def csv_rows(summary: dict) -> list[dict[str, Any]]:
+    """results.csv as dicts: a row per task, then a row per group (see the module
+    docstring for the columns).  Numbers stay numbers; absent values are None."""
+    tasks, groups = summary["tasks"], summary["groups"]
+    seeds = sorted({s for t in tasks.values() for s in t["success_per_seed"]}, key=int)
+    labels = sorted({k for t in tasks.values() for k in t["outcomes"]})
+
+    def row(name: str, kind: str, split: str | None, members: list[str], item: dict
+            ) -> dict[str, Any]:
+        counts = {k: sum(tasks[m]["outcomes"].get(k, 0) for m in members) for k in labels}
+        per_seed = item["success_per_seed"]
+        single = tasks[members[0]] if kind == "task" else None
+        return {
+            "name": name, "kind": kind, "split": split, "tasks": len(members),
+            "seeds": len(per_seed), "episodes": sum(tasks[m]["episodes"] for m in members),
+            "successes": counts.get("success", 0),
+            "success_pct_mean": round(item["success_mean"], 4),
+            "success_pct_std": round(item["success_std"], 4),
+            **{f"success_pct_seed{s}": round(per_seed[s], 4) if s in per_seed else None
+               for s in seeds},
+            "mean_key_actions": round(single["mean_key_actions"], 4) if single else None,
+            "mean_sim_steps": round(single["mean_sim_steps"], 2) if single else None,
+            **{f"outcome_{k}": counts[k] for k in labels},
+        }
+
+    return ([row(n, "task", t["split"], [n], t) for n, t in tasks.items()]
+            + [row(n, "group", None, g["tasks"], g) for n, g in groups.items()])
+
+
 def format_csv(summary: dict) -> str:
+    """results.csv: `csv_rows` with a header (the columns of the first row)."""
+    rows = csv_rows(summary)
+    if not rows:
+        return ",".join(CSV_COLUMNS) + "\n"
     buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["task", "split", "episodes", "seeds", "success_mean", "success_std",
-                "success_per_seed", "mean_key_actions", "mean_sim_steps", "outcomes"])
-    for name, t in summary["tasks"].items():
-        w.writerow([name, t["split"], t["episodes"], " ".join(map(str, t["seeds"])),
-                    f"{t['success_mean']:.4f}", f"{t['success_std']:.4f}",
-                    " ".join(f"{s}:{v:.4f}" for s, v in t["success_per_seed"].items()),
-                    f"{t['mean_key_actions']:.4f}", f"{t['mean_sim_steps']:.2f}",
-                    " ".join(f"{k}:{v}" for k, v in t["outcomes"].items())])
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
     return buf.getvalue()
 
 
 # ---------------------------------------------------------------------------------------
 # Files
 # ---------------------------------------------------------------------------------------
+def record_key(record: dict) -> tuple[str, int, int]:
+    return record["task"], int(record["seed"]), int(record["episode"])
+
+
 def load_records(path: Path) -> list[dict]:
-    """Episode records of an earlier run (unreadable lines are skipped with a warning)."""
-    records = []
+    """Episode records of an earlier run, first of each (task, seed, episode).  A torn
+    last line (the process died while appending) is dropped; other unreadable lines
+    are skipped with a warning."""
     if not path.exists():
-        return records
-    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        return []
+    text = path.read_text(encoding="utf-8", errors="replace")
+    lines = text.split("\n")
+    records: dict[tuple, dict] = {}
+    for i, line in enumerate(lines, 1):
         if not line.strip():
             continue
         try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            log.warning("%s:%d is not valid JSON; ignored", path, i)
+            record = json.loads(line)
+            key = record_key(record)
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            if i == len(lines):  # no newline after it: an append cut short
+                log.info("%s: ignoring the incomplete last line", path)
+            else:
+                log.warning("%s:%d is not a valid episode record; ignored", path, i)
+            continue
+        records.setdefault(key, record)
+    return list(records.values())
+
+
+def repair_records(path: Path) -> list[dict]:
+    """`load_records`, then rewrite the file (atomically) if it held anything else, so
+    appends start on a line of their own."""
+    records = load_records(path)
+    if path.exists() and path.read_bytes() != _jsonl(records).encode("utf-8"):
+        atomic_write(path, _jsonl(records))
     return records
+
+
+def append_records(path: Path, records: Sequence[dict]) -> None:
+    """Append whole lines in one write, then fsync: a crash tears at most the last line,
+    which `load_records` drops.  Creates the folder (the run has really started)."""
+    data = _jsonl(records).encode("utf-8")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _jsonl(records: Sequence[dict]) -> str:
     return "".join(json.dumps(r, sort_keys=False) + "\n" for r in records)
+
+
+def resume_command(argv: Sequence[str], out: Path) -> str:
+    """The command that continues this run: the same options, then --out OUT --resume."""
+    args, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--out":
+            skip = True
+        elif not (a.startswith("--out=") or a == "--resume"):
+            args.append(a)
+    return shlex.join(["python", "-m", "agnostos_mjx.eval", *args, "--out", str(out),
+                       "--resume"])
+
+
+def interrupted_message(out_dir: Path, argv: Sequence[str]) -> str:
+    """What Ctrl-C prints: what is kept, and the command that continues the run."""
+    kept = len(load_records(out_dir / EPISODES_FILE))
+    where = (f"{kept} finished episode{'s' * (kept != 1)} saved in {out_dir / EPISODES_FILE}"
+             if kept else "no episode had finished")
+    return f"\ninterrupted; {where}; to continue: {resume_command(argv, out_dir)}"
+
+
+def latest_run(root: Path = Path("results")) -> Path | None:
+    """The most recently changed run folder (one with episodes.jsonl) under `root`."""
+    runs = [p.parent for p in root.glob(f"*/{EPISODES_FILE}")]
+    return max(runs, key=lambda p: (p / EPISODES_FILE).stat().st_mtime, default=None)
+
+
+def resolve_out(cfg: EvalConfig, spec: str) -> Path:
+    """Sets cfg.out (default results/<policy>-<timestamp>) and checks, before anything
+    is loaded or created, that the run can write there."""
+    if cfg.out is None:
+        if cfg.resume:
+            latest = latest_run()
+            hint = f" (the latest run is {latest})" if latest else ""
+            raise UsageError(f"--resume needs --out DIR, the folder of the run to continue"
+                             f"{hint}")
+        cfg.out = str(_default_out(spec))
+    out_dir = Path(cfg.out)
+    problem = check_writable_dir(out_dir)
+    if problem:
+        raise UsageError(f"--out: {problem}")
+    if (out_dir / EPISODES_FILE).exists() and not cfg.resume:
+        raise UsageError(f"{out_dir / EPISODES_FILE} exists; pass --resume to continue that "
+                         f"run or choose another --out")
+    return out_dir
 
 
 # ---------------------------------------------------------------------------------------
@@ -430,92 +572,134 @@ def _default_out(policy: str) -> Path:
 
 
 def run_task(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig,
-             on_batch, progress: Progress | None = None, done_before: int = 0) -> list[dict]:
+             on_records, progress: Progress | None = None, done_before: int = 0) -> list[dict]:
     """Run `pending` (seed, episode) pairs of one task in chunks of cfg.batch;
-    `on_batch(records)` is called after every chunk.  Returns the records."""
+    `on_records(records)` is called as episodes finish.  Returns the records."""
     from agnostos_mjx.policies.planning import run_blocking
 
-    tick = None if progress is None else (lambda n: progress.update(done_before + n))
-    return run_blocking(task_steps(task, policy, pending, cfg, on_batch, tick))
+    tick = None if progress is None else (
+        lambda n, partial=0.0, detail=None: progress.update(done_before + n, partial=partial,
+                                                            detail=detail))
+    return run_blocking(task_steps(task, policy, pending, cfg, on_records, tick))
 
 
-def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on_batch,
+def episode_records(task, policy, backend: str, part: Sequence[tuple[int, int]],
+                    variations: np.ndarray, instructions: list[str], env, outcome: np.ndarray,
+                    worlds: Iterable[int], wall_s: float, batch_size: int) -> list[dict]:
+    """The records of the finished `worlds` of a batch (episodes.jsonl's lines)."""
+    from agnostos_mjx.episode import Outcome
+
+    records = []
+    for i in worlds:
+        seed, episode = part[i]
+        record = {
+            "task": task.name, "split": task.split.value, "seed": int(seed),
+            "episode": int(episode), "variation": int(variations[i]),
+            "instruction": instructions[i], "policy": policy.name,
+            "success": bool(outcome[i] == Outcome.SUCCESS),
+            "outcome": Outcome(int(outcome[i])).label,
+            "key_actions": int(env.key_actions[i]), "sim_steps": int(env.sim_steps[i]),
+            "backend": backend, "batch_size": batch_size, "wall_s": round(wall_s, 4),
+        }
+        if hasattr(policy, "episode_info"):
+            record["policy_info"] = policy.episode_info(int(i))
+        records.append(record)
+    return records
+
+
+def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on_records,
                tick=None):
     """`run_task` as a generator that yields the futures the policy waits on (see
     PlanningPolicy.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
-    `tick(episodes_done)` reports progress within the task."""
-    from agnostos_mjx.episode import Episodes, Outcome
+    `tick(episodes_done, partial, detail)` reports progress within the task."""
+    from agnostos_mjx.episode import Episodes
 
     t0 = time.perf_counter()
     runner = Episodes(task, cfg.backend)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)
     chunk = min(cfg.batch, len(pending))
+    batches = -(-len(pending) // chunk)
     # MJX recompiles for every new batch shape: pad the last chunk there.
     pad = runner.backend_name != "native"
     out: list[dict] = []
-    for start in range(0, len(pending), chunk):
+    for b, start in enumerate(range(0, len(pending), chunk)):
         part = pending[start:start + chunk]
-        n = len(part)
-        run_part = part + [part[-1]] * (chunk - n) if pad else part
-        seeds = np.array([s for s, _ in run_part])
-        eps = np.array([e for _, e in run_part])
         t_batch = time.perf_counter()
-        keys = episode_keys(seeds, eps)
-        variations = episode_variations(keys, task.num_variations, task.split.value,
-                                        cfg.variations)
-        instructions = [task.descriptions(int(v))[0] for v in variations]
-        env = runner.reset(keys, variations)
-        try:
-            if _accepts(policy.reset, "episode_seeds"):
-                policy.reset(runner, env, instructions,
-                             episode_seeds=[int(s) * 100_003 + int(e) for s, e in run_part])
-            else:
-                policy.reset(runner, env, instructions)
-            for _ in range(task.max_key_actions):
-                if env.done.all():
-                    break
-                if hasattr(policy, "act_steps"):
-                    actions = yield from policy.act_steps(runner, env)
-                else:
-                    actions = policy.act(runner, env)
-                running = env.outcome == Outcome.RUNNING
-                env, _ = runner.step(env, actions)
-                # A policy may say why a world got no action (bad LLM output, LLM error).
-                reasons = getattr(policy, "end_reasons", None)
-                if reasons is not None:
-                    ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
-                    env.outcome = np.where(ended, reasons, env.outcome)
-                if tick is not None:
-                    tick(len(out) + int(env.done[:n].sum()))
-        except Exception:
-            if cfg.fail_fast:
-                raise
-            log.exception("%s: the policy raised; running episodes of this batch end as "
-                          "policy_error", task.name)
-            env.outcome = np.where(env.done, env.outcome, Outcome.POLICY_ERROR)
-        outcome = np.where(env.done, env.outcome, Outcome.MAX_STEPS)
-        wall = time.perf_counter() - t_batch
-        records = []
-        for i, (seed, episode) in enumerate(part):
-            records.append({
-                "task": task.name, "split": task.split.value, "seed": int(seed),
-                "episode": int(episode), "variation": int(variations[i]),
-                "instruction": instructions[i], "policy": policy.name,
-                "success": bool(outcome[i] == Outcome.SUCCESS),
-                "outcome": Outcome(int(outcome[i])).label,
-                "key_actions": int(env.key_actions[i]), "sim_steps": int(env.sim_steps[i]),
-                "backend": runner.backend_name, "batch_size": len(run_part),
-                "batch_wall_s": round(wall, 4),
-            })
-            if hasattr(policy, "episode_info"):
-                records[-1]["policy_info"] = policy.episode_info(i)
-        out += records
-        on_batch(records)
+        label = f"{task.name} batch {b + 1}/{batches}"
+        out += yield from batch_steps(task, policy, runner, part, chunk if pad else len(part),
+                                      cfg, on_records, tick, len(out), label)
+        rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
+        log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
+                 time.perf_counter() - t_batch, rate)
+    return out
+
+
+def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cfg: EvalConfig,
+                on_records, tick=None, done_before: int = 0, label: str = ""):
+    """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
+    `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
+    also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
+    from agnostos_mjx.episode import Outcome
+
+    n = len(part)
+    run_part = part + [part[-1]] * (size - n)
+    t_batch = time.perf_counter()
+    keys = episode_keys(np.array([s for s, _ in run_part]), np.array([e for _, e in run_part]))
+    variations = episode_variations(keys, task.num_variations, task.split.value, cfg.variations)
+    instructions = [task.descriptions(int(v))[0] for v in variations]
+    recorded = np.zeros(n, bool)
+    out: list[dict] = []
+
+    def record(env, outcome: np.ndarray) -> None:
+        new = (outcome[:n] != Outcome.RUNNING) & ~recorded
+        if new.any():
+            records = episode_records(task, policy, runner.backend_name, part, variations,
+                                      instructions, env, outcome, np.nonzero(new)[0],
+                                      time.perf_counter() - t_batch, len(run_part))
+            recorded[new] = True
+            out.extend(records)
+            on_records(records)
+
+    def report(rounds: int) -> None:
         if tick is not None:
-            tick(len(out))
-        rate = 100.0 * np.mean([r["success"] for r in records])
-        log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, n, wall, rate)
+            tick(done_before + len(out), (n - recorded.sum()) * rounds / task.max_key_actions,
+                 f"{label} key action {min(rounds + 1, task.max_key_actions)}"
+                 f"/{task.max_key_actions}")
+
+    report(0)
+    env = runner.reset(keys, variations)
+    try:
+        if _accepts(policy.reset, "episode_seeds"):
+            policy.reset(runner, env, instructions,
+                         episode_seeds=[int(s) * 100_003 + int(e) for s, e in run_part])
+        else:
+            policy.reset(runner, env, instructions)
+        for rounds in range(task.max_key_actions):
+            if env.done.all():
+                break
+            if hasattr(policy, "act_steps"):
+                actions = yield from policy.act_steps(runner, env)
+            else:
+                actions = policy.act(runner, env)
+            running = env.outcome == Outcome.RUNNING
+            env, _ = runner.step(env, actions)
+            # A policy may say why a world got no action (bad LLM output, LLM error).
+            reasons = getattr(policy, "end_reasons", None)
+            if reasons is not None:
+                ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
+                env.outcome = np.where(ended, reasons, env.outcome)
+            record(env, np.where(env.done, env.outcome, Outcome.RUNNING))
+            report(rounds + 1)
+    except Exception:
+        if cfg.fail_fast:
+            raise
+        log.exception("%s: the policy raised; running episodes of this batch end as "
+                      "policy_error", task.name)
+        env.outcome = np.where(env.done, env.outcome, Outcome.POLICY_ERROR)
+    record(env, np.where(env.done, env.outcome, Outcome.MAX_STEPS))
+    if tick is not None:
+        tick(done_before + len(out))
     return out
 
 
@@ -527,22 +711,29 @@ def run_interleaved(jobs: Sequence, limit: int, on_done=None) -> list:
     pending = collections.deque(enumerate(jobs))
     active: list[list] = []  # [index, generator, future or None]
     values: list = [None] * len(jobs)
-    while pending or active:
-        while pending and len(active) < limit:
-            active.append([*pending.popleft(), None])
-        ready = [slot for slot in active if slot[2] is None or slot[2].done()]
-        if not ready:
-            concurrent.futures.wait([slot[2] for slot in active],
-                                    return_when=concurrent.futures.FIRST_COMPLETED)
-            continue
-        for slot in ready:
-            try:
-                slot[2] = slot[1].send(None)
-            except StopIteration as stop:
-                values[slot[0]] = stop.value
-                active.remove(slot)
-                if on_done is not None:
-                    on_done(slot[0], stop.value)
+    try:
+        while pending or active:
+            while pending and len(active) < limit:
+                active.append([*pending.popleft(), None])
+            ready = [slot for slot in active if slot[2] is None or slot[2].done()]
+            if not ready:
+                concurrent.futures.wait([slot[2] for slot in active],
+                                        return_when=concurrent.futures.FIRST_COMPLETED)
+                continue
+            for slot in ready:
+                try:
+                    slot[2] = slot[1].send(None)
+                except StopIteration as stop:
+                    values[slot[0]] = stop.value
+                    active.remove(slot)
+                    if on_done is not None:
+                        on_done(slot[0], stop.value)
+    except BaseException:  # Ctrl-C or a failure: cancel the work still waited on
+        for _, steps, future in active:
+            if future is not None:
+                future.cancel()
+            steps.close()
+        raise
     return values
 
 
@@ -563,12 +754,15 @@ def evaluate(cfg: EvalConfig) -> dict:
             if int(cfg.variations) >= t.num_variations:
                 raise UsageError(f"--variations {cfg.variations}: {t.name} has variations "
                                  f"0..{t.num_variations - 1}")
-    out_dir = Path(cfg.out) if cfg.out else _default_out(cfg.policy)
-    cfg.out = str(out_dir)
+    out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
     episodes_path = out_dir / EPISODES_FILE
-    if episodes_path.exists() and not cfg.resume:
-        raise UsageError(f"{episodes_path} exists; pass --resume to continue that run or "
-                         f"choose another --out")
+    if cfg.compare:
+        from agnostos_mjx.paper import published
+
+        try:
+            published(cfg.compare)
+        except KeyError as e:
+            raise UsageError(f"--compare: {e.args[0]}") from None
     from agnostos_mjx.llm.client import LLMConfigError
     from agnostos_mjx.xicm.memory import MemoryFileError
 
@@ -586,14 +780,13 @@ def evaluate(cfg: EvalConfig) -> dict:
     log.info("policy %s (%s.%s)", policy_name, type(policy).__module__, type(policy).__qualname__)
     backend = resolve_backend(cfg.backend, cfg.batch)
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    all_records = load_records(episodes_path) if cfg.resume else []
+    all_records = repair_records(episodes_path) if cfg.resume else []
     if all_records:
         earlier = {r.get("policy") for r in all_records} - {None}
         if earlier and earlier != {policy_name}:
             log.warning("%s holds episodes of policy %s; continuing with %s", out_dir,
                         ", ".join(sorted(earlier)), policy_name)
-    recorded = {(r["task"], int(r["seed"]), int(r["episode"])) for r in all_records}
+    recorded = {record_key(r) for r in all_records}
     plan = {t.name: [(s, e) for s in cfg.seeds for e in range(cfg.episodes)
                      if (t.name, s, e) not in recorded] for t in tasks}
     total = sum(map(len, plan.values()))
@@ -618,6 +811,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         records = sorted(selected(), key=lambda r: ([t.name for t in tasks].index(r["task"]),
                                                     r["seed"], r["episode"]))
         summary = aggregate(records, [t.name for t in tasks])
+        out_dir.mkdir(parents=True, exist_ok=True)
         results = {**meta, "finished": datetime.now().isoformat(timespec="seconds") if final
                    else None, "wall_s": round(time.perf_counter() - t0, 2),
                    "complete": len(records) == len(tasks) * len(cfg.seeds) * cfg.episodes,
@@ -639,30 +833,33 @@ def evaluate(cfg: EvalConfig) -> dict:
             plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")
         return results
 
-    def on_batch(records: list[dict]) -> None:
+    def on_records(records: list[dict]) -> None:
+        append_records(episodes_path, records)
         all_records.extend(records)
-        atomic_write(episodes_path, _jsonl(all_records))
 
     todo = [t for t in tasks if plan[t.name]]
     # One policy copy per task running at once: copies share the heavy parts (LLM client,
     # memory, selector); reset() gives each its own per-episode state.
     overlap = cfg.overlap_tasks if hasattr(policy, "act_steps") else 1
     with progress_bar(total, enabled=not cfg.quiet) as progress:
-        done = {t.name: 0 for t in todo}
+        done = {t.name: (0, 0.0) for t in todo}
 
-        def tick(name: str, n: int) -> None:
-            done[name] = n
-            progress.update(sum(done.values()))
+        def tick(name: str, n: int, partial: float = 0.0, detail: str | None = None) -> None:
+            done[name] = (n, partial)
+            progress.update(sum(d for d, _ in done.values()),
+                            partial=sum(p for _, p in done.values()), detail=detail)
 
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
         jobs = [task_steps(t, copy.copy(policy) if overlap > 1 else policy, plan[t.name], run_cfg,
-                           on_batch, functools.partial(tick, t.name)) for t in todo]
+                           on_records, functools.partial(tick, t.name)) for t in todo]
         run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
     return write_results(final=True)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Command-line entry point; returns the exit code (2 for usage errors)."""
+def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None) -> int:
+    """Command-line entry point; returns the exit code (2 for usage errors, 1 for file
+    errors, 130 when interrupted).  `guard` (the command line's) bounds Ctrl-C's delay."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse_config(argv)
     try:
         spec, _, note = resolve_policy(cfg)
@@ -671,19 +868,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     print(f"agnostos_mjx.eval: policy {spec}" + (f" ({note})" if note else ""), flush=True)
     setup_logging(cfg.quiet)
+    out_dir = None
     try:
+        out_dir = resolve_out(cfg, spec)
+        existed = out_dir.exists()
+        message = functools.partial(interrupted_message, out_dir, argv)
+        if guard is not None:
+            guard.message = message
         results = evaluate(cfg)
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"\ninterrupted; finished batches are in {cfg.out}; rerun with --resume",
-              file=sys.stderr)
+        if guard is not None:
+            guard.announce()
+        else:
+            print(message(), file=sys.stderr)
         return 130
+    except OSError as e:  # e.g. the disk filled up
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if out_dir is not None and not existed:
+            remove_empty_dirs(out_dir)  # a run that failed before its first result
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with InterruptGuard() as _guard:
+        try:
+            _code = main(guard=_guard)
+        except KeyboardInterrupt:  # outside the run (printing the table, say)
+            _guard.announce()
+            _code = 130
+    if _code == 130:
+        hard_exit(_code)  # threads in native code must not delay the exit
+    sys.exit(_code)

@@ -17,10 +17,11 @@ from agnostos_mjx.conditions import (
     NothingGrasped,
     all_of,
 )
-from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.episode import Outcome
 from agnostos_mjx.math3d import yaw_quat
 from agnostos_mjx.observables import Layout, Observation
 from agnostos_mjx.tasks import get_task, list_tasks
+from tests.conftest import episodes_for, task_params
 
 LAYOUT = Layout((
     ("a.q", 0, 1),
@@ -246,10 +247,10 @@ def test_first_description(name, variation, first):
     assert get_task(name).descriptions(variation)[0] == first
 
 
-@pytest.mark.parametrize("name", list_tasks())
+@pytest.mark.parametrize("name", task_params(list_tasks()))
 def test_task_success_false_at_reset_true_after_expert(name):
     task = get_task(name)
-    episodes = Episodes(task, "native")
+    episodes = episodes_for(name)
     variations = np.array([0, task.num_variations - 1])
     env = episodes.reset(jax.random.split(jax.random.PRNGKey(0), 2), variations)
     assert (env.outcome == Outcome.RUNNING).all()

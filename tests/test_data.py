@@ -96,7 +96,7 @@ def _interrupt_at(monkeypatch, name: str, call: int) -> None:
 
 
 @pytest.mark.parametrize("where, call", [
-    ("_demo_arrays", 2),  # killed while simulating the second task
+    pytest.param("_demo_arrays", 2, marks=pytest.mark.slow),  # killed simulating the 2nd task
     ("write_manifest", 1),  # killed between an archive write and its manifest write
 ])
 def test_interrupted_run_resumes_to_the_same_bank(bank_dir, tmp_path, monkeypatch, where, call):
@@ -150,6 +150,49 @@ def test_cli_show_prints_text(bank_dir, capsys):
     out = capsys.readouterr().out
     assert out.startswith("['instruction': open the middle drawer, {'drawer': [")
     assert main([str(bank_dir), "--task", "open_drawer", "--index", "7"]) == 2
+
+
+@pytest.mark.parametrize("damage", ["compressed_bytes", "not_a_zip", "manifest_json",
+                                    "manifest_fields"])
+def test_cli_show_reports_any_corruption_in_one_line(bank_dir, tmp_path, capsys, damage):
+    import hashlib
+    import json
+    import shutil
+
+    from agnostos_mjx.data.show import main
+
+    copy = tmp_path / "bank"
+    shutil.copytree(bank_dir, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    archive = copy / "open_drawer.npz"
+    if damage == "compressed_bytes":  # the checksum matches, the deflate stream does not
+        import zipfile
+
+        with zipfile.ZipFile(archive) as z:
+            member = max(z.infolist(), key=lambda i: i.compress_size)
+        data = bytearray(archive.read_bytes())
+        start = member.header_offset + 30 + len(member.filename.encode())
+        start += int.from_bytes(data[member.header_offset + 28:member.header_offset + 30],
+                                "little")  # the local header's extra field
+        data[start] = 0xFF  # an invalid deflate block type: zlib.error when read
+        archive.write_bytes(bytes(data))
+    elif damage == "not_a_zip":  # np.load would take it for pickled data
+        archive.write_bytes(b"\x80\x04 not an archive" * 8)
+    elif damage == "manifest_fields":
+        del manifest["tasks"]["open_drawer"]["file"]
+    manifest["tasks"]["open_drawer"]["sha256"] = hashlib.sha256(archive.read_bytes()).hexdigest()
+    text = "{" if damage == "manifest_json" else json.dumps(manifest)
+    (copy / "manifest.json").write_text(text)
+    assert main([str(copy), "--task", "open_drawer"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: ") and "pickle" not in err
+    assert ("open_drawer.npz" if "manifest" not in damage else "manifest.json") in err
+
+
+def test_cli_generate_unwritable_out_is_one_line(capsys):
+    assert gen.main(["--out", "/proc/forbidden", "--tasks", "open_drawer", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot write to /proc" in err
 
 
 def test_worker_processes_make_the_same_bank(bank_dir, tmp_path):

@@ -95,6 +95,7 @@ def test_one_step_lowers_autoencoder_loss(pairs):
     assert after < before
 
 
+@pytest.mark.slow  # an 80 s compile on 2 cores; the training fixtures run the same loss
 def test_one_step_lowers_diffusion_loss():
     model = create(lambda: DynamicsModel(TEXT_QUICK, UNET_QUICK, rngs=nnx.Rngs(0)))
     z = np.random.default_rng(0).normal(size=(2, 4, 16, 16, 4)).astype(np.float32)
@@ -406,6 +407,7 @@ def test_map_chunks_pads_to_few_shapes():
     assert shapes == {8}
 
 
+@pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores
 def test_dynamics_benchmark_quick_mode(tmp_path):
     from agnostos_mjx.dynamics import bench
 

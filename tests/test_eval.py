@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +47,15 @@ def test_aggregate_matches_hand_computed_values() -> None:
     assert "Seen" not in g
     md = ev.format_markdown(s)
     assert "| a | unseen_level1 | 75.0 (25.0) |" in md and "max_steps: 1" in md
-    assert ev.format_csv(s).splitlines()[1].startswith("a,unseen_level1,4,0 1,75.0000,25.0000")
+    rows = {r["name"]: r for r in ev.csv_rows(s)}
+    assert list(rows) == ["a", "b", "Level-1", "Level-2", "All"]
+    assert rows["a"] == {"name": "a", "kind": "task", "split": "unseen_level1", "tasks": 1,
+                         "seeds": 2, "episodes": 4, "successes": 3, "success_pct_mean": 75.0,
+                         "success_pct_std": 25.0, "success_pct_seed0": 100.0,
+                         "success_pct_seed1": 50.0, "mean_key_actions": 7.75,
+                         "mean_sim_steps": 150.0, "outcome_max_steps": 1, "outcome_success": 3}
+    assert rows["All"]["tasks"] == 2 and rows["All"]["episodes"] == 8
+    assert rows["All"]["outcome_success"] == 4 and rows["All"]["success_pct_seed0"] == 50.0
 
 
 def test_variations_follow_the_protocol() -> None:
@@ -70,7 +85,7 @@ def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture)
     lines = (run_dir / "episodes.jsonl").read_text().splitlines()
     assert len(lines) == 2
     recs = [json.loads(line) for line in lines]
-    assert [(r["seed"], r["episode"]) for r in recs] == [(0, 0), (0, 1)]
+    assert sorted((r["seed"], r["episode"]) for r in recs) == [(0, 0), (0, 1)]
     assert all(r["success"] and r["outcome"] == "success" for r in recs)
     assert recs[0]["instruction"] == "turn on the light" and recs[0]["variation"] == 0
     results = json.loads((run_dir / "results.json").read_text())
@@ -78,7 +93,13 @@ def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture)
     assert results["summary"]["groups"]["Level-1"]["success_mean"] == 100.0
     assert results["complete"] and len(results["episodes"]) == 2
     assert results["versions"]["mujoco"] and results["backend"] == "native"
-    assert (run_dir / "results.csv").read_text().splitlines()[1].startswith("lamp_on,")
+    with (run_dir / "results.csv").open(newline="") as f:
+        rows = {r["name"]: r for r in csv.DictReader(f)}
+    assert list(rows) == ["lamp_on", "Level-1", "All"]
+    assert rows["lamp_on"]["kind"] == "task" and rows["All"]["kind"] == "group"
+    assert float(rows["lamp_on"]["success_pct_mean"]) == 100.0
+    assert float(rows["All"]["success_pct_seed0"]) == 100.0
+    assert int(rows["lamp_on"]["outcome_success"]) == 2 and rows["All"]["split"] == ""
     assert "| lamp_on | unseen_level1 | 100.0 (0.0) |" in (run_dir / "results.md").read_text()
 
 
@@ -104,6 +125,98 @@ def test_resume_does_not_rerun(run_dir: Path, monkeypatch: pytest.MonkeyPatch,
     assert "--resume" in capsys.readouterr().err
 
 
+def test_resume_ignores_a_torn_last_line(run_dir: Path, tmp_path: Path) -> None:
+    """A run killed while appending leaves half a line: resume drops it, runs that
+    episode again, and the file ends with whole lines only."""
+    out = tmp_path / "torn"
+    out.mkdir()
+    first, second = (run_dir / "episodes.jsonl").read_text().splitlines()
+    (out / "episodes.jsonl").write_text(first + "\n" + second[: len(second) // 2])
+    assert ev.main(["--policy", "oracle", "--tasks", "lamp_on", "--seeds", "0", "--episodes",
+                    "2", "--batch", "2", "--backend", "native", "--quiet", "--out", str(out),
+                    "--resume"]) == 0
+    recs = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
+    assert recs[0] == json.loads(first)
+    assert sorted((r["seed"], r["episode"]) for r in recs) == [(0, 0), (0, 1)]
+
+
+def test_load_records_keeps_the_first_of_duplicates(tmp_path: Path) -> None:
+    path = tmp_path / "episodes.jsonl"
+    recs = _records("a", "seen", 0, [True, False])
+    ev.append_records(path, recs)
+    ev.append_records(path, [{**recs[0], "success": False}])
+    path.write_text(path.read_text() + "not json\n")
+    assert ev.load_records(path) == recs
+    assert ev.repair_records(path) == recs and path.read_text() == ev._jsonl(recs)
+
+
+def test_resume_command_repeats_the_options_with_out_and_resume() -> None:
+    argv = ["--tasks", "lamp_on,lamp_off", "--out", "old", "--resume", "--policy-arg",
+            "model=a b", "--out=older"]
+    command = ev.resume_command(argv, Path("results/my run"))
+    assert shlex.split(command) == ["python", "-m", "agnostos_mjx.eval", "--tasks",
+                                    "lamp_on,lamp_off", "--policy-arg", "model=a b", "--out",
+                                    "results/my run", "--resume"]
+
+
+def _one_line_error(capsys: pytest.CaptureFixture) -> str:
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: "), captured.err
+    assert "Traceback" not in captured.out + captured.err
+    return err
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("unwritable", "cannot write to /proc"),
+    ("file", "is not a folder"),
+    ("resume_without_out", "--resume needs --out DIR, the folder of the run to continue "
+                           "(the latest run is results/oracle-1)"),
+    ("unknown_compare", "unknown published method 'GPT'"),
+    ("unknown_policy", "cannot load policy 'no_such_module:Policy'"),
+    ("existing_run", "--resume"),
+])
+def test_cli_errors_are_one_line_and_leave_no_folder(case: str, expected: str, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture) -> None:
+    import agnostos_mjx.policies
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "episodes.jsonl").write_text("")
+    (tmp_path / "results" / "oracle-1").mkdir(parents=True)
+    (tmp_path / "results" / "oracle-1" / "episodes.jsonl").write_text("")
+    if case in ("unwritable", "file", "resume_without_out"):  # found before loading models
+        def no_loading(*args, **kwargs):
+            raise AssertionError("loaded the policy before checking the command line")
+
+        monkeypatch.setattr(agnostos_mjx.policies, "make_policy", no_loading)
+    args = {"unwritable": ["--out", "/proc/forbidden"], "file": ["--out", "a_file"],
+            "resume_without_out": ["--resume"], "unknown_compare": ["--compare", "GPT"],
+            "unknown_policy": ["--policy", "no_such_module:Policy"],
+            "existing_run": ["--out", "done"]}[case]
+    policy = [] if "--policy" in args else ["--policy", "oracle"]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert ev.main([*policy, "--tasks", "lamp_on", "--quiet", *args]) == 2
+    assert expected in _one_line_error(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no results/ folder left
+
+
+def test_remove_empty_dirs_keeps_anything_with_files(tmp_path: Path) -> None:
+    from agnostos_mjx.cli import remove_empty_dirs
+
+    (tmp_path / "empty" / "llm_cache" / "ab").mkdir(parents=True)
+    remove_empty_dirs(tmp_path / "empty")
+    assert not (tmp_path / "empty").exists()
+    (tmp_path / "kept" / "llm_cache" / "ab").mkdir(parents=True)
+    (tmp_path / "kept" / "llm_cache" / "ab" / "x.json").write_text("{}")
+    (tmp_path / "kept" / "other").mkdir()
+    remove_empty_dirs(tmp_path / "kept")
+    assert (tmp_path / "kept" / "llm_cache" / "ab" / "x.json").exists()
+    assert not (tmp_path / "kept" / "other").exists()
+
+
 def test_unknown_task_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert ev.main(["--tasks", "lamp_on,no_such_task", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
@@ -120,6 +233,9 @@ def test_help(capsys: pytest.CaptureFixture) -> None:
     for flag in ("--policy", "--tasks", "--seeds", "--episodes", "--batch", "--backend",
                  "--variations", "--out", "--resume", "--quiet"):
         assert flag in out
+    # The default folder the help names is the one a run uses.
+    assert "results/<policy>-<timestamp>" in " ".join(out.split())
+    assert re.fullmatch(r"results/retrieval-\d{8}-\d{6}", ev._default_out("retrieval").as_posix())
 
 
 def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
@@ -173,3 +289,126 @@ def test_run_interleaved_runs_others_while_one_waits():
         return "c"
 
     assert run_interleaved([lone()], limit=1) == ["c"]
+
+
+def test_progress_moves_with_rounds_and_prints_at_once() -> None:
+    import io
+
+    from agnostos_mjx.cli import Progress
+
+    stream = io.StringIO()
+    bar = Progress(10, stream=stream)
+    bar.update(0, detail="lamp_on batch 1/2 key action 1/25")
+    first = stream.getvalue()
+    assert first.count("\n") == 1 and "0/10 episodes  lamp_on batch 1/2" in first
+    bar.update(0, detail="lamp_on batch 1/2 key action 1/25")
+    assert stream.getvalue() == first  # nothing new, no line
+    bar.heartbeat()
+    assert stream.getvalue() == first  # drawn just now
+    bar._last -= 31.0  # a step that ran for half a minute: the heartbeat shows the time
+    bar.heartbeat()
+    assert stream.getvalue().count("\n") == 2
+    bar.update(0, partial=2.5)
+    assert bar.work == 2.5 and "ETA ?" not in bar.line() and "[######" in bar.line()
+    bar.update(10, partial=3.0)
+    assert bar.work == 10 and stream.getvalue().count("\n") == 3  # the end always prints
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _spawn(*args: str) -> subprocess.Popen:
+    """A child Python in this repository with SIGINT's default action (a shell that starts
+    the tests in the background would otherwise pass SIGINT on as ignored)."""
+    reset = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+             "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])")
+    return subprocess.Popen([sys.executable, "-c", reset, *args], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(predicate, proc: subprocess.Popen, timeout: float = 180.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)
+
+
+def test_sigint_keeps_finished_episodes_and_the_printed_command_completes_the_run(
+        tmp_path: Path) -> None:
+    out, episodes = tmp_path / "run", 24
+    log = out / "episodes.jsonl"
+    proc = _spawn("-m", "agnostos_mjx.eval", "--policy", "oracle", "--tasks", "lamp_on",
+                  "--seeds", "0", "--episodes", str(episodes), "--batch", "2", "--backend",
+                  "native", "--out", str(out))
+    _wait_for(lambda: log.exists() and log.read_text().count("\n") >= 1, proc)
+    proc.send_signal(signal.SIGINT)
+    start = time.monotonic()
+    _, err = proc.communicate(timeout=60)
+    assert time.monotonic() - start < 5.0 and proc.returncode == 130, err
+    assert "Traceback" not in err and "0/24 episodes  lamp_on batch 1/12" in err
+    kept = log.read_text()
+    assert 1 <= kept.count("\n") < episodes
+    command = shlex.split(re.search(r"to continue: (.+)", err).group(1))
+    assert command[:3] == ["python", "-m", "agnostos_mjx.eval"] and command[-1] == "--resume"
+    resumed = _spawn(*command[1:])
+    _, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    text = log.read_text()
+    assert text.startswith(kept)  # appended to, never rewritten
+    keys = [(r["seed"], r["episode"]) for r in map(json.loads, text.splitlines())]
+    assert sorted(keys) == [(0, e) for e in range(episodes)]  # none lost, none repeated
+    assert json.loads((out / "results.json").read_text())["complete"]
+
+
+_STUCK = """
+import sys, time
+from agnostos_mjx.cli import InterruptGuard, hard_exit
+with InterruptGuard(grace_s=float(sys.argv[1])) as guard:
+    guard.message = "resume with: x"
+    ready = False
+    while True:  # a main thread that never gives up (as one inside an XLA call)
+        try:
+            if not ready:
+                ready = True
+                print("ready", flush=True)
+            time.sleep(60)
+        except KeyboardInterrupt:
+            print("KeyboardInterrupt", flush=True)
+"""
+
+
+@pytest.mark.parametrize("signals, grace_s", [(1, 1.0), (2, 60.0)])
+def test_interrupt_guard_exits_when_the_main_thread_is_stuck(signals: int, grace_s: float
+                                                             ) -> None:
+    """One Ctrl-C: out after the grace period with the message; two: out at once."""
+    proc = _spawn("-c", _STUCK, str(grace_s))
+    assert proc.stdout.readline() == "ready\n"
+    start = time.monotonic()
+    for _ in range(signals):
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.2)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err == "resume with: x\n"
+    assert "KeyboardInterrupt" in out and time.monotonic() - start < grace_s + 3.0
+
+
+def test_run_interleaved_cancels_waiting_work_when_interrupted() -> None:
+    import concurrent.futures
+
+    waiting: concurrent.futures.Future = concurrent.futures.Future()
+    closed: list[str] = []
+
+    def waits():
+        try:
+            yield waiting
+        finally:
+            closed.append("a")
+
+    def interrupted():
+        raise KeyboardInterrupt
+        yield  # noqa: B901
+
+    with pytest.raises(KeyboardInterrupt):
+        ev.run_interleaved([waits(), interrupted()], limit=2)
+    assert waiting.cancelled() and closed == ["a"]

@@ -8,6 +8,7 @@ import json
 import random
 import re
 import socket
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -133,11 +134,19 @@ def test_cache_replays_without_the_server(tmp_path):
 
 
 def test_concurrency_overlaps_latency():
-    with ScriptedLLMServer(echo, latency_s=0.2) as server:
-        client = client_for(server, concurrency=32)
+    """Requests are in flight together: the server answers only in groups of 8 that are
+    all waiting at once (a barrier, so load cannot break it; sequential requests would
+    break the barrier and fail)."""
+    barrier = threading.Barrier(8, timeout=50)
+
+    def together(msgs):
+        barrier.wait()
+        return echo(msgs)
+
+    with ScriptedLLMServer(together) as server:
+        client = client_for(server, concurrency=32, timeout_s=60.0, retries=0)
         out = client.complete_batch([[{"role": "user", "content": str(i)}] for i in range(64)])
-    assert all(o.text is not None for o in out)
-    assert max(o.latency_s for o in out) < 0.2 * 64 / 4  # far from sequential (12.8 s)
+    assert all(o.text == f"answer to {i}" for i, o in enumerate(out))
 
 
 # ---- end to end --------------------------------------------------------------------------
@@ -223,30 +232,56 @@ def test_vllm_engine_without_vllm_is_a_clear_error(monkeypatch):
         VLLMEngine(LLMConfig(url="vllm:", model="Qwen/Qwen2.5-7B-Instruct"))
 
 
+def _overlap_probe(hold: bool):
+    """A press_the_button server script that notes, as each lamp_off request arrives, how
+    many lamp_on requests are unanswered; with `hold` it answers lamp_on only once a
+    lamp_off request has arrived (which only overlapping tasks can make happen)."""
+    other_arrived, lock = threading.Event(), threading.Lock()
+    state = {"on_in_flight": 0, "seen_in_flight": [], "held": []}
+
+    def respond(msgs):
+        if "turn on" not in msgs[-1]["content"]:
+            with lock:
+                state["seen_in_flight"].append(state["on_in_flight"])
+            other_arrived.set()
+            return press_the_button(msgs)
+        with lock:
+            state["on_in_flight"] += 1
+        try:
+            if hold:  # a safety net below the client's 60 s timeout, not a timing assumption
+                state["held"].append(other_arrived.wait(50))
+            return press_the_button(msgs)
+        finally:
+            with lock:
+                state["on_in_flight"] -= 1
+
+    return respond, state
+
+
 def test_tasks_overlap_while_their_requests_wait(memory_file, tmp_path):
     """With --overlap-tasks 2 the second task simulates and sends its requests while the
-    first task's requests are in flight; the episodes are the same as one task at a time."""
+    first task's requests are in flight; the episodes are the same as one task at a time.
+    Decided by the order of events on the server, not by wall-clock time."""
     from agnostos_mjx import eval as ev
 
     runs = {}
     for overlap in (1, 2):
-        with ScriptedLLMServer(press_the_button, latency_s=0.5) as server:
+        respond, state = _overlap_probe(hold=overlap == 2)
+        with ScriptedLLMServer(respond) as server:
             out = tmp_path / f"overlap{overlap}"
             assert ev.main(["--llm-url", server.url, "--llm-model", "scripted", "--tasks",
                             "lamp_on,lamp_off", "--seeds", "0", "--episodes", "2", "--batch",
                             "2", "--backend", "native", "--quiet", "--selection", "random",
                             "--num-demos", "2", "--memory", str(memory_file), "--out", str(out),
                             "--overlap-tasks", str(overlap)]) == 0
-            times = dict(server.times)
         records = [json.loads(line) for line in (out / "episodes.jsonl").open()]
         for r in records:
-            r.pop("batch_wall_s")
+            r.pop("wall_s")
         runs[overlap] = sorted(records, key=lambda r: (r["task"], r["episode"]))
-        lamp_on = {i for i, r in enumerate(server.requests)
-                   if "turn on" in r["messages"][-1]["content"]}
-        assert lamp_on and len(lamp_on) < len(server.requests)
-        first_answered = max(times[i][1] for i in lamp_on)
-        other_arrived = min(times[i][0] for i in times if i not in lamp_on)
-        overlapped = other_arrived < first_answered
-        assert overlapped == (overlap == 2)
+        assert state["seen_in_flight"], "lamp_off sent no request"
+        if overlap == 1:  # lamp_off starts after lamp_on's last answer
+            assert state["held"] == [] and set(state["seen_in_flight"]) == {0}
+        else:  # every held lamp_on request was released by a lamp_off request
+            assert state["held"] and all(state["held"])
+            assert max(state["seen_in_flight"]) > 0
     assert runs[1] == runs[2]

@@ -34,6 +34,7 @@ def object_frames(layout):
             if name.endswith((".pos", ".quat")) and not name.startswith("tip.")]
 
 
+@pytest.mark.slow  # an MJX compile (30 s on 2 cores)
 def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
     """Per-world step counts, and from the same reset state (key 3), 40 physics steps (0.2 s) of the same
     joint targets towards the lamp switch's hover point, through each backend's

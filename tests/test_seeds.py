@@ -3,8 +3,6 @@ same episode on the native backend."""
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import numpy as np
 import pytest
@@ -12,20 +10,20 @@ import pytest
 from agnostos_mjx.episode import Episodes, Outcome
 from agnostos_mjx.observables import Observation
 from agnostos_mjx.tasks import get_task, list_tasks
+from tests.conftest import episodes_for, task_params
 
 TASKS = list_tasks()
 
 
-@functools.cache
 def episodes(name: str) -> Episodes:
-    return Episodes(get_task(name), "native")
+    return episodes_for(name)
 
 
 def run_expert(ep: Episodes, env):
     return ep.run_expert(env)
 
 
-@pytest.mark.parametrize("name", TASKS)
+@pytest.mark.parametrize("name", task_params(TASKS))
 def test_different_keys_give_different_scenes(name):
     ep = episodes(name)
     keys = jax.random.split(jax.random.PRNGKey(7), 3)
@@ -41,7 +39,7 @@ def test_different_keys_give_different_scenes(name):
     assert np.abs(obj[0] - obj[1]).max() > 1e-3
 
 
-@pytest.mark.parametrize("name", TASKS)
+@pytest.mark.parametrize("name", task_params(TASKS))
 def test_same_key_same_reset(name):
     ep = episodes(name)
     keys = jax.random.split(jax.random.PRNGKey(11), 2)
@@ -70,7 +68,7 @@ def test_same_key_same_expert_episode(name):
     np.testing.assert_array_equal(first.physics.qpos, second.physics.qpos)
 
 
-@pytest.mark.parametrize("name", ["push_buttons", "close_jar"])
+@pytest.mark.parametrize("name", task_params(["push_buttons", "close_jar"]))
 def test_an_episode_does_not_depend_on_its_batch(name):
     """Each world runs its own timeline (as RLBench runs one episode at a time): an episode
     gives the same result alone as in a batch whose other worlds move for longer. With one
@@ -91,7 +89,7 @@ def test_an_episode_does_not_depend_on_its_batch(name):
         np.testing.assert_allclose(alone.physics.qpos[0], batch.physics.qpos[w], atol=1e-3)
 
 
-@pytest.mark.parametrize("name", TASKS)
+@pytest.mark.parametrize("name", task_params(TASKS))
 def test_out_of_range_variation_raises(name):
     ep = episodes(name)
     n = get_task(name).num_variations
@@ -102,7 +100,7 @@ def test_out_of_range_variation_raises(name):
         ep.reset(keys, [-1, 0])
 
 
-@pytest.mark.parametrize("name", TASKS)
+@pytest.mark.parametrize("name", task_params(TASKS))
 def test_every_variation_resets_with_success_false(name):
     """All variations exist and reset: one world per variation index."""
     import jax.numpy as jnp

@@ -4,8 +4,6 @@ parts of their success conditions on real reset observations."""
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,15 +12,15 @@ import pytest
 from agnostos_mjx.episode import Episodes
 from agnostos_mjx.observables import Observation
 from agnostos_mjx.tasks import get_task, is_implemented
+from tests.conftest import episodes_for
 
 
 def needs(name: str):
     return pytest.mark.skipif(not is_implemented(name), reason=f"{name} not implemented")
 
 
-@functools.cache
 def episodes(name: str) -> Episodes:
-    return Episodes(get_task(name), "native")
+    return episodes_for(name)
 
 
 def reset_obs(name: str, variation: int, seed: int = 0) -> Observation:

@@ -4,14 +4,13 @@ water drops).  The expert's success is covered by the generic tests."""
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import numpy as np
 import pytest
 
 from agnostos_mjx.episode import Episodes, Outcome
 from agnostos_mjx.tasks import get_task, is_implemented
+from tests.conftest import episodes_for
 
 # (task, variations, variation, index, verbatim string from the spec)
 DESCRIPTIONS = [
@@ -34,9 +33,8 @@ def _needs(name: str):
     return pytest.mark.skipif(not is_implemented(name), reason=f"{name} not implemented")
 
 
-@functools.cache
 def episodes(name: str) -> Episodes:
-    return Episodes(get_task(name), "native")
+    return episodes_for(name)
 
 
 def _reset(name: str, n: int = 2, seed: int = 0):

@@ -30,6 +30,7 @@ import hashlib
 import io
 import json
 import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 MAX_KEYS = 64  # storage slots; long demos (stack_blocks) exceed X-ICM's 25-step episodes
 TRAJ_FIELDS = ("x", "y", "z", "qw", "qx", "qy", "qz", "gripper_open")
+REQUIRED_ARRAYS = frozenset({"index", "meta", "n_keys", "traj", "traj_offsets", "instruction"})
 
 
 class BankError(Exception):
@@ -101,12 +103,19 @@ def read_shard(path: Path, expected_sha: str | None = None) -> dict[str, np.ndar
     if expected_sha is not None and sha256(path) != expected_sha:
         raise BankError(f"{path}: checksum mismatch, the file is corrupt or was modified; "
                         "delete it and rerun the generator with the same --out to rebuild it")
+    if not zipfile.is_zipfile(path):  # np.load would try it as a pickle or a .npy
+        raise BankError(f"{path}: not an .npz (zip) archive; delete it and rerun the "
+                        "generator with the same --out to rebuild it")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as err:
-        raise BankError(f"{path}: unreadable archive ({type(err).__name__}: {err})") from err
-    meta = json.loads(str(arrays.get("meta", "{}")))
+        meta = json.loads(str(arrays.get("meta", "{}")))
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError) as err:
+        raise BankError(f"{path}: unreadable archive ({type(err).__name__}: {err}); delete "
+                        "it and rerun the generator with the same --out to rebuild it") from err
+    missing = sorted(REQUIRED_ARRAYS - set(arrays))
+    if missing:
+        raise BankError(f"{path}: not a bank archive (no {', '.join(missing)})")
     if meta.get("format_version") != FORMAT_VERSION:
         raise BankError(f"{path}: format version {meta.get('format_version')!r}, "
                         f"this package reads version {FORMAT_VERSION}")
@@ -120,11 +129,17 @@ def read_manifest(root: Path) -> dict:
                         f"python -m agnostos_mjx.data.generate --out {root}")
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as err:
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise BankError(f"{path}: not valid JSON ({err})") from err
-    if manifest.get("format_version") != FORMAT_VERSION:
-        raise BankError(f"{path}: format version {manifest.get('format_version')!r}, this "
+    if not isinstance(manifest, dict) or manifest.get("format_version") != FORMAT_VERSION:
+        version = manifest.get("format_version") if isinstance(manifest, dict) else None
+        raise BankError(f"{path}: format version {version!r}, this "
                         f"package reads version {FORMAT_VERSION}; regenerate the bank")
+    tasks = manifest.get("tasks")
+    if not isinstance(tasks, dict) or not isinstance(manifest.get("config"), dict) or any(
+            not isinstance(e, dict) or not {"file", "demos"} <= set(e) for e in tasks.values()):
+        raise BankError(f"{path}: incomplete manifest (needs config and, per task, file and "
+                        "demos); regenerate the bank")
     return manifest
 
 
@@ -159,7 +174,7 @@ class DemoBank:
             if entry is None:
                 raise BankError(f"{self.root}: no demos of task {task!r}; "
                                 f"the bank has {', '.join(self.tasks)}")
-            arrays = read_shard(self.root / entry["file"], entry["sha256"])
+            arrays = read_shard(self.root / entry["file"], entry.get("sha256"))
             if len(arrays["index"]) != entry["demos"]:
                 raise BankError(f"{self.root / entry['file']}: {len(arrays['index'])} demos, "
                                 f"the manifest says {entry['demos']}")

@@ -52,7 +52,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from agnostos_mjx.cli import HelpFormatter, progress_bar, setup_logging, versions
+from agnostos_mjx.cli import (
+    HelpFormatter,
+    check_writable_dir,
+    progress_bar,
+    setup_logging,
+    versions,
+)
 from agnostos_mjx.data.bank import (
     FORMAT_VERSION,
     MANIFEST,
@@ -534,6 +540,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("--demos, --batch, --max-attempts must be >= 1, --image-size >= 8")
         if args.workers < 0 or args.chunk < 0:
             raise ValueError("--workers and --chunk must be >= 0")
+        problem = check_writable_dir(args.out)
+        if problem:
+            raise ValueError(f"--out: {problem}")
         cfg = GenerateConfig(
             out=args.out, tasks=tuple(t.name for t in parse_tasks(args.tasks)),
             demos=args.demos, seed=args.seed, backend=args.backend, batch=args.batch,
@@ -545,6 +554,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (KeyError, ValueError, BankError) as err:
         print(f"error: {err.args[0] if isinstance(err, KeyError) else err}", file=sys.stderr)
         return 2
+    except OSError as err:  # e.g. the disk filled up
+        print(f"error: {err}", file=sys.stderr)
+        return 1
     print(report["markdown"], end="")
     return 0
 

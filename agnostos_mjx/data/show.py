@@ -44,8 +44,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         count = len(bank.arrays(args.task)["index"])
         for i in range(count) if args.all else args.index:
             print(bank.demo(args.task, i).text())
-    except (BankError, IndexError) as err:
+    except (BankError, IndexError, OSError) as err:  # one line, no traceback
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyError as err:
+        print(f"error: {args.bank}: incomplete bank (no {err.args[0]!r}); regenerate it",
+              file=sys.stderr)
         return 2
     return 0
 
