@@ -129,6 +129,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
 def _variation_mode(text: str) -> str:
     if text in VARIATION_MODES or text.isdigit():
         return text
@@ -202,7 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "where it publishes one (llama.cpp: 1 unless started with "
                           "--parallel N), capping this flag too; else 64 for vLLM, which "
                           "batches on the GPU, and 8 for other servers)")
-    llm.add_argument("--llm-timeout", type=float, default=DEFAULT_TIMEOUT_S,
+    llm.add_argument("--llm-timeout", type=_positive_float, default=DEFAULT_TIMEOUT_S,
                      help="seconds without a byte from the LLM server before a request is "
                           "given up (answers are streamed, so this is silence, not total "
                           "time; not retried, since the server may still be computing). "

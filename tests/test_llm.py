@@ -8,6 +8,7 @@ import json
 import random
 import re
 import socket
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -389,6 +390,20 @@ def test_small_unpublished_context_is_printed_and_exits_non_zero(memory_file, tm
     assert llm["server"]["software"] == "llama-cpp-python" and llm["concurrency"] == 1
     assert llm["sampling_sent"]["repeat_penalty"] == 1.05
     assert [r["cause"] for r in llm["records"]] == ["http_400"] * 2
+
+
+def test_llm_flags_are_documented(capsys):
+    from agnostos_mjx import eval as ev
+
+    with pytest.raises(SystemExit):
+        ev.main(["--help"])
+    out = capsys.readouterr().out
+    for flag in ("--llm-timeout", "--llm-concurrency", "--llm-server-kind"):
+        assert flag in out
+    cfg = ev.parse_config(["--llm-timeout", "30", "--llm-server-kind", "llamacpp"])
+    _, kwargs, _ = ev.resolve_policy(replace(cfg, policy="xicm"))
+    assert (kwargs["timeout_s"], kwargs["server_kind"], kwargs["concurrency"]) == (
+        30.0, "llamacpp", None)
 
 
 def test_vllm_engine_without_vllm_is_a_clear_error(monkeypatch):
