@@ -232,15 +232,23 @@ def test_prompt_tokens_from_the_server_or_an_estimate():
         assert tokens >= 400 // 3 and "estimate" in how
 
 
-def test_context_error_is_not_retried_and_explained():
-    with ScriptedLLMServer(echo, kind="llama-cpp-python", context=100) as server:
+@pytest.mark.parametrize("kind", ["openai", "llama-cpp-python"])
+def test_context_error_is_not_retried_and_explained(kind):
+    """A 400 is final.  llama-cpp-python answers an over-long streamed prompt with an
+    empty stream: the client asks once more without streaming and gets the 400."""
+    with ScriptedLLMServer(echo, kind=kind, context=100) as server:
         client = client_for(server)
         client.preflight()  # a 1-token test fits; the context is not published
         [result] = client.complete_batch([[{"role": "user", "content": "x" * 1000}]])
-    assert result.cause == "http_400" and result.attempts == 1 and len(server.requests) == 1
+    causes = ["empty_stream", "http_400"] if kind == "llama-cpp-python" else ["http_400"]
+    assert client.report()["records"][0]["causes"] == causes
+    assert result.cause == "http_400" and result.attempts == len(server.requests) == len(causes)
+    assert [r.get("stream") for r in server.requests] == [True, False][:len(causes)]
+    assert server.computed == []
     lines = summary_lines(client.report())
-    assert "maximum context length is 100 tokens" in lines[1]
-    assert "--num-demos" in lines[2] and "context is 100 tokens" in lines[2]
+    failed = next(line for line in lines if "failed 1 x http_400" in line)
+    assert "maximum context length is 100 tokens" in failed
+    assert "--num-demos" in lines[-2] and "context is 100 tokens" in lines[-2]
 
 
 def test_cache_replays_without_the_server(tmp_path):
@@ -383,13 +391,13 @@ def test_small_unpublished_context_is_printed_and_exits_non_zero(memory_file, tm
         code = ev.main(run_args(server.url, memory_file, tmp_path / "run", "--num-demos", "3"))
         sent = len(server.requests)
     out = capsys.readouterr().out
-    assert code == 3 and sent == 2  # one request per episode, none retried
+    assert code == 3 and sent == 4  # per episode: the empty stream, then unstreamed 400
     assert "failed 2 x http_400" in out and "maximum context length is 450 tokens" in out
     assert "--num-demos" in out and "more than half of the LLM requests failed" in out
     llm = json.loads((tmp_path / "run" / "results.json").read_text())["llm"]
     assert llm["server"]["software"] == "llama-cpp-python" and llm["concurrency"] == 1
     assert llm["sampling_sent"]["repeat_penalty"] == 1.05
-    assert [r["cause"] for r in llm["records"]] == ["http_400"] * 2
+    assert [r["causes"] for r in llm["records"]] == [["empty_stream", "http_400"]] * 2
 
 
 def test_llm_flags_are_documented(capsys):

@@ -7,7 +7,7 @@ so hundreds of episodes can wait on the LLM while at most `concurrency`
 requests are in flight: the server's slot count where it publishes one, else
 ``--llm-concurrency``, else a default for the kind of server.
 
-Answers are streamed and the timeout is on silence (`http.stream_chat`), so a
+Answers are streamed and the timeout is on silence (`http.chat`), so a
 slow server is waited for, not abandoned and asked again.  Only failures a
 retry can fix are retried (refused or broken connections, HTTP 429, 5xx);
 every request's attempts and causes are recorded (`LLMStats`).  A request
@@ -33,11 +33,12 @@ from agnostos_mjx.llm import server as srv
 from agnostos_mjx.llm.cache import ResponseCache
 from agnostos_mjx.llm.http import (
     BadReply,
+    EmptyStream,
     HTTPStatusError,
+    chat,
     classify,
     one_line,
     request_json,
-    stream_chat,
 )
 from agnostos_mjx.llm.stats import LLMStats
 
@@ -177,13 +178,16 @@ class ChatClient:
         t0 = time.perf_counter()
         causes: list[str] = []
         record: dict[str, Any] = {"prompt_chars": sum(len(m["content"]) for m in messages)}
+        stream = True
         for attempt in range(cfg.retries + 1):
             try:
-                reply = stream_chat(self.url + "/chat/completions", self.payload(messages),
-                                    self._headers(), cfg.timeout_s)
+                reply = chat(self.url + "/chat/completions", self.payload(messages),
+                             self._headers(), cfg.timeout_s, stream=stream)
             except Exception as err:  # noqa: BLE001 - classified, recorded, never lost
                 cause, message, retryable = classify(err, cfg.timeout_s)
                 causes.append(cause)
+                if isinstance(err, EmptyStream):
+                    retryable, stream = stream, False  # once more, unstreamed: the real error
                 if self.stats.error_seen(cause, message):
                     log.warning("LLM request failed (%s%s): %s", cause,
                                 ", will retry" if retryable and attempt < cfg.retries else "",
@@ -193,13 +197,14 @@ class ChatClient:
                 if not retryable or attempt == cfg.retries:
                     break
                 self.stats.retried(cause)
-                self._backoff(attempt, getattr(err, "retry_after", None))
+                if cause != "empty_stream":
+                    self._backoff(attempt, getattr(err, "retry_after", None))
                 continue
             latency = time.perf_counter() - t0
             self.stats.finish(number, {
-                **record, "ok": True, "attempts": attempt + 1, "causes": causes,
-                "latency_s": round(latency, 3), "first_token_s": None if reply.first_byte_s
-                is None else round(reply.first_byte_s, 3), "finish_reason": reply.finish_reason,
+                **record, "ok": True, "attempts": attempt + 1, "causes": causes, "stream": stream,
+                "latency_s": round(latency, 3), "first_token_s": None if reply.first_token_s
+                is None else round(reply.first_token_s, 3), "finish_reason": reply.finish_reason,
                 "usage": reply.usage})
             return Completion(reply.text, attempts=attempt + 1, latency_s=latency,
                               finish_reason=reply.finish_reason)
@@ -305,16 +310,19 @@ class ChatClient:
         cfg = self.config
         body = {"model": cfg.model, "max_tokens": 1,
                 "messages": [{"role": "user", "content": "Say OK."}]}
+        stream = True
         for attempt in range(cfg.retries + 1):
             try:
-                stream_chat(base + "/chat/completions", body, self._headers(), cfg.timeout_s)
+                chat(base + "/chat/completions", body, self._headers(), cfg.timeout_s, stream)
                 return
             except HTTPStatusError as err:
                 if not (err.status == 429 or err.status >= 500) or attempt == cfg.retries:
                     raise
                 self._backoff(attempt, err.retry_after)
-            except (OSError, BadReply) as err:
+            except (OSError, BadReply, EmptyStream) as err:
                 cause, message, retryable = classify(err, cfg.timeout_s)
+                if isinstance(err, EmptyStream):
+                    retryable, stream = stream, False
                 if not retryable or attempt == cfg.retries:
                     raise LLMConfigError(f"the test request to {base}/chat/completions "
                                          f"failed ({cause}): {message}") from None

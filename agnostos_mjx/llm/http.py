@@ -5,7 +5,8 @@ the client's timeout measures *silence*, not total time: urllib's socket
 timeout applies to every read, and a streaming server sends tokens (and
 llama.cpp-python keepalive comments) while it works.  A server that is slow
 but alive is therefore never abandoned, and nothing it is still computing is
-sent again.  `classify` decides which failures a retry can fix: a refused or
+sent again.  A stream that closes without an event is asked once more
+without streaming, where such a server reports its error.  `classify` decides which failures a retry can fix: a refused or
 broken connection, HTTP 429 and 5xx; not a timeout (the server may still be
 computing), not other 4xx (the same request fails the same way).
 """
@@ -31,6 +32,12 @@ class HTTPStatusError(Exception):
 
 class BadReply(Exception):
     """A 2xx answer that is not what the endpoint should return (not JSON, no choices)."""
+
+
+class EmptyStream(Exception):
+    """A 200 stream that closed without one event.  llama-cpp-python does this when a
+    prompt exceeds its context (the error is raised after the headers went out); asked
+    without streaming, the same server answers with the HTTP error and its message."""
 
 
 class StreamCut(ConnectionError):
@@ -81,7 +88,7 @@ class Reply:
     text: str
     finish_reason: str | None
     usage: dict | None
-    first_byte_s: float | None  # time to the first content token (streams only)
+    first_token_s: float | None  # time to the first content token (streams only)
     streamed: bool
 
 
@@ -97,14 +104,15 @@ def _message_text(reply: Any) -> tuple[str, str | None]:
     return text, choice.get("finish_reason")
 
 
-def stream_chat(url: str, body: dict, headers: dict[str, str], timeout_s: float) -> Reply:
-    """POST a chat completion with ``stream: true`` and collect the deltas.
+def chat(url: str, body: dict, headers: dict[str, str], timeout_s: float,
+         stream: bool = True) -> Reply:
+    """POST a chat completion, by default with ``stream: true``, collecting the deltas.
 
     `timeout_s` bounds each wait for bytes, so keepalive comments and tokens
     keep a long generation alive.  A server that ignores ``stream`` and answers
     plain JSON is accepted as well."""
     t0 = time.perf_counter()
-    with open_url("POST", url, {**body, "stream": True}, headers, timeout_s) as resp:
+    with open_url("POST", url, {**body, "stream": stream}, headers, timeout_s) as resp:
         if "text/event-stream" not in resp.headers.get("Content-Type", ""):
             raw = resp.read().decode("utf-8", errors="replace")
             try:
@@ -114,12 +122,13 @@ def stream_chat(url: str, body: dict, headers: dict[str, str], timeout_s: float)
             text, finish = _message_text(reply)
             return Reply(text, finish, reply.get("usage"), None, streamed=False)
         parts: list[str] = []
-        finish, usage, first, done = None, None, None, False
+        finish, usage, first, done, events = None, None, None, False, 0
         for raw_line in resp:
             line = raw_line.decode("utf-8", errors="replace").strip()
             if not line.startswith("data:"):
                 continue  # keepalive comments (": ping"), event:, id:, blank separators
             data = line[5:].strip()
+            events += 1
             if data == "[DONE]":
                 done = True
                 break
@@ -137,6 +146,8 @@ def stream_chat(url: str, body: dict, headers: dict[str, str], timeout_s: float)
                         first = time.perf_counter() - t0
                     parts.append(piece)
                 finish = choice.get("finish_reason") or finish
+    if events == 0:
+        raise EmptyStream("the server closed the stream without sending anything")
     if finish is None:
         raise StreamCut("the stream ended before a finish reason" + (
             " (the server sent [DONE] early)" if done else " (connection closed)"))
@@ -153,6 +164,8 @@ def classify(err: BaseException, timeout_s: float) -> tuple[str, str, bool]:
                            "not retried: the server may still be computing it", False)
     if isinstance(reason, (ConnectionError, OSError, http.client.HTTPException)):
         return "connection", f"{type(reason).__name__}: {one_line(str(reason))}", True
+    if isinstance(err, EmptyStream):  # retried once without streaming (see ChatClient)
+        return "empty_stream", str(err), True
     if isinstance(err, BadReply):
         return "bad_reply", one_line(str(err)), False
     return "error", f"{type(err).__name__}: {one_line(str(err))}", False

@@ -16,7 +16,8 @@ stream sends a keepalive comment every `keepalive_s` (None: silence).  A
 request is computed to its end even when its client has left, as real
 servers do, so `computed` shows work done twice.  `context` (tokens, one
 token per 4 characters) makes longer prompts fail with llama-cpp-python's
-HTTP 400.
+HTTP 400; a ``llama-cpp-python`` server, like the real one, answers such a
+prompt in a stream with an empty 200 stream.
 
 Faults: a `faults` callable gets the request number (0-based over the
 server's life, not counting 1-token start-up probes) and the messages and
@@ -195,6 +196,12 @@ class ScriptedLLMServer:
                 fault = server.faults(number, messages) if server.faults and number >= 0 \
                     else None
                 tokens = count_tokens(messages) + int(payload.get("max_tokens") or 0)
+                stream = bool(payload.get("stream"))
+                if server.context and tokens > server.context and stream \
+                        and server.kind == "llama-cpp-python":
+                    self._start_stream()  # the error is raised after the headers went out
+                    self._chunk(b"")
+                    return
                 if server.context and tokens > server.context:
                     self._send(400, {"error": {"message": (
                         f"This model's maximum context length is {server.context} tokens, "
@@ -206,7 +213,6 @@ class ScriptedLLMServer:
                     return
                 if fault == "timeout":
                     time.sleep(server.hang_s)
-                stream = bool(payload.get("stream"))
                 if server._slots is not None:
                     server._slots.acquire()  # queued: not a byte until a slot is free
                 try:
@@ -235,10 +241,7 @@ class ScriptedLLMServer:
                     server.max_running = max(server.max_running, server.running)
                 try:
                     if stream:
-                        self.send_response(200)
-                        self.send_header("Content-Type", "text/event-stream")
-                        self.send_header("Transfer-Encoding", "chunked")
-                        self.end_headers()
+                        self._start_stream()
                     self._compute(stream)
                     text = self._text(payload) if number >= 0 else "OK"  # probe: any text
                 finally:
@@ -287,6 +290,12 @@ class ScriptedLLMServer:
                     return server.responder(payload.get("messages", []))
                 except Exception:  # a broken script is a server error, visibly
                     return None
+
+            def _start_stream(self) -> None:
+                self.send_response(200)
+                self.send_header("Content-Type", "text/event-stream")
+                self.send_header("Transfer-Encoding", "chunked")
+                self.end_headers()
 
             def _event(self, data: dict) -> None:
                 self._chunk(b"data: " + json.dumps(data).encode() + b"\n\n")
