@@ -145,49 +145,197 @@ def _fori(xp, n: int, body, init, converged=None):
     return jax.lax.fori_loop(0, n, body, init)
 
 
-def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int):
-    """Damped least squares from q0 (..., 7); returns (q, pos error, rot error)."""
-    xp = array_module(q0, target_pos, target_quat)
-    lower, upper = xp.asarray(kin.lower), xp.asarray(kin.upper)
-    rest = 0.5 * (lower + upper)
-    eye = xp.eye(7)
-    weight = xp.asarray([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, restart: bool = False):
+    """One damped-least-squares step from q (..., 7); returns (next q, position
+    error, rotation error), the errors measured at q (before the step).
 
-    def body(_, q):
-        pos, quat, origins, axes = kin.forward(q)
-        err = xp.concatenate([target_pos - pos, quat_error(target_quat, quat)], -1) * weight
-        jac = _jacobian(pos, origins, axes) * weight[:, None]
-        jt = xp.swapaxes(jac, -1, -2)
-        # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2 (weak pull to mid-range)
-        lam2 = 1e-4 + 0.01 * xp.sum(err**2, -1)
-        mu2 = 1e-4
-        lhs = jt @ jac + (lam2 + mu2)[..., None, None] * eye
-        rhs = (jt @ err[..., None])[..., 0] + mu2 * (rest - q)
-        dq = xp.linalg.solve(lhs, rhs[..., None])[..., 0]
-        norm = xp.linalg.norm(dq, axis=-1, keepdims=True)
-        dq = dq * xp.minimum(1.0, 0.4 / (norm + 1e-9))
-        return xp.clip(q + dq, lower, upper)
+    The plain step (warm start, Cartesian paths) keeps a constant weak pull to
+    mid-range: its fixed point is the posture the experts were tuned with, the
+    tip ~1 mm off the target.  A `restart` step, from a seed far from the
+    target, fades the pull with the error (so it converges exactly) and takes
+    joints resting on a limit that the step would push further out of the solve
+    (their columns zeroed, solved again), so the other joints make up the motion
+    instead of the clipped step stalling there."""
+    xp = array_module(q, target_pos, target_quat)
+    lower, upper = xp.asarray(kin.lower), xp.asarray(kin.upper)
+    weight = xp.asarray([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+    pos, quat, origins, axes = kin.forward(q)
+    pos_err, rot_err = target_pos - pos, quat_error(target_quat, quat)
+    err = xp.concatenate([pos_err, rot_err], -1) * weight
+    jac = _jacobian(pos, origins, axes) * weight[:, None]
+    # min |J dq - e|^2 + lam^2 |dq|^2 + mu^2 |q + dq - rest|^2 (weak pull to mid-range)
+    sq = xp.sum(err**2, -1)
+    lam2 = 1e-4 + 0.01 * sq
+    mu2 = 1e-4 * (xp.minimum(1.0, sq / 1e-4) if restart else xp.ones_like(sq))
+    pull_rhs = mu2[..., None] * (0.5 * (lower + upper) - q)
+
+    def solve(j):
+        jt = xp.swapaxes(j, -1, -2)
+        lhs = jt @ j + (lam2 + mu2)[..., None, None] * xp.eye(7)
+        rhs = (jt @ err[..., None])[..., 0] + pull_rhs
+        return xp.linalg.solve(lhs, rhs[..., None])[..., 0]
+
+    dq = solve(jac)
+    if restart:
+        blocked = ((q <= lower + 1e-6) & (dq < 0)) | ((q >= upper - 1e-6) & (dq > 0))
+        dq = xp.where(blocked, 0.0, solve(jac * ~blocked[..., None, :]))
+    norm = xp.linalg.norm(dq, axis=-1, keepdims=True)
+    dq = dq * xp.minimum(1.0, 0.4 / (norm + 1e-9))
+    return (xp.clip(q + dq, lower, upper), xp.linalg.norm(pos_err, axis=-1),
+            xp.linalg.norm(rot_err, axis=-1))  # a rotation vector's norm is its angle
+
+
+def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int,
+             restart: bool = False):
+    """Damped least squares from q0 (..., 7) for a fixed number of steps (numpy
+    may stop once every row has converged); returns (q, pos error, rot error)."""
+    xp = array_module(q0, target_pos, target_quat)
 
     def converged(q):
         pos, quat = kin.tip_pose(q)
         return bool(np.all(np.linalg.norm(target_pos - pos, axis=-1) < 0.1 * IK_POS_TOL)
                     and np.all(quat_angle(target_quat, quat) < 0.1 * IK_ROT_TOL))
 
-    q = _fori(xp, iters, body, q0, converged)
+    q = _fori(xp, iters, lambda _, q: _dls_step(kin, q, target_pos, target_quat, restart)[0], q0,
+              converged)
     pos, quat = kin.tip_pose(q)
     return q, xp.linalg.norm(target_pos - pos, axis=-1), quat_angle(target_quat, quat)
 
 
-def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100):
-    """Batched IK (..., 7) with restarts from the warm start, home and two
-    wrist-flipped homes.  Returns (q, ok, pos_err, rot_err) of the solution
-    nearest the warm start among those within tolerance."""
-    xp = array_module(q_init, target_pos, target_quat)
+def _halton(n: int, dims: int) -> np.ndarray:
+    """The first n points (skipping 0) of the Halton sequence in [0, 1)^dims."""
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29][:dims]
+    out = np.zeros((n, dims))
+    for d, base in enumerate(primes):
+        for i in range(n):
+            k, f, x = i + 1, 1.0, 0.0
+            while k:
+                f /= base
+                x += f * (k % base)
+                k //= base
+            out[i, d] = x
+    return out
+
+
+SPREAD_SEEDS = 24  # fixed restarts spread over the joint ranges (Halton points)
+_SPREAD_UNIT = _halton(SPREAD_SEEDS, 7)
+
+
+def _spread_seeds(kin: PandaKinematics) -> np.ndarray:
+    """(SPREAD_SEEDS, 7) deterministic configurations covering the joint ranges
+    (5% in from each limit), so a restart exists near every IK branch."""
+    span = kin.upper - kin.lower
+    return kin.lower + 0.05 * span + 0.9 * span * _SPREAD_UNIT
+
+
+def _local_seeds(kin: PandaKinematics, q_init):
+    """(4, ..., 7): the warm start, home and home with the wrist turned by +-pi."""
+    xp = array_module(q_init)
     flip = xp.asarray([0, 0, 0, 0, 0, 0, np.pi])
     home = xp.broadcast_to(xp.asarray(kin.home), q_init.shape)
-    seeds = xp.clip(xp.stack([q_init, home, home + flip, home - flip]), kin.lower, kin.upper)
-    qs, pe, re = _ik_from(kin, seeds, target_pos[None], target_quat[None], iters)
-    ok = (pe < IK_POS_TOL) & (re < IK_ROT_TOL)
+    return xp.clip(xp.stack([q_init, home, home + flip, home - flip]), kin.lower, kin.upper)
+
+
+def _ok(pos_err, rot_err, scale: float = 1.0):
+    return (pos_err < scale * IK_POS_TOL) & (rot_err < scale * IK_ROT_TOL)
+
+
+STALL_CHECK = 10  # iterations between progress checks of a restart
+STALL_GAIN = 0.98  # a restart whose error did not fall below this fraction is dropped
+STEP_TOL = 1e-4  # rad: a solution within tolerance whose step is smaller has converged
+
+
+def _descend_np(kin: PandaKinematics, q0: np.ndarray, target: np.ndarray, target_pos: np.ndarray,
+                target_quat: np.ndarray, n_targets: int, iters: int, restart: bool):
+    """Damped least squares on rows q0 (R, 7) aimed at target_pos/quat[target].
+    A row stops once it has converged (within tolerance and no longer moving)
+    or, out of tolerance, once it stalls (a local minimum, or an unreachable
+    target); with `restart` all rows of a target stop at its first converged
+    row.  Easy batches thus cost a few steps and hopeless restarts little.
+    Returns (q, pos error, rot error) per row, the errors at the returned q."""
+    q, pe, re = q0.copy(), np.full(len(q0), np.inf), np.full(len(q0), np.inf)
+    rows = np.arange(len(q0))
+    solved = np.zeros(n_targets, bool)
+    last = np.full(len(q0), np.inf)  # error at the previous progress check
+    for i in range(iters):
+        t = target[rows]
+        q_next, pe[rows], re[rows] = _dls_step(kin, q[rows], target_pos[t], target_quat[t],
+                                               restart)
+        ok = _ok(pe[rows], re[rows])
+        done = ok & (np.abs(q_next - q[rows]).max(-1) < STEP_TOL)
+        solved[t[done]] = restart
+        keep = ~done & ~solved[t]
+        if i % STALL_CHECK == STALL_CHECK - 1:
+            err = pe[rows] / IK_POS_TOL + re[rows] / IK_ROT_TOL
+            keep &= ok | (err < STALL_GAIN * last[rows])
+            last[rows] = err
+        rows = rows[keep]
+        q[rows] = q_next[keep]
+        if not rows.size:
+            return q, pe, re
+    pos, quat = kin.tip_pose(q[rows])
+    t = target[rows]
+    pe[rows] = np.linalg.norm(target_pos[t] - pos, axis=-1)
+    re[rows] = quat_angle(target_quat[t], quat)
+    return q, pe, re
+
+
+def _nearest_ok(q_init, qs, pe, re, n_seeds: int):
+    """Per target, the row (of n_seeds rows per target, seed-major) within
+    tolerance nearest the warm start, else the one with the smallest error."""
+    n = len(q_init)
+    cost = np.where(_ok(pe, re), np.linalg.norm(qs - np.tile(q_init, (n_seeds, 1)), axis=-1),
+                    1e3 + pe + re)
+    best = np.argmin(cost.reshape(n_seeds, n), axis=0) * n + np.arange(n)
+    return qs[best], pe[best], re[best]
+
+
+def _solve_ik_np(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int,
+                 spread: bool):
+    """Numpy IK in two stages: the warm start, home and the wrist flips (the
+    plain step, as the Cartesian paths use; the solution nearest the warm
+    start), then, for the targets these missed, restarts from the spread seeds,
+    batched; a restart's solution is kept only where the first stage failed."""
+    shape = q_init.shape[:-1]
+    q_init = q_init.reshape(-1, 7)
+    target_pos, target_quat = target_pos.reshape(-1, 3), target_quat.reshape(-1, 4)
+    n = len(q_init)
+    local = _local_seeds(kin, q_init)
+    qs, pes, res = _descend_np(kin, local.reshape(-1, 7), np.tile(np.arange(n), len(local)),
+                               target_pos, target_quat, n, iters, restart=False)
+    q, pe, re = _nearest_ok(q_init, qs, pes, res, len(local))
+    todo = np.flatnonzero(~_ok(pe, re))
+    if spread and todo.size:
+        seeds = np.broadcast_to(_spread_seeds(kin)[:, None], (SPREAD_SEEDS, todo.size, 7))
+        qs, pes, res = _descend_np(kin, seeds.reshape(-1, 7), np.tile(np.arange(todo.size),
+                                                                      SPREAD_SEEDS),
+                                   target_pos[todo], target_quat[todo], todo.size, iters,
+                                   restart=True)
+        q[todo], pe[todo], re[todo] = _nearest_ok(q_init[todo], qs, pes, res, SPREAD_SEEDS)
+    return q.reshape(*shape, 7), _ok(pe, re).reshape(shape), pe.reshape(shape), re.reshape(shape)
+
+
+def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100,
+             spread: bool = True):
+    """Batched IK (..., 7) with restarts from the warm start, home, two
+    wrist-flipped homes and (with `spread`) SPREAD_SEEDS configurations spread
+    over the joint ranges.  Returns (q, ok, pos_err, rot_err) of the solution
+    nearest the warm start among those within tolerance.  Numpy stops each
+    target at its first converged restart; JAX (inside jit) runs every restart
+    for `iters` steps.  `spread=False` asks whether a target is reachable near
+    the warm start's branch (how a scripted expert moves)."""
+    xp = array_module(q_init, target_pos, target_quat)
+    if xp is np:
+        return _solve_ik_np(kin, np.asarray(q_init, np.float64), np.asarray(target_pos, np.float64),
+                            np.asarray(target_quat, np.float64), iters, spread)
+    starts = [(_local_seeds(kin, q_init), False)]
+    if spread:
+        starts.append((xp.broadcast_to(xp.asarray(_spread_seeds(kin))[:, None],
+                                       (SPREAD_SEEDS, *q_init.shape)), True))
+    runs = [_ik_from(kin, seeds, target_pos[None], target_quat[None], iters, restart)
+            for seeds, restart in starts]
+    qs, pe, re = (xp.concatenate(parts) for parts in zip(*runs, strict=True))
+    ok = _ok(pe, re)
     cost = xp.where(ok, xp.linalg.norm(qs - q_init[None], axis=-1), 1e3 + pe + re)
     best = xp.argmin(cost, axis=0)
     pick = lambda a: xp.take_along_axis(a, best[None, ..., None] if a.ndim == qs.ndim else  # noqa: E731

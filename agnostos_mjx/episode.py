@@ -6,6 +6,7 @@ comes through the Task's sampler, conditions and observables.
 from __future__ import annotations
 
 import enum
+import functools
 import logging
 from dataclasses import dataclass, field
 
@@ -97,21 +98,6 @@ def xicm_actions(ints) -> KeyActions:
     return KeyActions(pos, quat, grip, valid)
 
 
-def _rows(state: PhysicsState, rows: np.ndarray) -> PhysicsState:
-    return jax.tree.map(lambda x: np.asarray(x)[rows], state)
-
-
-def _put_rows(state: PhysicsState, rows: np.ndarray, part: PhysicsState) -> PhysicsState:
-    """`state` with the worlds `rows` replaced by those of `part` (a new tree)."""
-
-    def put(full, new):
-        out = np.array(full, copy=True)
-        out[rows] = new
-        return out
-
-    return jax.tree.map(put, state, part)
-
-
 @dataclass(frozen=True)
 class StepResult:
     """Per-step sensordata of the last key action (arm then gripper phase)."""
@@ -119,6 +105,36 @@ class StepResult:
     sensordata: np.ndarray  # (B, T, nsensordata)
     attached: np.ndarray  # (B, T, ngraspable)
     valid: np.ndarray  # (B, T): False after a world finished
+
+
+def reachable_host(kin: PandaKinematics, q, pos, quat, valid) -> np.ndarray:
+    """Whether each world's key actions (B, K) are inside the bounds and solvable by IK
+    near the expert's branch, warm-started along the sequence (numpy, float64)."""
+    ok = np.ones(len(q), bool)
+    for k in range(pos.shape[1]):
+        p, r = pos[:, k].astype(np.float64), quat[:, k].astype(np.float64)
+        q_k, ok_k, _, _ = control.solve_ik(kin, q, p, r, spread=False)
+        ok &= ~valid[:, k] | (ok_k & control.within_bounds(p))
+        q = np.where(valid[:, None, k], q_k, q)
+    return ok
+
+
+def reachable_device(kin: PandaKinematics, q, pos, quat, valid) -> jax.Array:
+    """`reachable_host` as one jitted program (a scan over key actions) for the MJX
+    backends on an accelerator, where thousands of worlds reset at once."""
+
+    def body(carry, action):
+        q, ok = carry
+        p, r, v = action
+        q_k, ok_k, _, _ = control.solve_ik(kin, q, p, r, spread=False)
+        ok = ok & (~v | (ok_k & control.within_bounds(p)))
+        return (jnp.where(v[:, None], q_k, q), ok), None
+
+    xs = (jnp.swapaxes(jnp.asarray(pos, jnp.float32), 0, 1),
+          jnp.swapaxes(jnp.asarray(quat, jnp.float32), 0, 1), jnp.swapaxes(jnp.asarray(valid), 0, 1))
+    q = jnp.asarray(q, jnp.float32)
+    (_, ok), _ = jax.lax.scan(body, (q, jnp.ones(q.shape[0], bool)), xs)
+    return ok
 
 
 class Episodes:
@@ -138,13 +154,17 @@ class Episodes:
         self._jit_conditions = jax.jit(jax.vmap(self._conditions))
         # Control runs where the physics runs: jitted on device next to MJX,
         # plain numpy next to native MuJoCo (see control.py).
-        if self.backend_name == "native" or jax.default_backend() == "cpu":
+        self.on_device = self.backend_name != "native" and jax.default_backend() != "cpu"
+        if not self.on_device:
             self._plan = lambda q, p, r: control.plan_arm(self.kin, q, p, r)
+            self._reachable = functools.partial(reachable_host, self.kin)
         else:
             self._plan = jax.jit(lambda q, p, r: control.plan_arm(self.kin, q, p, r))
+            self._reachable = jax.jit(functools.partial(reachable_device, self.kin))
         self._jit_expert = jax.jit(jax.vmap(task.expert))
         self._jit_attach = jax.jit(jax.vmap(self._attach_test))
         self._renderer = None
+        self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
     # ---- pure pieces (vmapped above) -------------------------------------------------
     def _sample_one(self, key, variation):
@@ -202,22 +222,37 @@ class Episodes:
                 f"got {sorted(set(variations.tolist()))}"
             )
         keys = jnp.asarray(keys)
+        b = len(variations)
+        self._jit_rows = b
         sampled = list(map(np.asarray, self._jit_sample(keys, variations)))
-        for attempt in range(1, placement_tries + 1):
-            env = self._settle(sampled, variations)
-            bad = ~self.expert_reachable(env)
-            if not bad.any():
+        env = self._settle(sampled, variations)
+        ok = self.expert_reachable(env)
+        for attempt in range(1, placement_tries):
+            if ok.all():
                 break
-            if attempt == placement_tries:
-                log.warning("%s: %d of %d scenes kept although the expert cannot reach them "
-                            "after %d placements", self.task.name, bad.sum(), len(bad), attempt)
-                break
+            # Only the rejected scenes are settled and checked again (in a padded batch,
+            # so jitted shapes stay few); every world is settled once more at the end.
             retry = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, attempt)
             fresh = list(map(np.asarray, self._jit_sample(retry, variations)))
+            bad = ~ok
             sampled = [np.where(bad.reshape(-1, *([1] * (a.ndim - 1))), f, a)
                        for a, f in zip(sampled, fresh)]
+            idx = np.nonzero(bad)[0]
+            rows = self._padded_rows(idx, b)
+            part = self._settle([a[rows] for a in sampled], variations[rows])
+            ok[idx] = self.expert_reachable(part)[: len(idx)]
+            if ok.all() or attempt == placement_tries - 1:
+                env = self._settle(sampled, variations)
+        if not ok.all():
+            log.warning("%s: %d of %d scenes kept although the expert cannot reach them "
+                        "after %d placements", self.task.name, (~ok).sum(), b, placement_tries)
         env.stop_at_success = stop_at_success
         return env
+
+    def _padded_rows(self, idx: np.ndarray, batch: int) -> np.ndarray:
+        """Rows to settle again: `idx` itself on native MuJoCo (any batch size runs
+        there without compiling), repeated up to the full batch on MJX."""
+        return idx if self.backend_name == "native" else np.resize(idx, batch)
 
     def _settle(self, sampled, variations) -> EnvState:
         qpos, mocap_pos, mocap_quat, rgba = sampled
@@ -236,7 +271,7 @@ class Episodes:
         state, sens = self.backend.run(state, np.repeat(ctrl[:, None], SETTLE_STEPS, axis=1))
         attached = np.zeros((b, len(self.task.graspables)), bool)
         obs = self._obs(np.asarray(sens[:, -1]), attached)
-        carry = self._jit_init_cond(obs.data, attached, variations)
+        carry = self._padded(self._jit_init_cond, obs.data, attached, variations)
         return EnvState(
             physics=state.numpy(), obs=obs, carry=carry, variation=variations,
             gripper=np.full(b, FINGER_OPEN), outcome=np.zeros(b, np.int32),
@@ -262,41 +297,35 @@ class Episodes:
         bounds and solvable by IK (warm-started along the sequence)."""
         actions = self.expert_actions(env)
         q = np.asarray(env.obs.data[:, self._arm_q], np.float64)
-        ok = np.ones(len(q), bool)
-        for k in range(actions.pos.shape[1]):
-            pos = actions.pos[:, k].astype(np.float64)
-            quat = actions.quat[:, k].astype(np.float64)
-            q_k, ok_k, _, _ = control.solve_ik(self.kin, q, pos, quat)
-            inside = control.within_bounds(pos)
-            valid = actions.valid[:, k]
-            ok &= ~valid | (ok_k & inside)
-            q = np.where(valid[:, None], q_k, q)
-        return ok
+        return np.asarray(self._reachable(q, actions.pos, actions.quat, actions.valid))
 
     def expert_actions(self, env: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""
-        return jax.tree.map(np.asarray, self._jit_expert(env.initial_obs, env.variation))
+        return self._padded(self._jit_expert, env.initial_obs, env.variation)
+
+    def _padded(self, fn, *args):
+        """fn(*args) for a batch of any size, run at the reset's batch size (rows
+        repeated, results cut back), so re-checking a few rejected scenes reuses the
+        programs compiled for the whole batch instead of compiling one per size."""
+        n = len(jax.tree.leaves(args)[0])
+        size = self._jit_rows or n
+        if n >= size:
+            return jax.tree.map(np.asarray, fn(*args))
+        idx = np.resize(np.arange(n), size)
+        out = fn(*jax.tree.map(lambda x: np.asarray(x)[idx], args))
+        return jax.tree.map(lambda x: np.asarray(x)[:n], out)
 
     def _simulate(self, env: EnvState, ctrl: np.ndarray, steps: np.ndarray) -> np.ndarray:
         """Advance world w by its own `steps[w]` physics steps under ctrl[w, :steps[w]] (0: the
         world stays frozen), so a world's timeline never depends on the other worlds in its
-        batch, as in RLBench, which runs one episode at a time.  Returns sensordata (B, T, S)
-        for T = ctrl.shape[1], rows after a world's last step repeating its last row.
-
-        Worlds with equal step counts (a few buckets) run together; MJX runs pad a group to
-        the full batch with copies so their compiled shapes stay fixed."""
-        b, t = ctrl.shape[:2]
-        sens = np.repeat(np.asarray(env.obs.data)[:, None], t, axis=1)
-        physics = env.physics.numpy()
-        for n in np.unique(steps[steps > 0]):
-            idx = np.nonzero(steps == n)[0]
-            run = idx if self.backend_name == "native" else np.resize(idx, b)
-            state, s = self.backend.run(_rows(physics, run), ctrl[run, :n])
-            physics = _put_rows(physics, idx, _rows(state.numpy(), np.arange(len(idx))))
-            s = np.asarray(s)[: len(idx)]
-            sens[idx, :n] = s
-            sens[idx, n:] = s[:, -1:]
-        env.physics = physics
+        batch, as in RLBench, which runs one episode at a time.  One backend call (MJX: one
+        masked scan of the longest move).  Returns sensordata (B, T, S) for T = ctrl.shape[1],
+        rows after a world's last step repeating its last row."""
+        state, sens = self.backend.run(env.physics, ctrl, steps)
+        sens = np.array(sens, copy=True)
+        frozen = steps == 0
+        sens[frozen] = np.asarray(env.obs.data)[frozen][:, None]
+        env.physics = state.numpy()
         return sens
 
     def _run_phase(self, env: EnvState, ctrl: np.ndarray, steps: np.ndarray):

@@ -9,11 +9,22 @@ Conventions (X-ICM / RoboPrompt ``utils.py``, PerAct settings):
   angles (scipy ``as_euler('xyz', degrees=True)``), shifted by +180 and rounded, giving bins
   0..71 (x, z) and 18..54 (y, whose angle lies in [-90, 90]).
 * Quaternions in this project are **(w, x, y, z)** (MuJoCo order); scipy's (x, y, z, w) order is
-  only used in the tests. The Euler conversion follows scipy's quaternion algorithm (Bernardes
-  & Viollet 2022), written in ``jax.numpy`` so that everything here can run under ``jit``. The array
-  functions are themselves ``jax.jit``-wrapped (compiled once per input shape and dtype), since
-  eager op-by-op dispatch is slow.
+  only used inside (to keep the original's summation order) and in the tests.
 * An action is 7 ints: ``[vx, vy, vz, rx, ry, rz, gripper_open]`` with 1 = open, 0 = closed.
+
+Everything here runs on the host in float64 numpy and repeats the original's arithmetic
+operation by operation, because the text the LLM sees must be identical for identical poses:
+
+* positions: ``floor((p - min) / (range / (100 + 1e-12) + 1e-12))`` as in ``point_to_voxel_index``
+  (so a point exactly on a 1 cm edge such as z = 1.0 lands in the lower voxel, 39, as it did
+  in the original; 1e-9 m above the edge it lands in 40);
+* rotations: ``normalize_quaternion`` (``np.linalg.norm``), flip to w >= 0, scipy's
+  ``from_quat`` renormalisation and the quaternion-based ``as_euler`` of scipy 1.15 (Bernardes &
+  Viollet 2022) with its gimbal-lock rule (|second angle| or |second angle - pi| <= 1e-7 rad:
+  the third angle is set to 0). ``atan2`` is evaluated with the C library's (``math.atan2``)
+  like scipy's compiled code: numpy's SIMD ``arctan2`` differs by 1 ulp on AVX-512 machines.
+
+scipy is not needed at run time; the tests compare against it.
 
 Two documented fixes with respect to the original code:
 
@@ -25,24 +36,37 @@ Two documented fixes with respect to the original code:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 SCENE_BOUNDS: tuple[float, float, float, float, float, float] = (-0.3, -0.5, 0.6, 0.7, 0.5, 1.6)
 VOXEL_SIZE: int = 100
 ROTATION_RESOLUTION: int = 5
+GIMBAL_LOCK_EPS: float = 1e-7  # rad, scipy's threshold on the second angle
 
 _N_ROT_BINS = 360 // ROTATION_RESOLUTION  # 72; bin 72 (= +180 deg) is the same angle as bin 0
-_BOUNDS_MIN = SCENE_BOUNDS[:3]
-_BOUNDS_MAX = SCENE_BOUNDS[3:]
-# Per-axis voxel edge in metres, computed in float64 like the original (each is 0.01).
-_VOXEL_RES = tuple((hi - lo) / VOXEL_SIZE for lo, hi in zip(_BOUNDS_MIN, _BOUNDS_MAX, strict=True))
+_BOUNDS_MIN = np.array(SCENE_BOUNDS[:3])
+_BOUNDS_RANGE = np.array(SCENE_BOUNDS[3:]) - _BOUNDS_MIN
+# The original's divisor, epsilons included: range / (100 + 1e-12) + 1e-12 (about 0.010000000001).
+_VOXEL_DIVISOR = _BOUNDS_RANGE / (np.array([VOXEL_SIZE] * 3) + 1e-12) + 1e-12
+# The decoder's voxel edge, as in X-ICM's ``_postprocess``: range / 100.
+_VOXEL_RES = _BOUNDS_RANGE / VOXEL_SIZE
 
 ArrayLike = Any  # numpy array, jax array or nested sequence
+
+_atan2 = np.frompyfunc(math.atan2, 2, 1)
+
+
+def _f64(x: ArrayLike) -> np.ndarray:
+    return np.asarray(x, dtype=np.float64)
+
+
+def _libm_atan2(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Element-wise C-library atan2, bit-identical to scipy's compiled ``as_euler``."""
+    return np.asarray(_atan2(y, x), dtype=np.float64).reshape(np.broadcast(y, x).shape)
 
 
 # --------------------------------------------------------------------------------------------
@@ -50,32 +74,20 @@ ArrayLike = Any  # numpy array, jax array or nested sequence
 # --------------------------------------------------------------------------------------------
 
 
-@jax.jit
-def point_to_voxel(points: ArrayLike) -> jnp.ndarray:
+def point_to_voxel(points: ArrayLike) -> np.ndarray:
     """Map positions (..., 3) in metres to voxel indices (..., 3), int32 in [0, 99].
 
-    ``floor((p - min) / 0.01)`` as in X-ICM's ``point_to_voxel_index``, clipped to
+    X-ICM's ``point_to_voxel_index`` in float64, epsilons included, clipped to
     [0, VOXEL_SIZE - 1] on both sides. The lower clip is a fix: the original only clipped
     above, so a point below the workspace produced a negative index in the prompt.
     """
-    p = jnp.asarray(points)
-    if not jnp.issubdtype(p.dtype, jnp.floating):
-        p = p.astype(jnp.float32)
-    lo = jnp.asarray(_BOUNDS_MIN, dtype=p.dtype)
-    res = jnp.asarray(_VOXEL_RES, dtype=p.dtype)
-    idx = jnp.floor((p - lo) / res)
-    return jnp.clip(idx, 0, VOXEL_SIZE - 1).astype(jnp.int32)
+    idx = np.floor((_f64(points) - _BOUNDS_MIN) / _VOXEL_DIVISOR)
+    return np.clip(idx, 0, VOXEL_SIZE - 1).astype(np.int32)
 
 
-@jax.jit
-def voxel_to_point(indices: ArrayLike) -> jnp.ndarray:
-    """Map voxel indices (..., 3) to the voxel centres (..., 3): ``min + 0.01 * idx + 0.005``."""
-    idx = jnp.asarray(indices)
-    dtype = idx.dtype if jnp.issubdtype(idx.dtype, jnp.floating) else jnp.float32
-    idx = idx.astype(dtype)
-    lo = jnp.asarray(_BOUNDS_MIN, dtype=dtype)
-    res = jnp.asarray(_VOXEL_RES, dtype=dtype)
-    return lo + res * idx + res / 2
+def voxel_to_point(indices: ArrayLike) -> np.ndarray:
+    """Map voxel indices (..., 3) to the voxel centres (..., 3): ``min + res * idx + res / 2``."""
+    return _BOUNDS_MIN + _VOXEL_RES * _f64(indices) + _VOXEL_RES / 2
 
 
 # --------------------------------------------------------------------------------------------
@@ -83,89 +95,90 @@ def voxel_to_point(indices: ArrayLike) -> jnp.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _as_float(x: ArrayLike) -> jnp.ndarray:
-    a = jnp.asarray(x)
-    return a if jnp.issubdtype(a.dtype, jnp.floating) else a.astype(jnp.float32)
+def _scipy_normalise(q_xyzw: np.ndarray) -> np.ndarray:
+    """scipy ``from_quat``'s own normalisation (``_normalize4``: x^2 + y^2 + z^2, then + w^2).
+
+    A zero or non-finite quaternion raises, as scipy (and hence the original) did."""
+    x, y, z, w = np.moveaxis(q_xyzw, -1, 0)
+    norm = np.sqrt(((x * x + y * y) + z * z) + w * w)
+    if not np.all(np.isfinite(norm) & (norm > 0)):
+        raise ValueError("found zero-norm or non-finite quaternions")
+    return q_xyzw / norm[..., None]
 
 
-@jax.jit
-def quat_to_euler_xyz(quat_wxyz: ArrayLike) -> jnp.ndarray:
+def _euler_xyz_rad(q_xyzw: np.ndarray) -> np.ndarray:
+    """scipy's quaternion -> extrinsic 'xyz' Euler angles (rad) for unit quaternions (x, y, z, w).
+
+    Sequence x-y-z is asymmetric with an even permutation (sign +1), lambda = pi / 2."""
+    x, y, z, w = np.moveaxis(q_xyzw, -1, 0)
+    a, b, c, d = w - y, x + z, y + w, z - x
+    second = 2 * _libm_atan2(np.hypot(c, d), np.hypot(a, b))
+    half_sum = _libm_atan2(b, a)
+    half_diff = _libm_atan2(d, c)
+    lock_zero = np.abs(second) <= GIMBAL_LOCK_EPS
+    lock_pi = ~lock_zero & (np.abs(second - np.pi) <= GIMBAL_LOCK_EPS)
+    first = np.where(lock_zero, 2 * half_sum,
+                     np.where(lock_pi, 2 * half_diff * -1, half_sum - half_diff))
+    third = np.where(lock_zero | lock_pi, 0.0, half_sum + half_diff)
+    angles = np.stack([first, second - np.pi / 2, third], axis=-1)
+    angles = np.where(angles < -np.pi, angles + 2 * np.pi, angles)
+    return np.where(angles > np.pi, angles - 2 * np.pi, angles)
+
+
+def quat_to_euler_xyz(quat_wxyz: ArrayLike) -> np.ndarray:
     """Quaternion (..., 4) in (w, x, y, z) order -> extrinsic x-y-z Euler angles in degrees.
 
-    Same result as scipy ``Rotation.from_quat([x, y, z, w]).as_euler('xyz', degrees=True)``:
-    x and z in [-180, 180], y in [-90, 90]. It is a port of scipy's quaternion-based algorithm
-    for the fixed sequence 'xyz' (extrinsic), including its gimbal-lock rule (z set to 0), so
-    bins agree with the original except at float rounding boundaries. The input need not be
-    normalised (the algorithm only uses ratios).
-    """
-    q = _as_float(quat_wxyz)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    # Sequence x-y-z extrinsic: i, j, k = 0, 1, 2, even permutation (sign = +1).
-    a = w - y
-    b = x + z
-    c = y + w
-    d = z - x
-    theta_y = 2.0 * jnp.arctan2(jnp.hypot(c, d), jnp.hypot(a, b))
-    half_sum = jnp.arctan2(b, a)
-    half_diff = jnp.arctan2(d, c)
-    # scipy uses 1e-7 in float64; float32 cannot resolve that close to pi.
-    eps = max(1e-7, 100.0 * float(jnp.finfo(q.dtype).eps))
-    lock_zero = jnp.abs(theta_y) <= eps
-    lock_pi = jnp.abs(theta_y - jnp.pi) <= eps
-    angle_x = jnp.where(
-        lock_zero, 2.0 * half_sum, jnp.where(lock_pi, -2.0 * half_diff, half_sum - half_diff)
-    )
-    angle_z = jnp.where(lock_zero | lock_pi, 0.0, half_sum + half_diff)
-    angle_y = theta_y - jnp.pi / 2
-
-    def wrap(t: jnp.ndarray) -> jnp.ndarray:
-        t = jnp.where(t < -jnp.pi, t + 2 * jnp.pi, t)
-        return jnp.where(t > jnp.pi, t - 2 * jnp.pi, t)
-
-    angles = jnp.stack([wrap(angle_x), wrap(angle_y), wrap(angle_z)], axis=-1)
-    return jnp.rad2deg(angles)
+    Bit-identical to scipy ``Rotation.from_quat([x, y, z, w]).as_euler('xyz', degrees=True)``
+    (x and z in [-180, 180], y in [-90, 90]; at gimbal lock z is 0). The input need not be
+    normalised."""
+    q = np.roll(_f64(quat_wxyz), -1, axis=-1)
+    return np.rad2deg(_euler_xyz_rad(_scipy_normalise(q)))
 
 
-@jax.jit
-def euler_xyz_to_quat(euler_deg: ArrayLike) -> jnp.ndarray:
+def _compose_xyzw(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product p * q of (x, y, z, w) quaternions, in scipy's operation order."""
+    cross = np.cross(p[..., :3], q[..., :3])
+    vec = p[..., 3:] * q[..., :3] + q[..., 3:] * p[..., :3] + cross
+    w = p[..., 3] * q[..., 3] - p[..., 0] * q[..., 0] - p[..., 1] * q[..., 1] - p[..., 2] * q[..., 2]
+    return np.concatenate([vec, w[..., None]], axis=-1)
+
+
+def euler_xyz_to_quat(euler_deg: ArrayLike) -> np.ndarray:
     """Extrinsic x-y-z Euler angles in degrees (..., 3) -> quaternion (w, x, y, z) (..., 4).
 
-    Same as scipy ``from_euler('xyz', angles, degrees=True)`` (then reordered to w-first):
-    the rotation is Rz(c) Ry(b) Rx(a), i.e. q = qz * qy * qx, with scipy's sign (not flipped).
-    """
-    half = jnp.deg2rad(_as_float(euler_deg)) / 2
-    cx, sx = jnp.cos(half[..., 0]), jnp.sin(half[..., 0])
-    cy, sy = jnp.cos(half[..., 1]), jnp.sin(half[..., 1])
-    cz, sz = jnp.cos(half[..., 2]), jnp.sin(half[..., 2])
-    w = cz * cy * cx + sz * sy * sx
-    x = cz * cy * sx - sz * sy * cx
-    y = cz * sy * cx + sz * cy * sx
-    z = sz * cy * cx - cz * sy * sx
-    return jnp.stack([w, x, y, z], axis=-1)
+    scipy ``from_euler('xyz', angles, degrees=True)`` (then reordered to w-first): elementary
+    quaternions composed as qz * (qy * qx), with scipy's sign (not flipped)."""
+    half = np.deg2rad(_f64(euler_deg)) / 2
+    elementary = []
+    for axis in range(3):
+        e = np.zeros((*half.shape[:-1], 4))
+        e[..., 3] = np.cos(half[..., axis])
+        e[..., axis] = np.sin(half[..., axis])
+        elementary.append(e)
+    q = _compose_xyzw(elementary[2], _compose_xyzw(elementary[1], elementary[0]))
+    return np.roll(q, 1, axis=-1)
 
 
-@jax.jit
-def quat_to_euler_bins(quat_wxyz: ArrayLike) -> jnp.ndarray:
+def quat_to_euler_bins(quat_wxyz: ArrayLike) -> np.ndarray:
     """Quaternion (w, x, y, z) (..., 4) -> Euler bins int32 (..., 3) at 5 degrees.
 
-    Mirrors ``quaternion_to_discrete_euler``: normalise, flip to w >= 0, Euler xyz degrees,
-    +180, /5, round half to even (``np.around``), and bin 72 (+180 deg) wraps to 0. Note that a
-    top-down gripper (x angle near +-180) lands on bins 0/1 or 70/71: a discontinuity kept on
-    purpose because it is what the LLM saw in the original prompts.
+    ``quaternion_to_discrete_euler(normalize_quaternion(q))`` with the caller's flip to w >= 0:
+    Euler xyz degrees, +180, /5, round half to even (``np.around``), and bin 72 (+180 deg)
+    wraps to 0. A top-down gripper (x angle near +-180) lands on bins 0/1 or 70/71: a
+    discontinuity kept on purpose because it is what the LLM saw in the original prompts.
     """
-    q = _as_float(quat_wxyz)
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-    q = jnp.where(q[..., :1] < 0, -q, q)
-    euler = quat_to_euler_xyz(q) + 180.0
-    bins = jnp.round(euler / ROTATION_RESOLUTION).astype(jnp.int32)
-    return jnp.mod(bins, _N_ROT_BINS)
+    q = np.roll(_f64(quat_wxyz), -1, axis=-1)  # (x, y, z, w): the original's summation order
+    with np.errstate(invalid="ignore", divide="ignore"):  # a zero quaternion raises below
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(q[..., 3:] < 0, -q, q)
+    euler = np.rad2deg(_euler_xyz_rad(_scipy_normalise(q))) + 180
+    bins = np.around(euler / ROTATION_RESOLUTION).astype(np.int32)
+    return np.where(bins == _N_ROT_BINS, 0, bins).astype(np.int32)
 
 
-@jax.jit
-def euler_bins_to_quat(bins: ArrayLike) -> jnp.ndarray:
+def euler_bins_to_quat(bins: ArrayLike) -> np.ndarray:
     """Euler bins (..., 3) -> quaternion (w, x, y, z) (..., 4): ``from_euler(bins*5 - 180)``."""
-    angles = _as_float(bins) * ROTATION_RESOLUTION - 180.0
-    return euler_xyz_to_quat(angles)
+    return euler_xyz_to_quat(np.asarray(bins) * ROTATION_RESOLUTION - 180)
 
 
 # --------------------------------------------------------------------------------------------
@@ -173,8 +186,7 @@ def euler_bins_to_quat(bins: ArrayLike) -> jnp.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-@jax.jit
-def encode_action(pos: ArrayLike, quat_wxyz: ArrayLike, gripper_open: ArrayLike) -> jnp.ndarray:
+def encode_action(pos: ArrayLike, quat_wxyz: ArrayLike, gripper_open: ArrayLike) -> np.ndarray:
     """Gripper pose and state -> X-ICM action ints (..., 7) int32.
 
     ``[voxel(pos) (3), euler bins(quat) (3), gripper]``. The original wrote
@@ -184,40 +196,38 @@ def encode_action(pos: ArrayLike, quat_wxyz: ArrayLike, gripper_open: ArrayLike)
     """
     vox = point_to_voxel(pos)
     rot = quat_to_euler_bins(quat_wxyz)
-    grip = (jnp.asarray(gripper_open) >= 0.5).astype(jnp.int32)
-    grip = jnp.broadcast_to(grip, vox.shape[:-1])[..., None]
-    return jnp.concatenate([vox, rot, grip], axis=-1)
+    grip = (np.asarray(gripper_open) >= 0.5).astype(np.int32)
+    grip = np.broadcast_to(grip, vox.shape[:-1])[..., None]
+    return np.concatenate([vox, rot, grip], axis=-1)
 
 
-@jax.jit
-def decode_action(ints: ArrayLike) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+def _check_width(a: np.ndarray) -> None:
+    if a.shape[-1] != 7:
+        raise ValueError(f"an action has 7 ints, got trailing shape {a.shape[-1]}")
+
+
+def decode_action(ints: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """X-ICM action ints (..., 7) -> (position (..., 3), quat (w, x, y, z) (..., 4), gripper (...)).
 
     As in ``_postprocess``: voxel centre, ``from_euler`` of the bins, gripper passed through
     (returned as float 0./1., the RLBench ``Discrete`` gripper action). No range checks: use
     ``validate_action_ints`` first.
     """
-    a = jnp.asarray(ints)
-    if a.shape[-1] != 7:
-        raise ValueError(f"an action has 7 ints, got trailing shape {a.shape[-1]}")
-    pos = voxel_to_point(a[..., :3])
-    quat = euler_bins_to_quat(a[..., 3:6])
-    grip = a[..., 6].astype(jnp.float32)
-    return pos, quat, grip
+    a = np.asarray(ints)
+    _check_width(a)
+    return voxel_to_point(a[..., :3]), euler_bins_to_quat(a[..., 3:6]), a[..., 6].astype(np.float64)
 
 
-@jax.jit
-def validate_action_ints(ints: ArrayLike) -> jnp.ndarray:
+def validate_action_ints(ints: ArrayLike) -> np.ndarray:
     """Bool mask (...) of actions whose 7 ints are in range.
 
     Positions 0..99, rotation bins 0..71, gripper 0 or 1. The original did not check, so an LLM
     output such as 100 or -3 went straight to the planner; callers decide what to do with it.
     """
-    a = jnp.asarray(ints)
-    if a.shape[-1] != 7:
-        raise ValueError(f"an action has 7 ints, got trailing shape {a.shape[-1]}")
-    pos_ok = jnp.all((a[..., :3] >= 0) & (a[..., :3] <= VOXEL_SIZE - 1), axis=-1)
-    rot_ok = jnp.all((a[..., 3:6] >= 0) & (a[..., 3:6] <= _N_ROT_BINS - 1), axis=-1)
+    a = np.asarray(ints)
+    _check_width(a)
+    pos_ok = np.all((a[..., :3] >= 0) & (a[..., :3] <= VOXEL_SIZE - 1), axis=-1)
+    rot_ok = np.all((a[..., 3:6] >= 0) & (a[..., 3:6] <= _N_ROT_BINS - 1), axis=-1)
     grip_ok = (a[..., 6] == 0) | (a[..., 6] == 1)
     return pos_ok & rot_ok & grip_ok
 
@@ -281,6 +291,7 @@ def format_query(instruction: str, objects: Mapping[str, Sequence[int]]) -> str:
 
 
 __all__ = [
+    "GIMBAL_LOCK_EPS",
     "ROTATION_RESOLUTION",
     "SCENE_BOUNDS",
     "VOXEL_SIZE",

@@ -396,9 +396,14 @@ def test_map_chunks_pads_to_few_shapes():
         return x * 2
 
     for n in range(1, 20):
-        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8)
+        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8, fixed=False)
         np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
     assert shapes == {1, 2, 4, 8}
+    shapes.clear()
+    for n in range(1, 20):  # an accelerator: one shape whatever the job's size
+        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8, fixed=True)
+        np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
+    assert shapes == {8}
 
 
 def test_dynamics_benchmark_quick_mode(tmp_path):

@@ -35,7 +35,7 @@ def object_frames(layout):
 
 
 def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
-    """From the same reset state (key 3), 40 physics steps (0.2 s) of the same
+    """Per-world step counts, and from the same reset state (key 3), 40 physics steps (0.2 s) of the same
     joint targets towards the lamp switch's hover point, through each backend's
     `run`.  Object frames (mocap-carried lamp bodies) must agree within 1e-4
     (m, and per quaternion component up to sign) at every step, arm joint
@@ -53,12 +53,16 @@ def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
     arm = control.arm_targets(path, duration, NSTEP, ep.dt)
     ctrl = np.concatenate([arm, np.full((1, NSTEP, 1), FINGER_OPEN)], -1)
 
-    native_state, native_sens = ep.backend.run(env.physics, ctrl)
+    # Three copies of the world: the full horizon, a shorter move of its own, frozen.
+    steps = np.array([NSTEP, 15, 0])
+    state = env.physics.rows(np.zeros(3, int))
+    ctrl3 = np.repeat(ctrl, 3, axis=0)
+    native_state, native_sens = ep.backend.run(state, ctrl3, steps)
     mjx_backend = make_backend("jax", ep.scene.model)
-    mjx_state, mjx_sens = mjx_backend.run(env.physics, ctrl)
+    mjx_state, mjx_sens = mjx_backend.run(state, ctrl3, steps)
     native_sens, mjx_sens = np.asarray(native_sens), np.asarray(mjx_sens)
 
-    assert native_sens.shape == mjx_sens.shape == (1, NSTEP, ep.scene.model.nsensordata)
+    assert native_sens.shape == mjx_sens.shape == (3, NSTEP, ep.scene.model.nsensordata)
     np.testing.assert_allclose(np.asarray(mjx_state.mocap_pos), native_state.mocap_pos,
                                atol=OBJECT_TOL)
     np.testing.assert_allclose(np.asarray(mjx_state.mocap_quat), native_state.mocap_quat,
@@ -66,11 +70,26 @@ def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
     frames = object_frames(layout)
     assert frames
     for name, sl in frames:
-        a, b = native_sens[..., sl], mjx_sens[..., sl]
+        a, b = native_sens[:2, ..., sl], mjx_sens[:2, ..., sl]
         err = np.abs(a - b)
         if name.endswith(".quat"):
             err = np.minimum(err, np.abs(a + b))
         assert err.max() < OBJECT_TOL, f"{name}: native {a[0, -1]} vs mjx-jax {b[0, -1]}"
+
+    # A world past its own end is frozen: its state is that after its 15th step (as if it
+    # had run alone), its sensor rows repeat the 15th; a world with no steps is untouched.
+    alone_state, alone_sens = ep.backend.run(env.physics, ctrl[:, :15])
+    for sens, st, tol in ((native_sens, native_state, 0.0), (mjx_sens, mjx_state, ARM_TOL)):
+        np.testing.assert_allclose(np.asarray(st.qpos)[1], alone_state.qpos[0], atol=tol)
+        np.testing.assert_allclose(np.asarray(st.ctrl)[1], ctrl[0, 14], atol=1e-6)
+        np.testing.assert_allclose(sens[1, 15:], np.broadcast_to(sens[1, 14], (NSTEP - 15,
+                                                                               sens.shape[-1])))
+        np.testing.assert_allclose(np.asarray(st.qpos)[2], env.physics.qpos[0], atol=1e-6)
+        np.testing.assert_allclose(np.asarray(st.ctrl)[2], env.physics.ctrl[0], atol=1e-6)
+    np.testing.assert_array_equal(native_sens[1, :15], alone_sens[0])
+    native_state = native_state.rows(np.array([0]))
+    mjx_state = mjx_state.rows(np.array([0]))
+    native_sens, mjx_sens = native_sens[:1], mjx_sens[:1]
 
     arm_q = layout.slice("arm_q")
     moved = np.abs(native_sens[0, -1, arm_q] - q0[0]).max()
@@ -145,3 +164,22 @@ def test_auto_backend_uses_warp_only_for_large_batches(monkeypatch):
     assert physics.resolve_backend("auto", 10**6) == "native"
     with pytest.raises(ValueError, match="unknown backend"):
         physics.resolve_backend("mjx")
+
+
+def test_device_reachability_matches_the_host_check():
+    """The jitted reachability scan (MJX backends' reset on an accelerator) accepts and
+    rejects the same scenes as the numpy check, including a key action out of reach."""
+    from agnostos_mjx.episode import reachable_device, reachable_host
+
+    ep = native_episodes()
+    keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(0), e))(np.arange(6))
+    env = ep.reset(keys, np.zeros(6, np.int32))
+    actions = ep.expert_actions(env)
+    pos = np.array(actions.pos)
+    pos[3, 1] = [0.7, 0.5, 1.7]  # a corner of the bounds the arm cannot reach
+    q = np.asarray(env.obs["arm_q"], np.float64)
+    host = reachable_host(ep.kin, q, pos, actions.quat, actions.valid)
+    device = jax.jit(functools.partial(reachable_device, ep.kin))(q, pos, actions.quat,
+                                                                  actions.valid)
+    np.testing.assert_array_equal(np.asarray(device), host)
+    assert host.sum() == 5 and not host[3]

@@ -26,7 +26,9 @@ def _reference_bins(q_xyzw: np.ndarray) -> np.ndarray:
     """The original ``quaternion_to_discrete_euler`` in float64 scipy."""
     q = q_xyzw / np.linalg.norm(q_xyzw, axis=-1, keepdims=True)
     q = np.where(q[..., 3:] < 0, -q, q)
-    euler = Rotation.from_quat(q).as_euler("xyz", degrees=True) + 180
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy warns at gimbal lock
+        euler = Rotation.from_quat(q).as_euler("xyz", degrees=True) + 180
     disc = np.around(euler / 5).astype(int)
     disc[disc == 72] = 0
     return disc
@@ -78,11 +80,12 @@ def test_point_to_voxel_clips_both_sides() -> None:
     np.testing.assert_array_equal(np.asarray(far), [99, 99, 99])
 
 
-def test_point_to_voxel_under_jit_and_batch_shapes() -> None:
-    pts = np.zeros((2, 4, 3), dtype=np.float32)
-    out = jax.jit(tx.point_to_voxel)(pts)
-    assert out.shape == (2, 4, 3) and out.dtype == np.int32
-    np.testing.assert_array_equal(np.asarray(out[0, 0]), [30, 50, 0])
+def test_point_to_voxel_accepts_jax_and_float32_batches() -> None:
+    pts = jax.numpy.zeros((2, 4, 3), dtype=jax.numpy.float32)
+    out = tx.point_to_voxel(pts)
+    assert isinstance(out, np.ndarray) and out.shape == (2, 4, 3) and out.dtype == np.int32
+    # x = 0 and y = 0 sit exactly on edges: the original's epsilons put them below.
+    np.testing.assert_array_equal(out[0, 0], [29, 49, 0])
 
 
 def test_voxel_to_point_centre() -> None:
@@ -119,9 +122,7 @@ def test_bins_against_scipy_random() -> None:
     assert bins.dtype == np.int32 and bins.shape == (2000, 3)
     assert bins.min() >= 0 and bins[:, [0, 2]].max() <= 71
     assert bins[:, 1].min() >= 18 and bins[:, 1].max() <= 54
-    ref = _reference_bins(q)
-    # float32 vs float64 may only disagree right at a rounding boundary (or near gimbal lock).
-    assert np.mean(np.all(bins == ref, axis=-1)) > 0.995
+    np.testing.assert_array_equal(bins, _reference_bins(q))
     # Decoded rotations: within the 2.5 deg per-axis quantisation (3 axes -> <= 7.5 deg).
     decoded = np.asarray(tx.euler_bins_to_quat(bins))
     assert np.all(_angle_deg(decoded, _wxyz(q)) <= 7.5 + 1e-3)
@@ -180,6 +181,117 @@ def test_gimbal_lock_decodes_to_same_rotation() -> None:
         assert _angle_deg(decoded, q) <= 7.5
 
 
+# ---------------------------------------------------------------- golden: the original's integers
+
+
+def _reference_voxels(points: np.ndarray) -> np.ndarray:
+    """RoboPrompt / X-ICM ``point_to_voxel_index`` verbatim in float64, plus our lower clip."""
+    bb_mins = np.array(tx.SCENE_BOUNDS[0:3])[None]
+    bb_maxs = np.array(tx.SCENE_BOUNDS[3:])[None]
+    dims_m_one = np.array([tx.VOXEL_SIZE] * 3)[None] - 1
+    bb_ranges = bb_maxs - bb_mins
+    res = bb_ranges / (np.array([tx.VOXEL_SIZE] * 3) + 1e-12)
+    idx = np.minimum(np.floor((points - bb_mins) / (res + 1e-12)).astype(np.int64), dims_m_one)
+    return np.maximum(idx, 0)  # the documented fix: no negative indices
+
+
+def _reference_actions(pos: np.ndarray, q_xyzw: np.ndarray, grip: np.ndarray) -> np.ndarray:
+    return np.concatenate([_reference_voxels(pos), _reference_bins(q_xyzw),
+                           grip.astype(int)[:, None]], axis=-1)
+
+
+def test_voxel_edges_exactly_as_the_original() -> None:
+    # The original divides by range / (100 + 1e-12) + 1e-12 (about 0.010000000001), so a point
+    # exactly on an edge lands in the lower voxel; the simplified floor((p - min) / 0.01)
+    # would give 40 and 1 here.
+    np.testing.assert_array_equal(tx.point_to_voxel(np.array([0.0, -0.49, 1.0])), [29, 0, 39])
+    np.testing.assert_array_equal(tx.point_to_voxel(np.array([0.0, -0.49, 1.0]) + 1e-9),
+                                  [30, 1, 40])
+    np.testing.assert_array_equal(tx.point_to_voxel(np.array([0.0, -0.49, 1.0]) - 1e-9),
+                                  [29, 0, 39])
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_both_sides_of_every_voxel_edge(axis: int) -> None:
+    k = np.arange(1, tx.VOXEL_SIZE)
+    edge = tx.SCENE_BOUNDS[axis] + 0.01 * k
+    for offset, expected in [(-1e-9, k - 1), (1e-9, k), (0.0, None)]:
+        pts = np.full((len(k), 3), 0.1)
+        pts[:, axis] = edge + offset
+        ours = tx.point_to_voxel(pts)
+        np.testing.assert_array_equal(ours, _reference_voxels(pts))
+        if expected is not None:
+            np.testing.assert_array_equal(ours[:, axis], expected)
+
+
+@pytest.mark.parametrize("pitch", [90.0, -90.0])
+def test_gimbal_lock_threshold_as_scipy(pitch: float) -> None:
+    # scipy's threshold is 1e-7 rad (5.7e-6 deg) on the second angle: inside it the third angle
+    # is 0 (bin 36); 1e-8 deg or rad away from +-90 is still locked, 1e-5 deg is not.
+    sign = np.sign(pitch)
+    for away, locked in [(0.0, True), (1e-8, True), (np.rad2deg(1e-8), True),
+                         (np.rad2deg(0.9e-7), True), (np.rad2deg(1.1e-7), False), (1e-5, False)]:
+        q = _wxyz(Rotation.from_euler("xyz", [30.0, pitch - sign * away, 40.0],
+                                      degrees=True).as_quat())
+        bins = tx.quat_to_euler_bins(q)
+        np.testing.assert_array_equal(bins, _reference_bins(_xyzw(q)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ref = Rotation.from_quat(_xyzw(q)).as_euler("xyz", degrees=True)
+        np.testing.assert_array_equal(tx.quat_to_euler_xyz(q), ref)
+        assert (bins[2] == 36) == locked, (away, bins)
+
+
+def _golden_poses(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """n poses: a third random, the rest on or within 1e-9 m / 1e-9 deg of voxel edges, Euler
+    bin boundaries (x.5 bins), +-180 degrees and gimbal lock, unnormalised, w < 0."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.array(tx.SCENE_BOUNDS[:3]), np.array(tx.SCENE_BOUNDS[3:])
+    third = n // 3
+    pos_random = rng.uniform(lo - 0.05, hi + 0.05, size=(third, 3))
+    k = rng.integers(0, tx.VOXEL_SIZE + 1, size=(n - third, 3))
+    jitter = rng.choice([0.0, 1e-9, -1e-9, 1e-12, -1e-12, 4e-11, 1e-7], size=(n - third, 3))
+    pos_edges = lo + 0.01 * k + jitter
+    pos = np.concatenate([pos_random, pos_edges])
+
+    q_random = Rotation.random(third, random_state=seed).as_quat()
+    angles = rng.integers(-72, 73, size=(n - third, 3)) * 2.5  # rounding boundaries (x.5 bins)
+    angles += rng.choice([0.0, 1e-9, -1e-9, 1e-6, -1e-6], size=angles.shape)
+    angles[:, 1] = np.clip(angles[:, 1], -90, 90)
+    lock = rng.random(n - third) < 0.2
+    angles[lock, 1] = rng.choice([90.0, -90.0], lock.sum()) * (
+        1 - rng.choice([0.0, 1e-8, 1e-10, 1e-7], lock.sum()))
+    q_edges = Rotation.from_euler("xyz", angles, degrees=True).as_quat()
+    quat = np.concatenate([q_random, q_edges])
+    quat *= rng.choice([1.0, -1.0, 0.5, 3.0], size=(n, 1))  # sign flips, unnormalised
+    grip = rng.integers(0, 2, n).astype(float)
+    return pos, quat, grip
+
+
+def test_golden_100k_poses_match_the_original_integers() -> None:
+    pos, q_xyzw, grip = _golden_poses(100_000, seed=14)
+    ours = tx.encode_action(pos, _wxyz(q_xyzw), grip)
+    ref = _reference_actions(pos, q_xyzw, grip)
+    mismatch = np.flatnonzero(np.any(ours != ref, axis=-1))
+    assert mismatch.size == 0, (mismatch[:5], ours[mismatch[:5]], ref[mismatch[:5]])
+
+
+def test_golden_per_pose_calls_match_batched() -> None:
+    # The original encodes one pose at a time; batching must not change a single bit.
+    pos, q_xyzw, grip = _golden_poses(300, seed=15)
+    batched = tx.encode_action(pos, _wxyz(q_xyzw), grip)
+    for i in range(len(pos)):
+        single = tx.encode_action(pos[i], _wxyz(q_xyzw[i]), grip[i])
+        np.testing.assert_array_equal(single, batched[i])
+        np.testing.assert_array_equal(single, _reference_actions(pos[i:i + 1], q_xyzw[i:i + 1],
+                                                                 grip[i:i + 1])[0])
+
+
+def test_zero_quaternion_raises_like_scipy() -> None:
+    with pytest.raises(ValueError):
+        tx.quat_to_euler_bins(np.zeros(4))
+
+
 # ---------------------------------------------------------------- actions
 
 
@@ -202,7 +314,7 @@ def test_encode_decode_round_trip() -> None:
         axis=-1,
     ).astype(np.int32)
     pos, quat, grip = tx.decode_action(ints)
-    again = np.asarray(jax.jit(tx.encode_action)(pos, quat, grip))
+    again = tx.encode_action(pos, quat, grip)
     assert again.dtype == np.int32 and again.shape == (n, 7)
     np.testing.assert_array_equal(again, ints)
 

@@ -115,6 +115,23 @@ def test_shipped_model_selects_demos_of_the_querys_task(memory, bank_dir):
     frame = DemoBank(bank_dir).arrays("push_buttons")["rgb_front_first"][0]
     frame = np.kron(frame, np.ones((4, 4, 1), np.uint8))  # the tiny bank is 32 x 32
     selector = DynamicsSelector(memory, "lang+vis.out")
+    assert selector.pipeline.diffusion.sample_steps == 10  # the measured default
     (chosen,) = selector.select([Query(demo.instruction, 0, frame)], 18)
     tasks = memory.task[chosen].tolist()
     assert tasks.count("push_buttons") >= 15, tasks
+    # The original's 50 steps pick (nearly) the same demos.
+    (chosen50,) = DynamicsSelector(memory, "lang+vis.out", sample_steps=50).select(
+        [Query(demo.instruction, 0, frame)], 18)
+    assert len(set(chosen50.tolist()) & set(chosen.tolist())) >= 15
+
+
+def test_ddim_steps_flag_reaches_the_selection_policies():
+    from agnostos_mjx.eval import parse_config, resolve_policy
+
+    for policy in ("retrieval", "xicm"):
+        argv = ["--policy", policy, "--ddim-steps", "20", "--llm-url", "http://x/v1",
+                "--llm-model", "m"]
+        _, kwargs, _ = resolve_policy(parse_config(argv))
+        assert kwargs["sample_steps"] == 20
+    _, kwargs, _ = resolve_policy(parse_config(["--policy", "retrieval"]))
+    assert kwargs["sample_steps"] is None  # the selector's measured default

@@ -40,11 +40,38 @@ class PhysicsState:
     def numpy(self) -> PhysicsState:
         return jax.tree.map(np.asarray, self)
 
+    def rows(self, idx: np.ndarray) -> PhysicsState:
+        """The worlds `idx` as a batch of their own (host arrays)."""
+        return jax.tree.map(lambda x: np.asarray(x)[idx], self)
+
+    def with_rows(self, idx: np.ndarray, part: PhysicsState) -> PhysicsState:
+        """A copy with worlds `idx` replaced by the worlds of `part`."""
+
+        def put(full, new):
+            out = np.array(full, copy=True)
+            out[idx] = new
+            return out
+
+        return jax.tree.map(put, self, part)
+
 
 class Backend(Protocol):
     name: str
 
-    def run(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
-        """Step every world len(ctrl[0]) times with per-step controls ctrl[B, T, nu];
-        return the final state and sensordata[B, T, nsensordata] after each step."""
+    def run(self, state: PhysicsState, ctrl: np.ndarray, steps: np.ndarray | None = None
+            ) -> tuple[PhysicsState, np.ndarray]:
+        """Step world w steps[w] times (default all T) with per-step controls ctrl[B, T, nu];
+        return the final state and sensordata[B, T, nsensordata] after each step.  A world
+        past its own end stays frozen: its state is that after its last step, and its
+        sensordata rows repeat its last row (rows of a world with 0 steps are undefined)."""
         ...
+
+
+def check_steps(steps: np.ndarray | None, batch: int, horizon: int) -> np.ndarray:
+    """Per-world step counts as int32 (B,), all `horizon` when not given."""
+    if steps is None:
+        return np.full(batch, horizon, np.int32)
+    steps = np.asarray(steps, np.int32)
+    if steps.shape != (batch,) or np.any((steps < 0) | (steps > horizon)):
+        raise ValueError(f"steps must be {batch} counts in 0..{horizon}, got {steps}")
+    return steps

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from agnostos_mjx.physics.base import PhysicsState
+from agnostos_mjx.physics.base import PhysicsState, check_steps
 
 
 class MjxBackend:
@@ -89,7 +89,7 @@ class MjxBackend:
             batched_step = lambda m, d, u: jax.vmap(lambda d, u: step(mx, d, u))(d, u)  # noqa: E731
 
         @jax.jit
-        def run(template, state: PhysicsState, ctrl: jnp.ndarray):
+        def run(template, state: PhysicsState, ctrl: jnp.ndarray, steps: jnp.ndarray):
             m = mx.tree_replace({"eq_data": state.eq_data}) if batched_eq else mx
             if fix_mocap:
                 b = state.qpos.shape[0]
@@ -100,26 +100,41 @@ class MjxBackend:
                 m = m.tree_replace({"body_pos": pos, "body_quat": quat})
             d = to_data(template, state)
 
-            def body(d, u):
-                d = batched_step(m, d, u)
-                return d, d.sensordata
+            def body(carry, inputs):
+                # One scan over the longest move; a world past its own end keeps its state
+                # (and its last sensor row), so per-world lengths never change a shape.
+                d, sens = carry
+                u, t = inputs
+                new = batched_step(m, d, u)
+                live = t < steps
+                keep = lambda a, b: jnp.where(live.reshape(-1, *[1] * (a.ndim - 1)), a, b)  # noqa: E731
+                d = new.replace(qpos=keep(new.qpos, d.qpos), qvel=keep(new.qvel, d.qvel),
+                                act=keep(new.act, d.act), time=keep(new.time, d.time))
+                sens = keep(new.sensordata, sens)
+                return (d, sens), sens
 
-            d, sens = jax.lax.scan(body, d, jnp.swapaxes(ctrl, 0, 1))
-            new = state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=ctrl[:, -1],
+            (d, _), sens = jax.lax.scan(body, (d, d.sensordata),
+                                        (jnp.swapaxes(ctrl, 0, 1), jnp.arange(ctrl.shape[1])))
+            last = jnp.take_along_axis(ctrl, jnp.maximum(steps - 1, 0)[:, None, None], 1)[:, 0]
+            new = state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act,
+                                ctrl=jnp.where((steps > 0)[:, None], last, state.ctrl),
                                 mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
                                 eq_active=d.eq_active, time=d.time)
             return new, jnp.swapaxes(sens, 0, 1)
 
         return functools.partial(run, template)
 
-    def run(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
+    def run(self, state: PhysicsState, ctrl: np.ndarray, steps: np.ndarray | None = None
+            ) -> tuple[PhysicsState, np.ndarray]:
+        """See Backend.run: one device call whatever the per-world step counts."""
+        steps = jnp.asarray(check_steps(steps, state.batch, int(np.shape(ctrl)[1])))
         state = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if x.dtype != bool else jnp.asarray(x), state)
         ctrl = jnp.asarray(ctrl, jnp.float32)
         runner = self._runner(state.batch, int(ctrl.shape[1]))
         if self.impl != "warp":
-            return runner(state, ctrl)
+            return runner(state, ctrl, steps)
         with gc_paused():
-            return jax.block_until_ready(runner(state, ctrl))
+            return jax.block_until_ready(runner(state, ctrl, steps))
 
 
 @contextlib.contextmanager

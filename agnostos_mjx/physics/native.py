@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from agnostos_mjx.physics.base import PhysicsState
+from agnostos_mjx.physics.base import PhysicsState, check_steps
 
 _STATE_FIELDS = {
     mujoco.mjtState.mjSTATE_TIME: "time",
@@ -77,8 +77,26 @@ class NativeBackend:
             m.eq_data[:] = data
         return models
 
-    def run(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
+    def run(self, state: PhysicsState, ctrl: np.ndarray, steps: np.ndarray | None = None
+            ) -> tuple[PhysicsState, np.ndarray]:
+        """See Backend.run.  Worlds with equal step counts run as one rollout (a few groups:
+        step counts come from control.STEP_BUCKETS); frozen worlds cost nothing here."""
         state = state.numpy()
+        b, t = ctrl.shape[:2]
+        steps = check_steps(steps, b, t)
+        if np.all(steps == t):
+            return self._rollout(state, ctrl)
+        sens = np.zeros((b, t, self.model.nsensordata))
+        out = state
+        for n in np.unique(steps[steps > 0]):
+            idx = np.nonzero(steps == n)[0]
+            part, s = self._rollout(state.rows(idx), ctrl[idx, :n])
+            out = out.with_rows(idx, part)
+            sens[idx, :n] = s
+            sens[idx, n:] = s[:, -1:]
+        return out, sens
+
+    def _rollout(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
         ctrl = np.asarray(ctrl, np.float64)
         if self.model.neq and np.any(state.eq_data != self.model.eq_data):
             models = self._world_models(state.eq_data)

@@ -41,11 +41,12 @@ def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.nd
 class RetrievalPolicy(PlanningPolicy):
     name = "retrieval"
 
-    def __init__(self, selection: str = "auto", memory: str | None = None) -> None:
+    def __init__(self, selection: str = "auto", memory: str | None = None,
+                 sample_steps: int | None = None) -> None:
         super().__init__()
         self.memory = DemoMemory.load(memory or default_memory_path())
         self.selection = resolve_selection(selection, self.memory)
-        self.selector = make_selector(self.selection, self.memory)
+        self.selector = make_selector(self.selection, self.memory, sample_steps=sample_steps)
         self.name = f"retrieval[{self.selection}]"
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:

@@ -64,7 +64,7 @@ class XICMPolicy(PlanningPolicy):
                  retries: int = 4, server_kind: str = "auto",
                  temperature: float = 0.1, top_p: float = 0.001,
                  repetition_penalty: float = 1.05, max_tokens: int = 256,
-                 client: ChatClient | None = None) -> None:
+                 client: ChatClient | None = None, sample_steps: int | None = None) -> None:
         super().__init__()
         if client is None:
             config = LLMConfig.from_env(
@@ -84,7 +84,7 @@ class XICMPolicy(PlanningPolicy):
         self.client = client
         self.memory = DemoMemory.load(memory or default_memory_path())
         self.selection = resolve_selection(selection, self.memory)
-        self.selector = make_selector(self.selection, self.memory)
+        self.selector = make_selector(self.selection, self.memory, sample_steps=sample_steps)
         self.num_demos = num_demos
         self.name = f"xicm[{self.selection},k={num_demos}]"
         self.check_context()

@@ -35,6 +35,7 @@ DETECTOR_Y = -0.012
 MONEY_PLANE_HALF = (0.1115, 0.1415)  # dollar_stack_boundary on the safe's roof
 MONEY_RADIUS = 0.068  # the stack's half diagonal: fits the plane at any yaw
 GRIP_ABOVE = 0.0  # tip at the money's centre when grasping
+BOTTOM_CLEARANCE = 0.02  # m, money above the bottom shelf while sliding in
 IN_FRONT = 0.075  # stand-off in front of the safe's face: the money's front end clears it
 # What must fit the workspace: the safe's box, turned by SAFE_YAW in the root
 # frame (with the open door the footprint would never fit our inferred
@@ -106,7 +107,10 @@ class PutMoneyInSafe(Task):
         grip = down_grasp(yaw_of(obs.quat("dollar_stack")) + jnp.pi / 2)
         insert = down_grasp(yaw_of(obs.quat("safe_body")) + jnp.pi / 2)
         shelf = jnp.asarray(SAFE_SHELVES)[variation] - SAFE_HALF[2]
-        hold = MONEY_HALF[2] + GRIP_ABOVE + 0.008  # tip above the shelf, money 8 mm up
+        # Tip above the shelf, the money 8 mm up; on the bottom shelf, just above the table,
+        # the folded arm sags ~1.5 cm under the load, so the money goes in 2 cm up (it
+        # otherwise catches on the safe's floor and is pushed along the table).
+        hold = MONEY_HALF[2] + GRIP_ABOVE + jnp.where(variation == 0, BOTTOM_CLEARANCE, 0.008)
         place = in_frame(obs, "safe_body", (0.0, DETECTOR_Y + 0.01, 0.0)).at[2].add(shelf + hold)
         front = in_frame(obs, "safe_body", (0.0, SAFE_HALF[1] + IN_FRONT, 0.0)).at[2].add(
             shelf + hold)

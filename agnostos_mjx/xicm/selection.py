@@ -96,8 +96,10 @@ def resolve_selection(mode: str, memory: DemoMemory) -> str:
     return "text"
 
 
-def make_selector(mode: str, memory: DemoMemory, **kwargs) -> Selector:
-    """A selector by mode name; a clear ValueError for unknown or unusable modes."""
+def make_selector(mode: str, memory: DemoMemory, sample_steps: int | None = None,
+                  **kwargs) -> Selector:
+    """A selector by mode name; a clear ValueError for unknown or unusable modes.
+    `sample_steps` (DDIM steps of query features) only concerns dynamics modes."""
     if mode == "random":
         return RandomSelector(memory)
     if mode == "text":
@@ -112,4 +114,6 @@ def make_selector(mode: str, memory: DemoMemory, **kwargs) -> Selector:
                          "python -m agnostos_mjx.xicm.build_memory --checkpoint ...")
     from agnostos_mjx.xicm.dynamics_selector import DynamicsSelector
 
+    if sample_steps is not None:
+        kwargs["sample_steps"] = sample_steps
     return DynamicsSelector(memory, mode, **kwargs)
