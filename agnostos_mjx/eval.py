@@ -79,6 +79,8 @@ from agnostos_mjx.cli import (
     setup_logging,
     versions,
 )
+from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
+from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
 
 log = logging.getLogger("agnostos_mjx.eval")
 
@@ -119,7 +121,9 @@ class EvalConfig:
     llm_url: str | None = None
     llm_model: str | None = None
     llm_cache: str | None = None
-    llm_concurrency: int = 64
+    llm_concurrency: int | None = None
+    llm_timeout: float = DEFAULT_TIMEOUT_S
+    llm_server_kind: str = "auto"
     overlap_tasks: int = 3
     selection: str = "auto"
     num_demos: int = 18
@@ -146,6 +150,16 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
     return value
 
 
@@ -219,8 +233,22 @@ def build_parser() -> argparse.ArgumentParser:
     llm.add_argument("--llm-cache", default=None,
                      help="response cache directory (default: <out>/llm_cache); reruns and "
                           "--resume reuse answers, a shipped cache replays a run offline")
-    llm.add_argument("--llm-concurrency", type=_positive_int, default=64,
-                     help="LLM requests in flight at once")
+    llm.add_argument("--llm-concurrency", type=_positive_int, default=None,
+                     help="LLM requests in flight at once (default: the server's slot count "
+                          "where it publishes one (llama.cpp: 1 unless started with "
+                          "--parallel N), capping this flag too; else 64 for vLLM, which "
+                          "batches on the GPU, and 8 for other servers)")
+    llm.add_argument("--llm-timeout", type=_positive_float, default=DEFAULT_TIMEOUT_S,
+                     help="seconds without a byte from the LLM server before a request is "
+                          "given up (answers are streamed, so this is silence, not total "
+                          "time; not retried, since the server may still be computing). "
+                          "Covers prompt processing before the first token: seconds on a "
+                          "GPU, up to minutes for long prompts on a CPU")
+    llm.add_argument("--llm-server-kind", default="auto", choices=LLM_SERVER_KINDS,
+                     help="which sampling field names to send: vllm (repetition_penalty; "
+                          "also SGLang), llamacpp (repeat_penalty; llama.cpp and "
+                          "llama-cpp-python), openai (no penalty field); auto detects it "
+                          "in the start-up check")
     llm.add_argument("--overlap-tasks", type=_positive_int, default=3,
                      help="tasks evaluated at once when the policy waits on an LLM: while one "
                           "task's requests are in flight the others simulate (1: one task at "
@@ -250,7 +278,8 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       variations=a.variations, out=a.out, resume=a.resume,
                       fail_fast=a.fail_fast, quiet=a.quiet, llm_url=a.llm_url,
                       llm_model=a.llm_model, llm_cache=a.llm_cache,
-                      llm_concurrency=a.llm_concurrency, overlap_tasks=a.overlap_tasks,
+                      llm_concurrency=a.llm_concurrency, llm_timeout=a.llm_timeout,
+                      llm_server_kind=a.llm_server_kind, overlap_tasks=a.overlap_tasks,
                       selection=a.selection,
                       num_demos=a.num_demos, ddim_steps=a.ddim_steps, memory=a.memory,
                       compare=a.compare)
@@ -274,7 +303,8 @@ def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
     if spec == "xicm":
         cache = cfg.llm_cache or str(Path(cfg.out or ".") / "llm_cache")
         kwargs.update(llm_url=cfg.llm_url, llm_model=cfg.llm_model, llm_cache=cache,
-                      concurrency=cfg.llm_concurrency, num_demos=cfg.num_demos)
+                      concurrency=cfg.llm_concurrency, timeout_s=cfg.llm_timeout,
+                      server_kind=cfg.llm_server_kind, num_demos=cfg.num_demos)
     kwargs.update(cfg.policy_args)
     return spec, kwargs, note
 
@@ -816,6 +846,8 @@ def evaluate(cfg: EvalConfig) -> dict:
                    else None, "wall_s": round(time.perf_counter() - t0, 2),
                    "complete": len(records) == len(tasks) * len(cfg.seeds) * cfg.episodes,
                    "summary": summary, "episodes": records}
+        if hasattr(policy, "llm_report"):  # requests, retries, failures, what was sent
+            results["llm"] = policy.llm_report()
         atomic_write(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
         atomic_write(out_dir / "results.csv", format_csv(summary))
         title = (f"policy {policy_name}, backend {backend}, seeds "
@@ -893,7 +925,18 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
             remove_empty_dirs(out_dir)  # a run that failed before its first result
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
-    return 0
+    return llm_summary(results.get("llm"))
+
+
+def llm_summary(report: dict | None) -> int:
+    """Print the run's LLM requests, retries and failures by cause; the exit code: 3
+    when more than half of the requests failed (the table then measures the failures)."""
+    from agnostos_mjx.llm.stats import mostly_failed, summary_lines
+
+    if not report:
+        return 0
+    print("\n".join(summary_lines(report)), flush=True)
+    return 3 if mostly_failed(report) else 0
 
 
 if __name__ == "__main__":

@@ -4,16 +4,28 @@ seen-task demonstrations (spec: xicm_reference.md §3-4).
 Every world that needs a plan sends its request in the same round; the
 client keeps up to `concurrency` requests in flight, so a batch of 75
 episodes costs about one LLM latency per round instead of 75.  Every prompt,
-answer and parse result is kept in the episode record.
+answer and parse result is kept in the episode record, every request's
+attempts and causes in the run's `llm_report`.  Before the run, prompts of
+`num_demos` demos are measured against the server's context length where it
+publishes one, so a too-small context is one clear error, not a run of
+``llm_error`` episodes.
 """
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from agnostos_mjx.llm.client import ChatClient, LLMConfig, LLMConfigError, SamplingParams
+from agnostos_mjx.llm.client import (
+    DEFAULT_TIMEOUT_S,
+    ChatClient,
+    LLMConfig,
+    LLMConfigError,
+    SamplingParams,
+)
+from agnostos_mjx.llm.server import context_advice
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult, run_blocking
 from agnostos_mjx.scene_text import query_texts
 from agnostos_mjx.textualise import decode_action
@@ -23,6 +35,8 @@ from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
 
 if TYPE_CHECKING:
     from agnostos_mjx.episode import EnvState, Episodes
+
+log = logging.getLogger("agnostos_mjx.xicm")
 
 
 def needs_frames(selection: str) -> bool:
@@ -46,7 +60,8 @@ class XICMPolicy(PlanningPolicy):
     def __init__(self, llm_url: str | None = None, llm_model: str | None = None,
                  selection: str = "auto", num_demos: int = 18,
                  memory: str | None = None, llm_cache: str | None = None,
-                 concurrency: int = 64, timeout_s: float = 60.0, retries: int = 4,
+                 concurrency: int | None = None, timeout_s: float = DEFAULT_TIMEOUT_S,
+                 retries: int = 4, server_kind: str = "auto",
                  temperature: float = 0.1, top_p: float = 0.001,
                  repetition_penalty: float = 1.05, max_tokens: int = 256,
                  client: ChatClient | None = None, sample_steps: int | None = None) -> None:
@@ -54,7 +69,7 @@ class XICMPolicy(PlanningPolicy):
         if client is None:
             config = LLMConfig.from_env(
                 llm_url, llm_model, concurrency=concurrency, timeout_s=timeout_s,
-                retries=retries, cache_dir=llm_cache,
+                retries=retries, server_kind=server_kind, cache_dir=llm_cache,
                 sampling=SamplingParams(temperature, top_p, repetition_penalty, max_tokens))
             if config is None:
                 raise LLMConfigError("X-ICM needs an LLM: pass --llm-url and --llm-model or set "
@@ -72,6 +87,44 @@ class XICMPolicy(PlanningPolicy):
         self.selector = make_selector(self.selection, self.memory, sample_steps=sample_steps)
         self.num_demos = num_demos
         self.name = f"xicm[{self.selection},k={num_demos}]"
+        self.check_context()
+
+    def check_context(self) -> None:
+        """Measure prompts of `num_demos` demos (of median length, and the longest) against
+        the server's context: an error when typical prompts cannot fit, a warning when
+        only the longest cannot.  Skipped where the server publishes no context length."""
+        context = getattr(self.client, "context_length", None)
+        count = getattr(self.client, "count_tokens", None)
+        if not context or count is None or len(self.memory) == 0:
+            return
+        texts = [str(t) for t in self.memory.text]
+        order = np.argsort([len(t) for t in texts], kind="stable")
+        k = min(self.num_demos, len(texts))
+        middle = order[max(0, len(order) // 2 - k // 2):][:k]
+        query = texts[order[-1]].split(">", 1)[0] + ">"  # the observation of a long demo
+        answer = self.client.config.sampling.max_tokens
+        typical, how = count(messages([texts[i] for i in middle], query))
+        longest, _ = count(messages([texts[i] for i in order[-k:]], query))
+        bare, _ = count(messages([], query))
+        per_demo = max(1.0, (typical - bare) / k)
+        fitting = max(0, int((context - answer - bare) // per_demo))
+        log.info("prompts of %d demos: about %d tokens (longest %d), counted by %s, + %d to "
+                 "answer; context %d", k, typical, longest, how, answer, context)
+        if typical + answer > context:
+            fix = (f"--num-demos {fitting} fits" if fitting else "even no demos do not fit")
+            raise LLMConfigError(
+                f"prompts of {k} demos need about {typical} tokens + {answer} to answer "
+                f"(counted by {how}) but the server's context is {context} tokens ({fix}): "
+                + context_advice())
+        if longest + answer > context:
+            log.warning("the longest prompts of %d demos (about %d tokens + %d) exceed the "
+                        "server's context of %d tokens; some requests will fail: %s", k,
+                        longest, answer, context, context_advice())
+
+    def llm_report(self) -> dict:
+        """The run's LLM requests, for results.json and the console summary."""
+        report = getattr(self.client, "report", None)
+        return report() if report is not None else {}
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
         return run_blocking(self.plan_steps(episodes, env, worlds))
@@ -97,8 +150,8 @@ class XICMPolicy(PlanningPolicy):
         for idx, msgs, answer in zip(chosen, batch, answers):
             info = {"selected": [f"{self.memory.task[i]}#{i}" for i in idx],
                     "prompt": msgs[1]["content"], "response": answer.text,
-                    "error": answer.error, "cached": answer.cached,
-                    "attempts": answer.attempts}
+                    "error": answer.error, "cause": answer.cause, "cached": answer.cached,
+                    "attempts": answer.attempts, "finish_reason": answer.finish_reason}
             if answer.text is None:
                 results.append(PlanResult(end_reason=Outcome.LLM_ERROR, info=info))
                 continue
