@@ -21,6 +21,7 @@ from agnostos_mjx.math3d import quat_conj, quat_mul, quat_rotate
 from agnostos_mjx.observables import Observation
 from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
 from agnostos_mjx.tasks.base import KeyActions, Task
+from agnostos_mjx.visual_state import StateColors
 from agnostos_mjx.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
 
 log = logging.getLogger(__name__)
@@ -163,6 +164,7 @@ class Episodes:
             self._reachable = jax.jit(functools.partial(reachable_device, self.kin))
         self._jit_expert = jax.jit(jax.vmap(task.expert))
         self._jit_attach = jax.jit(jax.vmap(self._attach_test))
+        self._state_colors = StateColors(task, self.scene.model, self.scene.layout)
         self._renderer = None
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
@@ -350,6 +352,8 @@ class Episodes:
         data = np.where(active[:, None], last, np.asarray(env.obs.data))
         env.carry = carry
         env.obs = self._obs(data, env.attached)
+        env.geom_rgba = self._state_colors.update(env.geom_rgba, env.initial_obs, env.obs,
+                                                  env.variation)
         env.sim_steps = env.sim_steps + np.where(active, end + 1, 0).astype(np.int32)
         env.outcome = np.where(succeeded, Outcome.SUCCESS,
                                np.where(failed, Outcome.FAILURE_CONDITION, env.outcome))

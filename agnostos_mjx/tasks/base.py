@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from agnostos_mjx.conditions import Condition, never
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.observables import Observation
+from agnostos_mjx.visual_state import StateColor
 
 TABLE_Z = 0.752
 # Centre and extent of RLBench's `workspace` plane.  The centre (0.25, 0) is
@@ -188,6 +189,11 @@ class Task:
 
     def expert(self, obs: Observation, variation: jnp.ndarray) -> KeyActions:
         raise NotImplementedError
+
+    def state_colors(self, variation: jnp.ndarray) -> tuple[StateColor, ...]:
+        """Colours that RLBench's task.step() paints during an episode (see
+        visual_state.py); none by default."""
+        return ()
 
     @property
     def observed_frames(self) -> tuple[str, ...]:

@@ -9,6 +9,7 @@ from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
 from agnostos_mjx.tasks.builders import disc, panel, push_button, rod
 from agnostos_mjx.tasks.builders.common import DOWN
+from agnostos_mjx.visual_state import StateColor
 
 # Model bounding box of the lamp scene in the root frame: x[-0.138, 0.167],
 # y[-0.183, 0.311].
@@ -37,14 +38,16 @@ def _build_lamp(scene, bulb_rgb) -> None:
 
 class LampTask(Task):
     """A lamp with a floor switch: press the switch more than 3 mm
-    (RLBench's JointCondition).  Subclasses set the name, language and the
-    bulb's starting colour."""
+    (RLBench's JointCondition).  Subclasses set the name, language, the
+    bulb's starting colour and the colour it takes once the switch is pressed
+    (None: it never changes)."""
 
     split = Split.LEVEL1
     objects = {"button": "push_button_target", "button topPlate": "target_button_plate",
                "lamp": "lamp_base"}
     joints = ("target_button_joint",)
     bulb_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    pressed_bulb_rgb: tuple[float, float, float] | None = None
     language: tuple[str, ...] = ()
 
     def descriptions(self, variation: int) -> list[str]:
@@ -59,6 +62,11 @@ class LampTask(Task):
 
     def success(self, variation):
         return JointMoved(("target_button_joint",), 0.003)
+
+    def state_colors(self, variation):
+        if self.pressed_bulb_rgb is None:
+            return ()
+        return (StateColor(("bulb",), self.pressed_bulb_rgb, self.success(variation)),)
 
     def expert(self, obs, variation):
         """Hover 0.083 m above the switch with fingers closed to 0.1, then press."""

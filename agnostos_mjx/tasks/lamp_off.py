@@ -12,7 +12,8 @@ class LampOff(LampTask):
                 "press the light switch", "turn the lamp off",
                 "close the gripper and press on the button until the light turns off")
     notes = ("The bulb starts white. RLBench means to turn it black on success but its check "
-             "never holds (a bug); the colour change is visual only and not rendered here.")
+             "(condition_met() == (True, True); conditions return (met, False)) never holds, "
+             "so the bulb stays white there and here.")
 
 
 TASK = LampOff()

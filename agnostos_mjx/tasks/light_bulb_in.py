@@ -54,7 +54,9 @@ class LightBulbIn(Task):
              "base, a lamp whose socket is a 28 mm cup the base drops into (no thread "
              "physics; the 166-degree screw turn is kinematic, as in RLBench). Success "
              "probes the bulb's screw base in RLBench's 2 x 2 x 3.5 cm socket sensor. The "
-             "glass does not turn yellow on success (visual only in RLBench). The expert "
+             "glass stays white: RLBench's step() means to turn it yellow but its check "
+             "(condition_met() == (True, True); conditions return (met, False)) never "
+             "holds. The expert "
              "starts the turn at yaw +83 degrees so the whole turn fits joint 7's range.")
 
     def descriptions(self, variation: int) -> list[str]:

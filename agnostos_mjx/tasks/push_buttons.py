@@ -36,6 +36,9 @@ class PushButtons(Task):
     objects = {"button": "push_buttons_target0"}
     frames = ("push_buttons_target1", "push_buttons_target2")
     joints = tuple(f"target_button{k}_joint" for k in range(3))
+    notes = ("The plates stay red: RLBench's step() means to turn a pressed button's plate "
+             "and ring green, but its check (condition_met() == (True, True); conditions "
+             "return (met, False)) never holds.")
 
     def descriptions(self, variation: int) -> list[str]:
         names = [BUTTON_COLORS[i][0] for i in PERMUTATIONS[variation // 3]]
