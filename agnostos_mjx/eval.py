@@ -445,6 +445,7 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
     PlanningPolicy.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
     `tick(episodes_done)` reports progress within the task."""
     from agnostos_mjx.episode import Episodes, Outcome
+    from agnostos_mjx.observation import act as policy_act
 
     t0 = time.perf_counter()
     runner = Episodes(task, cfg.backend)
@@ -477,8 +478,8 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
                     break
                 if hasattr(policy, "act_steps"):
                     actions = yield from policy.act_steps(runner, env)
-                else:
-                    actions = policy.act(runner, env)
+                else:  # with observation= when the policy declares an ObservationSpec
+                    actions = policy_act(policy, runner, env)
                 running = env.outcome == Outcome.RUNNING
                 env, _ = runner.step(env, actions)
                 # A policy may say why a world got no action (bad LLM output, LLM error).
