@@ -194,9 +194,12 @@ def point_cloud(depth: Any, intrinsic: np.ndarray, extrinsics: Any, xp: Any = np
                        indexing="ij")
     k = np.asarray(intrinsic, np.float32)
     rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1)
-    rot, t = extrinsics[..., :3, :3], extrinsics[..., :3, 3]
-    world_rays = xp.einsum("...ij,hwj->...hwi", rot, xp.asarray(rays))
-    return (depth[..., None] * world_rays + t[..., None, None, :]).astype(xp.float32)
+    rot = extrinsics[..., :3, :3].astype(xp.float32)
+    t = extrinsics[..., None, :3, 3].astype(xp.float32)
+    # (..., HW, 3) = rays (HW, 3) @ R^T: one batched matrix product (BLAS), not an einsum.
+    world_rays = xp.asarray(rays.reshape(-1, 3)) @ xp.swapaxes(rot, -1, -2)
+    points = depth.reshape(*depth.shape[:-2], -1, 1).astype(xp.float32) * world_rays + t
+    return points.reshape(*depth.shape, 3)
 
 
 def project(points: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
