@@ -103,6 +103,8 @@ class EvalConfig:
     ddim_steps: int | None = None
     memory: str | None = None
     compare: str | None = None
+    video: str | None = None
+    video_cameras: str | None = None
 
 
 def _int_list(text: str) -> list[int]:
@@ -183,6 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="re-raise policy exceptions instead of recording policy_error")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar, warnings-only logging (the table is still printed)")
+    p.add_argument("--video", default=None, metavar="first:N|failures[:N]",
+                   help="MP4 per episode in <out>/videos for episodes 0..N-1 of each task and "
+                        "seed, or the failures (see agnostos_mjx/video.py; needs PyAV)")
+    p.add_argument("--video-cameras", default=None,
+                   help="comma-separated cameras side by side (default front,overhead,wrist)")
     llm = p.add_argument_group("X-ICM and retrieval")
     llm.add_argument("--llm-url", default=None,
                      help="OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or "
@@ -228,7 +235,7 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       llm_concurrency=a.llm_concurrency, overlap_tasks=a.overlap_tasks,
                       selection=a.selection,
                       num_demos=a.num_demos, ddim_steps=a.ddim_steps, memory=a.memory,
-                      compare=a.compare)
+                      compare=a.compare, video=a.video, video_cameras=a.video_cameras)
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
@@ -446,9 +453,11 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
     `tick(episodes_done)` reports progress within the task."""
     from agnostos_mjx.episode import Episodes, Outcome
     from agnostos_mjx.observation import act as policy_act
+    from agnostos_mjx.video import EpisodeVideos
 
     t0 = time.perf_counter()
     runner = Episodes(task, cfg.backend)
+    videos = EpisodeVideos.for_task(cfg, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)
     chunk = min(cfg.batch, len(pending))
@@ -467,6 +476,7 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
                                         cfg.variations)
         instructions = [task.descriptions(int(v))[0] for v in variations]
         env = runner.reset(keys, variations)
+        videos.start(env, part)
         try:
             if _accepts(policy.reset, "episode_seeds"):
                 policy.reset(runner, env, instructions,
@@ -482,6 +492,7 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
                     actions = policy_act(policy, runner, env)
                 running = env.outcome == Outcome.RUNNING
                 env, _ = runner.step(env, actions)
+                videos.capture(env)
                 # A policy may say why a world got no action (bad LLM output, LLM error).
                 reasons = getattr(policy, "end_reasons", None)
                 if reasons is not None:
@@ -512,6 +523,7 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
             if hasattr(policy, "episode_info"):
                 records[-1]["policy_info"] = policy.episode_info(i)
         out += records
+        videos.write(records)
         on_batch(records)
         if tick is not None:
             tick(len(out))
@@ -564,6 +576,13 @@ def evaluate(cfg: EvalConfig) -> dict:
             if int(cfg.variations) >= t.num_variations:
                 raise UsageError(f"--variations {cfg.variations}: {t.name} has variations "
                                  f"0..{t.num_variations - 1}")
+    if cfg.video:
+        from agnostos_mjx.video import VideoSpec
+
+        try:
+            VideoSpec.parse(cfg.video, cfg.video_cameras)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
     out_dir = Path(cfg.out) if cfg.out else _default_out(cfg.policy)
     cfg.out = str(out_dir)
     episodes_path = out_dir / EPISODES_FILE
