@@ -246,3 +246,17 @@ def test_segmented_object_text_close_to_ground_truth(scene) -> None:
         assert list(s) == list(t)  # every object is seen, in the declared order
         diff = np.abs(np.subtract([s[n] for n in s], [t[n] for n in s]))
         assert diff.max() <= 4, (t, s)
+
+
+def test_readme_plugin_runs(tmp_path) -> None:
+    """examples/vla_policy.py (the README's plug-in) runs through the evaluator."""
+    from pathlib import Path
+
+    from agnostos_mjx.eval import EvalConfig, evaluate
+
+    plugin = Path(__file__).resolve().parents[1] / "examples" / "vla_policy.py"
+    cfg = EvalConfig(policy=f"{plugin}:GreenSeeker", tasks="lamp_on", seeds=[0], episodes=2,
+                     batch=2, backend="native", out=str(tmp_path), quiet=True)
+    results = evaluate(cfg)
+    assert len(results["episodes"]) == 2
+    assert all(r["outcome"] != "policy_error" for r in results["episodes"])

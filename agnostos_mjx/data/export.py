@@ -55,9 +55,9 @@ log = logging.getLogger("agnostos_mjx.data.export")
 PERACT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
 DEPTH_SCALE = 2**24 - 1  # RLBench's DEPTH_SCALE
 SUMS = "SHA256SUMS"
-# Measured on close_jar at 128 px: bytes per camera-frame of RGB + depth + mask PNGs.
-BYTES_PER_CAMERA_FRAME_128 = 60_000
-CPU_CAMERA_FRAMES_PER_S = 100.0  # observation_bench --quick on 2 shared cores, conservative
+# Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
+BYTES_PER_CAMERA_FRAME_128 = 30_000
+CPU_CAMERA_FRAMES_PER_S = 15.0  # export incl. physics, 2 shared cores (8 demos: 10/s at batch 4)
 
 
 @dataclass(frozen=True)
@@ -254,7 +254,7 @@ def export_task(cfg: ExportConfig, task_name: str) -> dict:
     return stats
 
 
-def estimate(cfg: ExportConfig, frames_per_demo: float = 8.0) -> tuple[float, float]:
+def estimate(cfg: ExportConfig, frames_per_demo: float = 11.0) -> tuple[float, float]:
     """(bytes, seconds) to expect: a rough guide printed before starting."""
     camera_frames = len(cfg.tasks) * cfg.demos * frames_per_demo * len(cfg.cameras)
     size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * (cfg.size / 128) ** 2
