@@ -462,3 +462,10 @@ class Episodes:
     def gripper_open(self, env: EnvState) -> np.ndarray:
         """RLBench's gripper_open flag from the finger opening."""
         return (np.asarray(env.obs["finger_q"])[:, 0] / FINGER_OPEN) > GRIPPER_OPEN_THRESHOLD
+
+    def observe(self, env: EnvState, spec):
+        """RLBench-style observation (cameras per `spec`, an observation.ObservationSpec,
+        plus proprioception) of every world; see agnostos_mjx/observation.py."""
+        from agnostos_mjx.observation import observe
+
+        return observe(self, env, spec)

@@ -130,6 +130,8 @@ class EvalConfig:
     ddim_steps: int | None = None
     memory: str | None = None
     compare: str | None = None
+    video: str | None = None
+    video_cameras: str | None = None
 
 
 def _int_list(text: str) -> list[int]:
@@ -222,6 +224,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="re-raise policy exceptions instead of recording policy_error")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar, warnings-only logging (the table is still printed)")
+    p.add_argument("--video", default=None, metavar="first:N|failures[:N]",
+                   help="MP4 per episode in <out>/videos for episodes 0..N-1 of each task and "
+                        "seed, or the failures (see agnostos_mjx/video.py; needs PyAV)")
+    p.add_argument("--video-cameras", default=None,
+                   help="comma-separated cameras side by side (default front,overhead,wrist)")
     llm = p.add_argument_group("X-ICM and retrieval")
     llm.add_argument("--llm-url", default=None,
                      help="OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or "
@@ -282,7 +289,7 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       llm_server_kind=a.llm_server_kind, overlap_tasks=a.overlap_tasks,
                       selection=a.selection,
                       num_demos=a.num_demos, ddim_steps=a.ddim_steps, memory=a.memory,
-                      compare=a.compare)
+                      compare=a.compare, video=a.video, video_cameras=a.video_cameras)
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
@@ -643,9 +650,11 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
     PlanningPolicy.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
     `tick(episodes_done, partial, detail)` reports progress within the task."""
     from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.video import EpisodeVideos
 
     t0 = time.perf_counter()
     runner = Episodes(task, cfg.backend)
+    videos = EpisodeVideos.for_task(cfg, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)
     chunk = min(cfg.batch, len(pending))
@@ -658,7 +667,7 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
         t_batch = time.perf_counter()
         label = f"{task.name} batch {b + 1}/{batches}"
         out += yield from batch_steps(task, policy, runner, part, chunk if pad else len(part),
-                                      cfg, on_records, tick, len(out), label)
+                                      cfg, on_records, tick, len(out), label, videos)
         rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
         log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
                  time.perf_counter() - t_batch, rate)
@@ -666,11 +675,12 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
 
 
 def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cfg: EvalConfig,
-                on_records, tick=None, done_before: int = 0, label: str = ""):
+                on_records, tick=None, done_before: int = 0, label: str = "", videos=None):
     """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
     `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
     from agnostos_mjx.episode import Outcome
+    from agnostos_mjx.observation import act as policy_act
 
     n = len(part)
     run_part = part + [part[-1]] * (size - n)
@@ -699,6 +709,8 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
 
     report(0)
     env = runner.reset(keys, variations)
+    if videos is not None:
+        videos.start(env, part)
     try:
         if _accepts(policy.reset, "episode_seeds"):
             policy.reset(runner, env, instructions,
@@ -710,10 +722,12 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
                 break
             if hasattr(policy, "act_steps"):
                 actions = yield from policy.act_steps(runner, env)
-            else:
-                actions = policy.act(runner, env)
+            else:  # with observation= when the policy declares an ObservationSpec
+                actions = policy_act(policy, runner, env)
             running = env.outcome == Outcome.RUNNING
             env, _ = runner.step(env, actions)
+            if videos is not None:
+                videos.capture(env)
             # A policy may say why a world got no action (bad LLM output, LLM error).
             reasons = getattr(policy, "end_reasons", None)
             if reasons is not None:
@@ -728,6 +742,9 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
                       "policy_error", task.name)
         env.outcome = np.where(env.done, env.outcome, Outcome.POLICY_ERROR)
     record(env, np.where(env.done, env.outcome, Outcome.MAX_STEPS))
+    if videos is not None:
+        by_episode = {(r["seed"], r["episode"]): r for r in out}
+        videos.write([by_episode[int(s), int(e)] for s, e in part])
     if tick is not None:
         tick(done_before + len(out))
     return out
@@ -784,6 +801,13 @@ def evaluate(cfg: EvalConfig) -> dict:
             if int(cfg.variations) >= t.num_variations:
                 raise UsageError(f"--variations {cfg.variations}: {t.name} has variations "
                                  f"0..{t.num_variations - 1}")
+    if cfg.video:
+        from agnostos_mjx.video import VideoSpec
+
+        try:
+            VideoSpec.parse(cfg.video, cfg.video_cameras)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
     out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
     episodes_path = out_dir / EPISODES_FILE
     if cfg.compare:

@@ -43,6 +43,7 @@ os.environ.setdefault(
 import copy
 import importlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, Self
 
 import mujoco
@@ -73,6 +74,15 @@ def _unknown_camera(model: mujoco.MjModel, camera: str) -> ValueError:
     return ValueError(f"unknown camera {camera!r}; model cameras: {list(camera_names(model))}")
 
 
+def _gl_context_module() -> Any:
+    """mujoco's gl_context module (its location moved in mujoco 4)."""
+    try:
+        from mujoco.rendering.classic import gl_context  # mujoco >= 4
+    except ImportError:
+        from mujoco import gl_context  # older layout
+    return gl_context
+
+
 def _fix_late_gl_context() -> None:
     """Point mujoco at the MUJOCO_GL backend if mujoco was imported before it was set.
 
@@ -83,10 +93,7 @@ def _fix_late_gl_context() -> None:
     want = gl_backend()
     if want not in ("egl", "osmesa"):
         return
-    try:
-        from mujoco.rendering.classic import gl_context  # mujoco >= 4
-    except ImportError:
-        from mujoco import gl_context  # older layout
+    gl_context = _gl_context_module()
     current = getattr(gl_context, "GLContext", None)
     if current is not None and current.__module__ == f"mujoco.{want}":
         return
@@ -98,37 +105,87 @@ def _fix_late_gl_context() -> None:
         ) from err
 
 
+@dataclass(frozen=True)
+class CameraImages:
+    """One camera's images of B worlds and the pose they were taken from.
+
+    Both renderers return this, numpy (CPU) or JAX device arrays (Warp), so everything
+    built on top (point clouds, RLBench observations) is written once.
+    """
+
+    pos: Any  # (B, 3) camera position in the world
+    mat: Any  # (B, 3, 3) MuJoCo camera axes as columns: x right, y up, looking along -z
+    rgb: Any = None  # (B, H, W, 3) uint8
+    depth: Any = None  # (B, H, W) float32 metres along the optical axis; `far` where empty
+    segmentation: Any = None  # (B, H, W) int32 geom id, -1 where no geom
+
+
+def clip_planes(model: mujoco.MjModel) -> tuple[float, float]:
+    """(near, far) clipping distances in metres, as both renderers use them."""
+    extent = float(model.stat.extent)
+    return float(model.vis.map.znear) * extent, float(model.vis.map.zfar) * extent
+
+
+def _linear_depth(buffer: np.ndarray, near: float, far: float) -> np.ndarray:
+    """OpenGL reversed-Z depth buffer values -> metres (mujoco.Renderer's formula; float32
+    keeps ~1e-7 relative precision with reversed Z, mujoco.Renderer's float64 is not needed)."""
+    znear, zfar = np.float32(near), np.float32(far)
+    c = np.float32(-0.5) * (-(zfar + znear) / (zfar - znear)) - np.float32(0.5)
+    d = np.float32(-0.5) * (-(np.float32(2) * zfar * znear) / (zfar - znear))
+    return d / (buffer + c)
+
+
 class CpuRenderer:
-    """Offscreen ``mujoco.Renderer`` looping over worlds; shadows and reflections off for speed.
+    """Offscreen MuJoCo OpenGL renderer looping over worlds; shadows and reflections off.
 
     Works on a private copy of ``model`` (offscreen buffer enlarged, shadow map disabled,
     per-call ``geom_rgba`` written there and restored), so the caller's model is never touched.
+    :meth:`render` gives one camera's RGB; :meth:`render_views` any cameras with RGB, depth
+    and segmentation: per world the scene is built once and each camera costs one pass for
+    RGB plus one (segmentation colours, depth read alongside) for depth and segmentation.
     """
 
-    def __init__(self, model: mujoco.MjModel, width: int = 128, height: int = 128) -> None:
+    def __init__(self, model: mujoco.MjModel, width: int = 128, height: int = 128,
+                 samples: int | None = None) -> None:
+        """``samples``: multisampling (anti-aliasing) samples per pixel; None keeps the
+        model's (4 in our scenes, what Episodes.render has always used); 0 renders one
+        sample per pixel like MJX-Warp's ray tracer and ~3x faster on llvmpipe."""
         self.width, self.height = int(width), int(height)
-        self._renderer: Any = None
+        self._gl: Any = None
+        self._con: Any = None
         m = copy.copy(model)
         m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), self.width)
         m.vis.global_.offheight = max(int(m.vis.global_.offheight), self.height)
         m.vis.quality.shadowsize = 0  # the default 4096^2 shadow map costs ~20x on llvmpipe
+        if samples is not None:
+            m.vis.quality.offsamples = int(samples)
         self._model = m
         self._data = mujoco.MjData(m)
         self._rgba0 = m.geom_rgba.copy()
         self._mocap_pos0 = self._data.mocap_pos.copy()
         self._mocap_quat0 = self._data.mocap_quat.copy()
         self.camera_names = camera_names(m)
+        self.near, self.far = clip_planes(m)
         _fix_late_gl_context()
         try:
-            self._renderer = mujoco.Renderer(m, height=self.height, width=self.width)
+            gl_context = _gl_context_module()
+            self._gl = gl_context.GLContext(max(self.width, 1), max(self.height, 1))
+            self._gl.make_current()
+            self._con = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_150.value)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
+            self._con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         except Exception as err:  # GL failures surface as many exception types
+            self.close()
             raise RuntimeError(
-                f"no working OpenGL for mujoco.Renderer (MUJOCO_GL={gl_backend()!r}): "
+                f"no working OpenGL for MuJoCo rendering (MUJOCO_GL={gl_backend()!r}): "
                 f"{type(err).__name__}: {err}. {GL_INSTALL_HINT}"
             ) from err
-        flags = self._renderer.scene.flags
-        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-        flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        self._scene = mujoco.MjvScene(m, maxgeom=10000)
+        self._option = mujoco.MjvOption()
+        self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        self._cameras: dict[int, mujoco.MjvCamera] = {}
 
     def camera_id(self, camera: str) -> int:
         """Camera id of a camera name; ValueError listing the model's cameras if unknown."""
@@ -136,6 +193,14 @@ class CpuRenderer:
         if cam_id < 0:
             raise _unknown_camera(self._model, camera)
         return cam_id
+
+    def _camera(self, cam_id: int) -> mujoco.MjvCamera:
+        if cam_id not in self._cameras:
+            cam = mujoco.MjvCamera()
+            cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            cam.fixedcamid = cam_id
+            self._cameras[cam_id] = cam
+        return self._cameras[cam_id]
 
     def _pose(self) -> None:
         """Position stage only (what the scene needs), skipping collision and dynamics."""
@@ -162,20 +227,45 @@ class CpuRenderer:
         defaults); geom_rgba [B, ngeom, 4] overrides colours per world (a geom with a material
         keeps the material colour only while its rgba is the default 0.5 0.5 0.5 1).
         """
-        if self._renderer is None:
+        views = self.render_views(qpos, mocap_pos, mocap_quat, (camera,), geom_rgba)
+        return views[camera].rgb
+
+    def render_views(
+        self,
+        qpos: np.ndarray,
+        mocap_pos: np.ndarray | None,
+        mocap_quat: np.ndarray | None,
+        cameras: Sequence[str],
+        geom_rgba: np.ndarray | None = None,
+        *,
+        rgb: bool = True,
+        depth: bool = False,
+        segmentation: bool = False,
+    ) -> dict[str, CameraImages]:
+        """Render ``cameras`` for B worlds (arguments as :meth:`render`) -> camera name ->
+        :class:`CameraImages` with the requested images and each world's camera pose."""
+        if self._con is None:
             raise RuntimeError("CpuRenderer is closed")
-        cam_id = self.camera_id(camera)
-        m, d = self._model, self._data
+        cam_ids = [self.camera_id(c) for c in cameras]
+        m, d, scn, con, rect = self._model, self._data, self._scene, self._con, self._rect
         qpos = np.asarray(qpos, dtype=np.float64)
         if qpos.ndim != 2 or qpos.shape[1] != m.nq:
             raise ValueError(f"qpos must be [B, {m.nq}], got {qpos.shape}")
-        nworld = qpos.shape[0]
+        nworld, h, w = qpos.shape[0], self.height, self.width
         pos = self._batched(mocap_pos, self._mocap_pos0, nworld, "mocap_pos")
         quat = self._batched(mocap_quat, self._mocap_quat0, nworld, "mocap_quat")
         rgba = None
         if geom_rgba is not None:
             rgba = self._batched(geom_rgba, self._rgba0, nworld, "geom_rgba")
-        out = np.empty((nworld, self.height, self.width, 3), dtype=np.uint8)
+        ncam = len(cam_ids)
+        out_rgb = np.empty((ncam, nworld, h, w, 3), np.uint8) if rgb else None
+        out_depth = np.empty((ncam, nworld, h, w), np.float32) if depth else None
+        out_seg = np.empty((ncam, nworld, h, w), np.int32) if segmentation else None
+        ids = np.empty((h, w, 3), np.uint8) if segmentation else None
+        cam_pos = np.empty((ncam, nworld, 3))
+        cam_mat = np.empty((ncam, nworld, 3, 3))
+        seg_flags = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
+        self._gl.make_current()
         try:
             for i in range(nworld):
                 d.qpos[:] = qpos[i]
@@ -185,12 +275,58 @@ class CpuRenderer:
                 if rgba is not None:
                     m.geom_rgba[:] = rgba[i]
                 self._pose()
-                self._renderer.update_scene(d, cam_id)
-                self._renderer.render(out=out[i])
+                mujoco.mjv_updateScene(m, d, self._option, None, self._camera(cam_ids[0]),
+                                       mujoco.mjtCatBit.mjCAT_ALL.value, scn)
+                lut = self._segment_lut() if segmentation else None
+                for c, cam_id in enumerate(cam_ids):
+                    if c:
+                        mujoco.mjv_updateCamera(m, d, self._camera(cam_id), scn)
+                    cam_pos[c, i] = d.cam_xpos[cam_id]
+                    cam_mat[c, i] = d.cam_xmat[cam_id].reshape(3, 3)
+                    # Depth comes with the RGB pass unless a segmentation pass runs anyway.
+                    depth_with_rgb = depth and rgb and not segmentation
+                    if rgb:
+                        mujoco.mjr_render(rect, scn, con)
+                        mujoco.mjr_readPixels(out_rgb[c, i],
+                                              out_depth[c, i] if depth_with_rgb else None, rect, con)
+                    if segmentation or (depth and not rgb):
+                        # Segmentation colours also give the more accurate depth (mujoco.Renderer).
+                        for flag in seg_flags:
+                            scn.flags[flag] = True
+                        mujoco.mjr_render(rect, scn, con)
+                        mujoco.mjr_readPixels(ids, out_depth[c, i] if depth else None, rect, con)
+                        for flag in seg_flags:
+                            scn.flags[flag] = False
+                        if segmentation:
+                            code = (ids[..., 0].astype(np.int32) | (ids[..., 1].astype(np.int32) << 8)
+                                    | (ids[..., 2].astype(np.int32) << 16))
+                            out_seg[c, i] = lut[np.minimum(code, len(lut) - 1)]
         finally:
             if rgba is not None:
                 m.geom_rgba[:] = self._rgba0
-        return out
+        # OpenGL rows run bottom-up; images are top-down.
+        flip = lambda a: None if a is None else np.ascontiguousarray(a[:, :, ::-1])  # noqa: E731
+        out_rgb, out_seg = flip(out_rgb), flip(out_seg)
+        if depth:
+            out_depth = _linear_depth(out_depth[:, :, ::-1], self.near, self.far)
+        return {
+            name: CameraImages(
+                pos=cam_pos[c], mat=cam_mat[c],
+                rgb=None if out_rgb is None else out_rgb[c],
+                depth=None if out_depth is None else out_depth[c],
+                segmentation=None if out_seg is None else out_seg[c],
+            )
+            for c, name in enumerate(cameras)
+        }
+
+    def _segment_lut(self) -> np.ndarray:
+        """Segmentation colour code -> geom id (-1: background or a non-geom object)."""
+        scn = self._scene
+        lut = np.full(scn.ngeom + 2, -1, np.int32)
+        for g in scn.geoms[: scn.ngeom]:
+            if g.segid >= 0 and g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                lut[g.segid + 1] = g.objid
+        return lut
 
     @staticmethod
     def _batched(x: np.ndarray | None, default: np.ndarray, n: int, name: str) -> np.ndarray:
@@ -203,9 +339,14 @@ class CpuRenderer:
 
     def close(self) -> None:
         """Free the GL context now (mujoco warns that relying on __del__ is unreliable)."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        if self._con is not None:
+            if self._gl is not None:
+                self._gl.make_current()
+            self._con.free()
+            self._con = None
+        if self._gl is not None:
+            self._gl.free()
+            self._gl = None
 
     def __enter__(self) -> Self:
         return self
@@ -213,14 +354,22 @@ class CpuRenderer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: GL may already be gone
+            pass
+
 
 class WarpRenderer:
     """MJX-Warp batch ray-tracer: all worlds of an ``mjx.Data`` batch in one GPU call.
 
     ``nworld`` is fixed by the render context. ``cameras`` limits which cameras are rendered
-    (default: all). ``data`` passed to :meth:`render` must be a warp-impl batch (leading axis
-    ``nworld``) on which forward/kinematics already ran (cam_xpos, geom_xpos are read).
-    Colours come from the mjx.Model (``mjx_model``, default ``put_model(model, impl="warp")``).
+    (default: all); ``depth`` and ``segmentation`` add those buffers to the context (they cost
+    nothing measurable on an H100). ``data`` passed to the render methods must be a warp-impl
+    batch (leading axis ``nworld``) on which forward/kinematics already ran (cam_xpos,
+    geom_xpos are read). Colours come from the mjx.Model (``mjx_model``, default
+    ``put_model(model, impl="warp")``) or per world from ``geom_rgba`` [B, ngeom, 4].
     """
 
     def __init__(
@@ -231,6 +380,8 @@ class WarpRenderer:
         height: int = 128,
         cameras: Sequence[str] | None = None,
         mjx_model: Any = None,
+        depth: bool = False,
+        segmentation: bool = False,
     ) -> None:
         import jax  # lazy: keeps this module importable without warp/CUDA
         import jax.numpy as jnp
@@ -242,6 +393,8 @@ class WarpRenderer:
             if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, cam) < 0:
                 raise _unknown_camera(model, cam)
         self._model = model
+        self.near, self.far = clip_planes(model)
+        self.depth, self.segmentation = bool(depth), bool(segmentation)
         self.mx = mjx_model if mjx_model is not None else mjx.put_model(model, impl="warp")
         self._rc: Any = mjx.create_render_context(
             mjm=model,
@@ -249,19 +402,65 @@ class WarpRenderer:
             cam_res=(self.width, self.height),
             cam_active=list(self.camera_names),
             render_rgb=True,
-            render_depth=False,
+            render_depth=self.depth,
+            render_seg=self.segmentation,
             use_textures=bool(model.ntex),  # match CpuRenderer's look; free without textures
             use_shadows=False,
         )
         mx, rc = self.mx, self._rc.pytree()  # closed over: passing mx to jit is slow
+        cam_ids = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, c)
+                            for c in self.camera_names])
+        far = self.far
 
-        def _render(d: Any, cam_index: int) -> Any:
-            d = jax.vmap(mjx.refit_bvh, in_axes=(None, 0, None))(mx, d, rc)
-            rgb, _, _ = jax.vmap(mjx.render, in_axes=(None, 0, None))(mx, d, rc)
-            img = mjx.get_rgb(rc, cam_index, rgb)  # float32 [B, H, W, 3] in [0, 1]
-            return jnp.round(img * 255.0).astype(jnp.uint8)
+        def _buffers(d: Any, rgba: Any) -> tuple[Any, Any, Any]:
+            """Bare renderer: refit the BVH and trace every camera of every world."""
+            m, axes = mx, None
+            if rgba is not None:  # per-world colours: a batched model field
+                m = mx.tree_replace({"geom_rgba": rgba})
+                axes = jax.tree.map(lambda _: None, mx).tree_replace({"geom_rgba": 0})
+            d = jax.vmap(mjx.refit_bvh, in_axes=(axes, 0, None))(m, d, rc)
+            if self.segmentation:
+                rgb, dep, seg, _ = jax.vmap(mjx.render_with_segmentation,
+                                            in_axes=(axes, 0, None))(m, d, rc)
+            else:
+                (rgb, dep, _), seg = jax.vmap(mjx.render, in_axes=(axes, 0, None))(m, d, rc), None
+            return rgb, dep, seg
 
-        self._render = jax.jit(_render, static_argnums=1)
+        def _views(d: Any, rgba: Any) -> dict[str, CameraImages]:
+            rgb, dep, seg = _buffers(d, rgba)
+            views = {}
+            for i, name in enumerate(self.camera_names):
+                img = jnp.round(mjx.get_rgb(rc, i, rgb) * 255.0).astype(jnp.uint8)
+                metres = None
+                if self.depth:  # planar depth in metres; 0 where no geom was hit
+                    raw = mjx.get_depth(rc, i, dep, far)[..., 0] * far
+                    metres = jnp.where(raw > 0.0, raw, far).astype(jnp.float32)
+                labels = mjx.get_segmentation(rc, i, seg).astype(jnp.int32) if seg is not None \
+                    else None
+                views[name] = CameraImages(pos=d.cam_xpos[:, cam_ids[i]],
+                                           mat=d.cam_xmat[:, cam_ids[i]].reshape(-1, 3, 3),
+                                           rgb=img, depth=metres, segmentation=labels)
+            return views
+
+        self._buffers = jax.jit(_buffers)
+        self._views = jax.jit(_views)
+        self._template: Any = None
+
+    def state_data(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
+        """A posed warp ``mjx.Data`` batch (forward run) from host or device state arrays."""
+        import jax
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        if self._template is None:
+            make = lambda _: mjx.make_data(self._model, impl="warp",  # noqa: E731
+                                           naconmax=64 * self.nworld, njmax=256)
+            self._template = jax.jit(jax.vmap(make))(jnp.arange(self.nworld))
+            mx = self.mx
+            self._pose = jax.jit(lambda d, q, p, r: jax.vmap(lambda d: mjx.forward(mx, d))(
+                d.replace(qpos=q, mocap_pos=p, mocap_quat=r)))
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        return self._pose(self._template, f32(qpos), f32(mocap_pos), f32(mocap_quat))
 
     def camera_id(self, camera: str) -> int:
         """Index of ``camera`` among the rendered cameras (what ``get_rgb`` expects)."""
@@ -269,13 +468,26 @@ class WarpRenderer:
             raise _unknown_camera(self._model, camera)
         return self.camera_names.index(camera)
 
-    def render_jax(self, data: Any, camera: str) -> Any:
-        """Like :meth:`render` but returns the device array (no host copy)."""
+    def _check(self, data: Any) -> None:
         if self._rc is None:
             raise RuntimeError("WarpRenderer is closed")
         if data.qpos.shape[0] != self.nworld:
             raise ValueError(f"data batch {data.qpos.shape[0]} != nworld {self.nworld}")
-        return self._render(data, self.camera_id(camera))
+
+    def render_buffers(self, data: Any, geom_rgba: Any = None) -> tuple[Any, Any, Any]:
+        """The bare renderer (``refit_bvh`` + ``render``): packed device buffers, for timing."""
+        self._check(data)
+        return self._buffers(data, geom_rgba)
+
+    def render_views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
+        """Every camera of the context -> :class:`CameraImages` of JAX device arrays."""
+        self._check(data)
+        return self._views(data, geom_rgba)
+
+    def render_jax(self, data: Any, camera: str) -> Any:
+        """Like :meth:`render` but returns the device array (no host copy)."""
+        self.camera_id(camera)
+        return self.render_views(data)[camera].rgb
 
     def render(self, data: Any, camera: str) -> np.ndarray:
         """Render ``camera`` for every world of ``data`` -> uint8 [B, H, W, 3]."""

@@ -15,6 +15,13 @@ A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that
 is how a policy says "I have nothing to execute" (an unparsable LLM answer,
 an exhausted plan).  Worlds that already finished ignore their action.
 
+A policy that consumes camera images declares an `observation_spec` (an
+`agnostos_mjx.observation.ObservationSpec`: cameras, resolution, modalities);
+the evaluator then renders exactly that at every step and calls
+``policy.act(episodes, env, observation=...)`` with an `RLBenchObservation`
+(RGB, depth, point clouds, segmentation, camera matrices, gripper pose and
+joints; see observation.py).  Policies without one pay for no rendering.
+
 Policies are found by name with `make_policy`: a registered name ("oracle") or
 a "module:attr" / "path/to/file.py:attr" string naming a class, a factory
 function or a ready instance.  This is the equivalent of X-ICM's custom-agent

@@ -26,8 +26,9 @@ from agnostos_mjx.llm.client import (
     SamplingParams,
 )
 from agnostos_mjx.llm.server import context_advice
+from agnostos_mjx.observation import CAMERAS, ObservationSpec
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult, run_blocking
-from agnostos_mjx.scene_text import query_texts
+from agnostos_mjx.scene_text import query_texts, segmented_object_voxels
 from agnostos_mjx.textualise import decode_action
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.prompt import messages, parse_actions
@@ -37,6 +38,12 @@ if TYPE_CHECKING:
     from agnostos_mjx.episode import EnvState, Episodes
 
 log = logging.getLogger("agnostos_mjx.xicm")
+
+
+OBJECT_SOURCES = ("ground_truth", "segmented")
+# X-ICM's cameras and resolution (xicm_reference.md 3): what its object positions come from.
+SEGMENTED_SPEC = ObservationSpec(cameras=CAMERAS, height=128, width=128,
+                                 modalities=("point_cloud", "segmentation"))
 
 
 def needs_frames(selection: str) -> bool:
@@ -64,8 +71,12 @@ class XICMPolicy(PlanningPolicy):
                  retries: int = 4, server_kind: str = "auto",
                  temperature: float = 0.1, top_p: float = 0.001,
                  repetition_penalty: float = 1.05, max_tokens: int = 256,
-                 client: ChatClient | None = None, sample_steps: int | None = None) -> None:
+                 client: ChatClient | None = None, sample_steps: int | None = None,
+                 objects: str = "ground_truth") -> None:
         super().__init__()
+        if objects not in OBJECT_SOURCES:
+            raise ValueError(f"objects must be one of {OBJECT_SOURCES}, got {objects!r}")
+        self.objects = objects
         if client is None:
             config = LLMConfig.from_env(
                 llm_url, llm_model, concurrency=concurrency, timeout_s=timeout_s,
@@ -134,7 +145,11 @@ class XICMPolicy(PlanningPolicy):
 
         variations = env.variation[worlds]
         obs = type(env.obs)(env.obs.data[worlds], env.obs.layout, env.obs.attached[worlds])
-        query_lines = query_texts(episodes.task, obs, variations)
+        voxels = None
+        if self.objects == "segmented":  # as the original: 5 cameras' segmented point clouds
+            observation = episodes.observe(env, SEGMENTED_SPEC)
+            voxels = segmented_object_voxels(observation, worlds)
+        query_lines = query_texts(episodes.task, obs, variations, voxels)
         chosen = self.selector.select(queries_for(self, episodes, env, worlds, self.selection),
                                       self.num_demos)
         batch = [messages([str(self.memory.text[i]) for i in idx], q)
