@@ -45,6 +45,10 @@ class Outcome(enum.IntEnum):
     POLICY_ERROR = 8  # the policy raised
     BAD_LLM_OUTPUT = 9  # the LLM's answer held no valid 7-integer action
     LLM_ERROR = 10  # an LLM request still failed after its retries
+    # A served policy (--policy remote): new codes go last so stored codes keep their meaning.
+    REMOTE_ERROR = 11  # the policy server refused, dropped the connection or raised
+    REMOTE_TIMEOUT = 12  # the policy server did not answer within the timeout
+    BAD_REMOTE_OUTPUT = 13  # the server's answer could not be read as a key action
 
     @property
     def label(self) -> str:

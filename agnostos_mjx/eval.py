@@ -40,6 +40,7 @@ Examples::
     python -m agnostos_mjx.eval --tasks lamp_on --seeds 0 --episodes 4
     python -m agnostos_mjx.eval --policy my_pkg.agent:MyPolicy --policy-arg model=\"qwen\"
     python -m agnostos_mjx.eval --out results/run1 --resume      # finish an interrupted run
+    python -m agnostos_mjx.eval --policy remote --policy-url ws://localhost:8000  # a served VLA
 """
 
 from __future__ import annotations
@@ -132,6 +133,8 @@ class EvalConfig:
     compare: str | None = None
     video: str | None = None
     video_cameras: str | None = None
+    policy_url: str | None = None
+    gpu_mem_fraction: float | None = None
 
 
 def _int_list(text: str) -> list[int]:
@@ -198,6 +201,15 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="KEY=VALUE",
                    help="keyword argument for the policy factory (VALUE parsed as JSON if it "
                         "can be); repeatable")
+    p.add_argument("--policy-url", default=None, metavar="ws://HOST:PORT",
+                   help="the policy server of --policy remote (openpi's websocket protocol; "
+                        "default $AGNOSTOS_POLICY_URL); its adapter options (preset, keys, "
+                        "timeout_s, action_index, quat_order, gripper, height, width) go in "
+                        "--policy-arg, see agnostos_mjx/remote/adapter.py")
+    p.add_argument("--gpu-mem-fraction", type=float, default=None, metavar="F",
+                   help="cap JAX's GPU memory pool at F of the card, 0: no preallocation "
+                        "(default $AGNOSTOS_GPU_MEM_FRACTION; 0.35 when the policy or LLM "
+                        "server is on this machine; else JAX's 75%%); see agnostos_mjx/gpu.py")
     p.add_argument("--tasks", default="unseen",
                    help="comma-separated task names and/or split names (seen, unseen, "
                         "unseen_level1, unseen_level2, all)")
@@ -289,7 +301,8 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       llm_server_kind=a.llm_server_kind, overlap_tasks=a.overlap_tasks,
                       selection=a.selection,
                       num_demos=a.num_demos, ddim_steps=a.ddim_steps, memory=a.memory,
-                      compare=a.compare, video=a.video, video_cameras=a.video_cameras)
+                      compare=a.compare, video=a.video, video_cameras=a.video_cameras,
+                      policy_url=a.policy_url, gpu_mem_fraction=a.gpu_mem_fraction)
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
@@ -312,6 +325,8 @@ def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
         kwargs.update(llm_url=cfg.llm_url, llm_model=cfg.llm_model, llm_cache=cache,
                       concurrency=cfg.llm_concurrency, timeout_s=cfg.llm_timeout,
                       server_kind=cfg.llm_server_kind, num_demos=cfg.num_demos)
+    if spec == "remote":
+        kwargs["url"] = cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL")
     kwargs.update(cfg.policy_args)
     return spec, kwargs, note
 
@@ -872,6 +887,8 @@ def evaluate(cfg: EvalConfig) -> dict:
                    "summary": summary, "episodes": records}
         if hasattr(policy, "llm_report"):  # requests, retries, failures, what was sent
             results["llm"] = policy.llm_report()
+        if hasattr(policy, "remote_report"):  # requests to a policy server, failures
+            results["remote"] = policy.remote_report()
         atomic_write(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
         atomic_write(out_dir / "results.csv", format_csv(summary))
         title = (f"policy {policy_name}, backend {backend}, seeds "
@@ -924,6 +941,15 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         return 2
     print(f"agnostos_mjx.eval: policy {spec}" + (f" ({note})" if note else ""), flush=True)
     setup_logging(cfg.quiet)
+    from agnostos_mjx.gpu import apply_memory_limit
+
+    servers = {"remote": cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL"),
+               "xicm": cfg.llm_url or os.environ.get("AGNOSTOS_LLM_URL")}
+    try:  # before JAX starts its backend
+        apply_memory_limit(cfg.gpu_mem_fraction, [servers.get(spec)])
+    except ValueError as e:
+        print(f"error: --gpu-mem-fraction: {e}", file=sys.stderr)
+        return 2
     out_dir = None
     try:
         out_dir = resolve_out(cfg, spec)
@@ -949,7 +975,19 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
             remove_empty_dirs(out_dir)  # a run that failed before its first result
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
-    return llm_summary(results.get("llm"))
+    return max(llm_summary(results.get("llm")), remote_summary(results.get("remote")))
+
+
+def remote_summary(report: dict | None) -> int:
+    """Print the requests to the policy server and their failures; the exit code: 3 when
+    more than half of the requests failed (the table then measures the failures)."""
+    if not report:
+        return 0
+    failed = sum(report["failures"].values())
+    causes = ", ".join(f"{k}: {v}" for k, v in report["failures"].items()) or "none"
+    print(f"policy server {report['url']}: {report['requests']} requests, {failed} failed "
+          f"({causes}), mean round trip {report['mean_round_trip_ms']:.1f} ms", flush=True)
+    return 3 if failed * 2 > report["requests"] else 0
 
 
 def llm_summary(report: dict | None) -> int:

@@ -77,6 +77,7 @@ _REGISTRY: dict[str, str | Callable[..., Policy]] = {
     "oracle": "agnostos_mjx.policies.oracle:OraclePolicy",
     "xicm": "agnostos_mjx.policies.xicm:XICMPolicy",
     "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
+    "remote": "agnostos_mjx.remote.client:RemotePolicy",
 }
 
 
