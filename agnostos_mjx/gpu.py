@@ -61,10 +61,19 @@ def backend_started() -> bool:
     return bool(getattr(bridge, "_backends", None))
 
 
+def _late_on_gpu() -> bool:
+    """JAX started already on a GPU: a limit set now has no effect (on a CPU none is due)."""
+    if not backend_started():
+        return False
+    import jax
+
+    return jax.default_backend() == "gpu"
+
+
 def apply_memory_limit(fraction: float | None, urls: Iterable[str | None] = ()) -> dict[str, str]:
     """Set the variables of `memory_env` in os.environ; returns what was set."""
     env = memory_env(fraction, list(urls), os.environ)
-    if env and backend_started():
+    if env and _late_on_gpu():
         log.warning("JAX has started already; the GPU memory limit %s has no effect", env)
     os.environ.update(env)
     if env:
