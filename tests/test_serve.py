@@ -173,3 +173,14 @@ def test_unreachable_server_is_a_usage_error(tmp_path: Path, capsys) -> None:
     assert code == 2 and "cannot reach the policy server" in capsys.readouterr().err
     assert ev.main(["--tasks", "lamp_on", "--policy", "remote", "--out",
                     str(tmp_path / "y"), "--quiet"]) == 2
+
+
+def test_eval_caps_gpu_memory_for_a_local_server(monkeypatch, tmp_path: Path) -> None:
+    import agnostos_mjx.gpu as gpu
+
+    calls = []
+    monkeypatch.setattr(gpu, "apply_memory_limit", lambda f, urls: calls.append((f, urls)))
+    argv = ["--tasks", "no_such_task", "--out", str(tmp_path / "x"), "--quiet"]
+    assert ev.main(["--policy", "remote", "--policy-url", "ws://localhost:1", *argv]) == 2
+    assert ev.main(["--policy", "oracle", "--gpu-mem-fraction", "0.2", *argv]) == 2
+    assert calls == [(None, ["ws://localhost:1"]), (0.2, [None])]
