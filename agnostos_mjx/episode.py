@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from agnostos_mjx import control
@@ -22,7 +21,7 @@ from agnostos_mjx.observables import Observation
 from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
 from agnostos_mjx.tasks.base import KeyActions, Task
 from agnostos_mjx.visual_state import StateColors
-from agnostos_mjx.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
+from agnostos_mjx.world import FINGER_OPEN, SceneModel, apply_placement, build_scene, posed_data
 
 log = logging.getLogger(__name__)
 SETTLE_STEPS = 10  # RLBench runs 10 physics steps after placing the scene
@@ -427,12 +426,8 @@ class Episodes:
         newly = attached & ~env.attached
         eq_active = np.array(env.physics.eq_active, bool)
         eq_data = np.array(env.physics.eq_data)
-        data = mujoco.MjData(m)
         for w in np.nonzero(newly.any(1))[0]:
-            data.qpos[:] = env.physics.qpos[w]
-            data.mocap_pos[:] = env.physics.mocap_pos[w]
-            data.mocap_quat[:] = env.physics.mocap_quat[w]
-            mujoco.mj_kinematics(m, data)
+            data = posed_data(m, env.physics, w)
             hp, hq = data.xpos[self.scene.hand_body], data.xquat[self.scene.hand_body]
             for g in np.nonzero(newly[w])[0]:
                 b = self.scene.graspable_bodies[g]

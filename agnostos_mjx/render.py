@@ -46,6 +46,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Self
 
+import jax
 import mujoco
 import numpy as np
 
@@ -105,6 +106,7 @@ def _fix_late_gl_context() -> None:
         ) from err
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class CameraImages:
     """One camera's images of B worlds and the pose they were taken from.

@@ -203,3 +203,14 @@ def apply_placement(scene: SceneModel, placement: Placement):
     for name, rgba in placement.colors.items():
         geom_rgba = geom_rgba.at[scene.model.geom(name).id, :3].set(rgba)
     return qpos, mocap_pos, mocap_quat, geom_rgba
+
+
+def posed_data(model: mujoco.MjModel, physics, world: int) -> mujoco.MjData:
+    """An MjData holding world `world` of a batched PhysicsState, kinematics computed:
+    the frames of one world for host-side geometry (grasp welds, tests, inspection)."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = physics.qpos[world]
+    data.mocap_pos[:] = physics.mocap_pos[world]
+    data.mocap_quat[:] = physics.mocap_quat[world]
+    mujoco.mj_kinematics(model, data)
+    return data

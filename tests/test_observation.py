@@ -33,13 +33,9 @@ def scene():
 
 
 def _posed(runner, env, world: int) -> mujoco.MjData:
-    m = runner.scene.model
-    d = mujoco.MjData(m)
-    d.qpos[:] = env.physics.qpos[world]
-    d.mocap_pos[:] = env.physics.mocap_pos[world]
-    d.mocap_quat[:] = env.physics.mocap_quat[world]
-    mujoco.mj_kinematics(m, d)
-    return d
+    from agnostos_mjx.world import posed_data
+
+    return posed_data(runner.scene.model, env.physics, world)
 
 
 def _surface_distance(points: np.ndarray, geom_type: int, size: np.ndarray) -> np.ndarray:

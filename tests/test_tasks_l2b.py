@@ -163,15 +163,9 @@ def test_water_stays_in_the_can_until_it_is_tilted():
 
 def mujoco_data(ep, env, world: int):
     """An MjData holding one world's state, kinematics computed."""
-    import mujoco
+    from agnostos_mjx.world import posed_data
 
-    m = ep.scene.model
-    data = mujoco.MjData(m)
-    data.qpos[:] = env.physics.qpos[world]
-    data.mocap_pos[:] = env.physics.mocap_pos[world]
-    data.mocap_quat[:] = env.physics.mocap_quat[world]
-    mujoco.mj_kinematics(m, data)
-    return data
+    return posed_data(ep.scene.model, env.physics, world)
 
 
 def _root_axis(env, frame: str, axis: int) -> np.ndarray:

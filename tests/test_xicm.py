@@ -135,3 +135,24 @@ def test_ddim_steps_flag_reaches_the_selection_policies():
         assert kwargs["sample_steps"] == 20
     _, kwargs, _ = resolve_policy(parse_config(["--policy", "retrieval"]))
     assert kwargs["sample_steps"] is None  # the selector's measured default
+
+
+def test_instruction_features_are_encoded_once_per_text(memory, monkeypatch):
+    """lang features depend on the text alone: a run encodes each instruction once."""
+    import agnostos_mjx.xicm.dynamics_selector as ds
+
+    class FakePipeline:
+        calls: list[list[str]] = []
+
+        def lang(self, texts):
+            self.calls.append(list(texts))
+            return np.stack([np.full(1024, len(t), np.float32) for t in texts])
+
+    monkeypatch.setattr(ds, "load_pipeline", lambda *a, **k: FakePipeline())
+    selector = ds.DynamicsSelector(memory, "lang")
+    frame = np.zeros((128, 128, 3), np.uint8)
+    first = selector.select([Query("open the drawer", 0, frame), Query("close it", 1, frame)], 3)
+    again = selector.select([Query("close it", 2, frame), Query("open the drawer", 3, frame)], 3)
+    assert FakePipeline.calls == [["close it", "open the drawer"]]
+    np.testing.assert_array_equal(first[0], again[1])
+    np.testing.assert_array_equal(selector.lang_features(["close it"])[0], np.full(1024, 8.0))

@@ -58,6 +58,7 @@ class DynamicsSelector:
             raise ValueError(f"the memory lacks feature(s) {missing}; rebuild it with "
                              "python -m agnostos_mjx.xicm.build_memory --checkpoint ...")
         self.memory, self.mode, self.metric = memory, mode, metric
+        self._lang_cache: dict[str, np.ndarray] = {}
         self.name = mode
         if sample_steps < 1:
             raise ValueError(f"DDIM steps must be positive, got {sample_steps}")
@@ -75,6 +76,19 @@ class DynamicsSelector:
         if any(q.frame is None for q in queries):
             raise ValueError("dynamics selection needs each query's front frame")
         frames = np.stack([q.frame for q in queries])
-        feats = extract(self.pipeline, frames, [q.instruction for q in queries], self.parts)
+        instructions = [q.instruction for q in queries]
+        visual = tuple(p for p in self.parts if p != "lang")
+        feats = extract(self.pipeline, frames, instructions, visual) if visual else {}
+        if "lang" in self.parts:
+            feats["lang"] = self.lang_features(instructions)
         sims = similarity(feats, self.memory.features, self.mode, self.metric)
         return [top_k(s, k) for s in sims]
+
+    def lang_features(self, instructions: list[str]) -> np.ndarray:
+        """The instruction feature depends on the text alone, and a task's episodes share a
+        few instructions: each is encoded once per run (on the GPU host this was a third
+        of the selection time)."""
+        new = sorted({t for t in instructions if t not in self._lang_cache})
+        if new:
+            self._lang_cache.update(zip(new, self.pipeline.lang(new).astype(np.float32)))
+        return np.stack([self._lang_cache[t] for t in instructions])

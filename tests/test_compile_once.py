@@ -1,0 +1,55 @@
+"""A run compiles a known set of programs: the composition of a batch (which worlds are
+active, how many scenes a reset rejects) never changes a compiled shape (issue 13)."""
+
+from __future__ import annotations
+
+import contextlib
+
+import jax
+import numpy as np
+
+from agnostos_mjx.episode import Episodes
+from agnostos_mjx.tasks import get_task
+from agnostos_mjx.tasks.base import KeyActions
+
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+
+
+@contextlib.contextmanager
+def count_compiles():
+    seen: list[str] = []
+
+    def listener(event: str, duration: float, **_) -> None:
+        if event == COMPILE_EVENT:
+            seen.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield seen
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def _keys(seed: int, n: int):
+    return jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(seed), e))(np.arange(n))
+
+
+def test_batch_composition_compiles_nothing_new():
+    ep = Episodes(get_task("close_fridge"), "native")  # rejects some scenes at reset
+    b = 6
+    with count_compiles() as warmup:  # every program of a reset and a key action
+        env = ep.reset(_keys(0, b), np.zeros(b, np.int32))
+        first = ep.expert_actions(env)
+        step = KeyActions(*(np.asarray(x)[:, 0] for x in (first.pos, first.quat, first.gripper)),
+                          np.ones(b, bool))
+        ep.step(env, step)
+    assert warmup, "the listener must see the first compiles"
+    with count_compiles() as compiles:
+        for seed in (1, 2, 3):  # other scenes, other numbers of rejected placements
+            env = ep.reset(_keys(seed, b), np.zeros(b, np.int32))
+            actions = ep.expert_actions(env)
+            valid = np.arange(b) % seed != 0  # a different set of worlds acts each time
+            pos, quat, grip = (np.asarray(x)[:, 0] for x in (actions.pos, actions.quat,
+                                                              actions.gripper))
+            ep.step(env, KeyActions(pos, quat, grip, valid))
+    assert compiles == []
