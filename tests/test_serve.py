@@ -9,10 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agnostos_mjx import eval as ev
-from agnostos_mjx.gpu import memory_env
-from agnostos_mjx.remote import wire
-from agnostos_mjx.remote.adapter import (
+pytest.importorskip("websockets")  # the `serve` extra
+pytest.importorskip("msgpack")
+
+from agnostos_mjx import eval as ev  # noqa: E402
+from agnostos_mjx.gpu import memory_env  # noqa: E402
+from agnostos_mjx.remote import wire  # noqa: E402
+from agnostos_mjx.remote.adapter import (  # noqa: E402
     BadAnswer,
     make_adapter,
     parse_action,
