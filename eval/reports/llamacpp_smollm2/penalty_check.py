@@ -1,5 +1,8 @@
 """Reproduction 4: does each penalty field change what llama-cpp-python samples?"""
-import json, sys, urllib.request
+import json
+import sys
+import urllib.request
+
 url = sys.argv[1]
 base = {"model": "smollm2", "messages": [{"role": "user", "content": "List the numbers one to twenty, in words."}],
         "temperature": 0.1, "top_p": 0.001, "max_tokens": 48, "seed": 0}

@@ -1,6 +1,10 @@
 """Summarise a run folder: outcomes, LLM requests/attempts/retries from results.json."""
-import collections, json, os, sys
+import collections
+import json
+import os
+import sys
 from pathlib import Path
+
 for name in sys.argv[1:]:
     d = Path(os.environ.get("RUNS", "/work/runs")) / name
     meta = json.loads((d.parent / f"{name}.meta.json").read_text())
