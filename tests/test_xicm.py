@@ -156,3 +156,18 @@ def test_instruction_features_are_encoded_once_per_text(memory, monkeypatch):
     assert FakePipeline.calls == [["close it", "open the drawer"]]
     np.testing.assert_array_equal(first[0], again[1])
     np.testing.assert_array_equal(selector.lang_features(["close it"])[0], np.full(1024, 8.0))
+
+
+def test_selection_report_counts_every_selected_demo(tmp_path):
+    import json
+
+    from agnostos_mjx.xicm.selection_report import main
+
+    assert main(["--tasks", "lamp_on", "--scenes", "2", "--k", "3", "--selection", "text",
+                 "--out", str(tmp_path)]) == 0
+    (row,) = json.loads((tmp_path / "selection.json").read_text())["rows"]
+    assert sum(row["histogram"].values()) == 2 * 3
+    assert row["majority_share"] == row["histogram"][row["majority"]] / 6
+    assert 1 <= row["scenes_with_that_majority"] <= 2
+    assert "| lamp_on |" in (tmp_path / "selection.md").read_text()
+    assert main(["--tasks", "no_such_task"]) == 2
