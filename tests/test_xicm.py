@@ -171,3 +171,20 @@ def test_selection_report_counts_every_selected_demo(tmp_path):
     assert 1 <= row["scenes_with_that_majority"] <= 2
     assert "| lamp_on |" in (tmp_path / "selection.md").read_text()
     assert main(["--tasks", "no_such_task"]) == 2
+
+
+def test_build_memory_extend_replaces_rerecorded_tasks(memory, bank_dir, tmp_path):
+    """--extend keeps the other tasks' demos and swaps in the bank's demos of its tasks."""
+    from agnostos_mjx.xicm.build_memory import main
+
+    base = tmp_path / "base.npz"
+    memory.save(base)
+    out = tmp_path / "new.npz"
+    assert main(["--bank", str(bank_dir), "--extend", str(base), "--out", str(out)]) == 0
+    new = DemoMemory.load(out)
+    bank_tasks = {"open_drawer", "push_buttons"}
+    for t in sorted(set(memory.task.tolist())):
+        expected = 2 if t in bank_tasks else int((memory.task == t).sum())
+        assert int((new.task == t).sum()) == expected, t
+    others = ~np.isin(memory.task, sorted(bank_tasks))
+    np.testing.assert_array_equal(new.text[: others.sum()], memory.text[others])

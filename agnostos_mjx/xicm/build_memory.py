@@ -33,7 +33,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "training run directory; adds lang / vis.in / vis.out features")
     p.add_argument("--out", type=Path, default=default_memory_path(), help="memory file")
     p.add_argument("--extend", type=Path, default=None,
-                   help="an existing memory to append the bank's demos to (e.g. new tasks)")
+                   help="an existing memory to add the bank's demos to (e.g. new tasks); its "
+                        "demos of tasks the bank holds are replaced (re-recorded experts)")
     a = p.parse_args(argv)
     setup_logging(False)
     try:
@@ -50,7 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
         memory = DemoMemory.from_bank(bank, features)
         if a.extend is not None:
-            memory = DemoMemory.concat(DemoMemory.load(a.extend), memory)
+            old = DemoMemory.load(a.extend)
+            memory = DemoMemory.concat(old.without_tasks(set(memory.task.tolist())), memory)
     except (BankError, MemoryFileError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

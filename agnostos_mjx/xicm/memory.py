@@ -84,6 +84,13 @@ class DemoMemory:
         features = {k: np.concatenate([m.features[k] for m in memories]) for k in sorted(common)}
         return cls(**arrays, features=features)
 
+    def without_tasks(self, tasks: set[str]) -> DemoMemory:
+        """This memory less the demos of `tasks` (e.g. before re-adding re-recorded ones)."""
+        keep = ~np.isin(self.task, sorted(tasks))
+        names = [k for k in self.__dataclass_fields__ if k != "features"]
+        return type(self)(**{k: getattr(self, k)[keep] for k in names},
+                          features={k: v[keep] for k, v in self.features.items()})
+
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "features"}
         for name, values in self.features.items():
