@@ -79,8 +79,10 @@ for devices in (1, 4):
     backend = MjxBackend(ep.scene.model, impl="jax")
     assert (backend.mesh is None) == (devices == 1)
     out[devices] = jax.device_get(backend.run(state, ctrl, steps))
+# Equal to float32 rounding, not bit for bit: XLA compiles the 1-world-per-device program
+# differently from the 3-world one (measured: at most 1.6e-7 apart after 12 steps).
 for a, b in zip(jax.tree.leaves(out[1]), jax.tree.leaves(out[4])):
-    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-5)
 """
 
 
@@ -103,7 +105,7 @@ def test_sharded_features_equal_one_device() -> None:
 
 @pytest.mark.slow
 def test_sharded_mjx_jax_run_equals_one_device() -> None:
-    """Two MJX-jax compiles on CPU (about a minute)."""
+    """Two MJX-jax compiles on CPU (about 85 s on 2 cores)."""
     run_on_4_devices(MJX, timeout=600)
 
 
