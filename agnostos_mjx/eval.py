@@ -621,9 +621,8 @@ def process_dir(out: Path, cfg: EvalConfig) -> Path:
 def resolve_out(cfg: EvalConfig, spec: str) -> Path:
     """Sets cfg.out (default results/<policy>-<timestamp>) and checks, before anything
     is loaded or created, that the run can write there."""
-    if cfg.out is None and (cfg.num_processes > 1 or cfg.merge):
-        raise UsageError("--num-processes and --merge need --out DIR, the folder the "
-                         "processes share")
+    if cfg.out is None and cfg.num_processes > 1:
+        raise UsageError("--num-processes needs --out DIR, the folder the processes share")
     if cfg.out is None:
         if cfg.resume:
             latest = latest_run()

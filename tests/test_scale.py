@@ -148,3 +148,18 @@ def test_two_processes_merge_into_the_records_of_one(tmp_path: Path) -> None:
     assert [p["process_id"] for p in merged["processes"]] == [0, 1]
     assert (shared / "results.csv").read_text() == (single / "results.csv").read_text()
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--num-processes", "2"], "needs --out"),
+    (["--num-processes", "2", "--process-id", "2", "--out", "{tmp}/x"], "expected 0..1"),
+    (["--merge", "--out", "{tmp}"], "no proc-*/results.json"),
+    (["--merge"], "needs --out"),
+])
+def test_scale_out_usage_errors_are_one_line(args: list[str], expected: str, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture) -> None:
+    from agnostos_mjx.eval import main
+
+    argv = [a.format(tmp=tmp_path) for a in args]
+    assert main(["--policy", "oracle", "--tasks", "lamp_on", "--quiet", *argv]) == 2
+    assert expected in capsys.readouterr().err
