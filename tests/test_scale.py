@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -131,12 +132,20 @@ def _episodes(out: Path) -> list[dict]:
     return [{k: v for k, v in json.loads(line).items() if k != "wall_s"} for line in lines]
 
 
-def test_two_processes_merge_into_the_records_of_one(tmp_path: Path) -> None:
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("cluster", [False, True], ids=["static", "jax-distributed"])
+def test_two_processes_merge_into_the_records_of_one(cluster: bool, tmp_path: Path) -> None:
     from agnostos_mjx.eval import main
 
     shared, single = tmp_path / "shared", tmp_path / "single"
-    procs = [_eval("--out", str(shared), "--num-processes", "2", "--process-id", str(i))
-             for i in range(2)]
+    extra = ["--coordinator", f"localhost:{_free_port()}"] if cluster else []
+    procs = [_eval("--out", str(shared), "--num-processes", "2", "--process-id", str(i),
+                   *extra) for i in range(2)]
     for proc in procs:
         _finish(proc)
     assert [r["task"] for r in _episodes(shared / "proc-1")] == ["lamp_off"] * 2
