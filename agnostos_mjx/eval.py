@@ -135,6 +135,11 @@ class EvalConfig:
     video_cameras: str | None = None
     policy_url: str | None = None
     gpu_mem_fraction: float | None = None
+    devices: int | None = None
+    process_id: int = 0
+    num_processes: int = 1
+    coordinator: str | None = None
+    merge: bool = False
 
 
 def _int_list(text: str) -> list[int]:
@@ -241,6 +246,23 @@ def build_parser() -> argparse.ArgumentParser:
                         "seed, or the failures (see agnostos_mjx/video.py; needs PyAV)")
     p.add_argument("--video-cameras", default=None,
                    help="comma-separated cameras side by side (default front,overhead,wrist)")
+    scale = p.add_argument_group("several devices and hosts (see README, Scale out)")
+    scale.add_argument("--devices", type=_positive_int, default=None, metavar="N",
+                       help="local accelerators a batch's worlds (MJX-jax) and the dynamics "
+                            "features are sharded over (default: all)")
+    scale.add_argument("--num-processes", type=_positive_int, default=1, metavar="N",
+                       help="processes (hosts) sharing the run: process I runs tasks I, I+N, "
+                            "... into --out/proc-I; then --merge")
+    scale.add_argument("--process-id", type=int, default=0, metavar="I",
+                       help="this process's index, 0..N-1")
+    scale.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                       help="process 0's address: each process calls "
+                            "jax.distributed.initialize with it (one JAX cluster; sharding "
+                            "stays on each host's local devices); without it the processes "
+                            "run independently")
+    scale.add_argument("--merge", action="store_true",
+                       help="only merge --out/proc-*/episodes.jsonl into --out's results "
+                            "files (episodes.jsonl, results.json/.csv/.md/.png)")
     llm = p.add_argument_group("X-ICM and retrieval")
     llm.add_argument("--llm-url", default=None,
                      help="OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or "
@@ -302,7 +324,10 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       selection=a.selection,
                       num_demos=a.num_demos, ddim_steps=a.ddim_steps, memory=a.memory,
                       compare=a.compare, video=a.video, video_cameras=a.video_cameras,
-                      policy_url=a.policy_url, gpu_mem_fraction=a.gpu_mem_fraction)
+                      policy_url=a.policy_url, gpu_mem_fraction=a.gpu_mem_fraction,
+                      devices=a.devices, process_id=a.process_id,
+                      num_processes=a.num_processes, coordinator=a.coordinator,
+                      merge=a.merge)
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
@@ -572,12 +597,13 @@ def resume_command(argv: Sequence[str], out: Path) -> str:
                        "--resume"])
 
 
-def interrupted_message(out_dir: Path, argv: Sequence[str]) -> str:
-    """What Ctrl-C prints: what is kept, and the command that continues the run."""
+def interrupted_message(out_dir: Path, argv: Sequence[str], out: Path | None = None) -> str:
+    """What Ctrl-C prints: what is kept in `out_dir`, and the command that continues the
+    run (whose --out is `out`, the shared folder of a multi-process run; default out_dir)."""
     kept = len(load_records(out_dir / EPISODES_FILE))
     where = (f"{kept} finished episode{'s' * (kept != 1)} saved in {out_dir / EPISODES_FILE}"
              if kept else "no episode had finished")
-    return f"\ninterrupted; {where}; to continue: {resume_command(argv, out_dir)}"
+    return f"\ninterrupted; {where}; to continue: {resume_command(argv, out or out_dir)}"
 
 
 def latest_run(root: Path = Path("results")) -> Path | None:
@@ -586,9 +612,17 @@ def latest_run(root: Path = Path("results")) -> Path | None:
     return max(runs, key=lambda p: (p / EPISODES_FILE).stat().st_mtime, default=None)
 
 
+def process_dir(out: Path, cfg: EvalConfig) -> Path:
+    """Where this process writes: `out` itself, or out/proc-I when several processes share
+    it, so each keeps its own episodes.jsonl (and --resume) with no file locking."""
+    return out / f"proc-{cfg.process_id}" if cfg.num_processes > 1 else out
+
+
 def resolve_out(cfg: EvalConfig, spec: str) -> Path:
     """Sets cfg.out (default results/<policy>-<timestamp>) and checks, before anything
     is loaded or created, that the run can write there."""
+    if cfg.out is None and cfg.num_processes > 1:
+        raise UsageError("--num-processes needs --out DIR, the folder the processes share")
     if cfg.out is None:
         if cfg.resume:
             latest = latest_run()
@@ -596,7 +630,9 @@ def resolve_out(cfg: EvalConfig, spec: str) -> Path:
             raise UsageError(f"--resume needs --out DIR, the folder of the run to continue"
                              f"{hint}")
         cfg.out = str(_default_out(spec))
-    out_dir = Path(cfg.out)
+    if not 0 <= cfg.process_id < cfg.num_processes:
+        raise UsageError(f"--process-id {cfg.process_id}: expected 0..{cfg.num_processes - 1}")
+    out_dir = process_dir(Path(cfg.out), cfg)
     problem = check_writable_dir(out_dir)
     if problem:
         raise UsageError(f"--out: {problem}")
@@ -811,6 +847,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         raise UsageError(e.args[0] if e.args else str(e)) from None
     if not tasks:
         raise UsageError(f"--tasks {cfg.tasks!r} selects no registered task")
+    all_tasks = [t.name for t in tasks]
     if cfg.variations.isdigit():
         for t in tasks:
             if int(cfg.variations) >= t.num_variations:
@@ -825,6 +862,13 @@ def evaluate(cfg: EvalConfig) -> dict:
             raise UsageError(str(e)) from None
     out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
     episodes_path = out_dir / EPISODES_FILE
+    from agnostos_mjx import sharding
+
+    sharding.configure(cfg.devices)
+    tasks = tasks[cfg.process_id::cfg.num_processes]  # this process's share (all when one)
+    if cfg.num_processes > 1:
+        log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
+                 ", ".join(t.name for t in tasks) or "no task")
     if cfg.compare:
         from agnostos_mjx.paper import published
 
@@ -869,7 +913,8 @@ def evaluate(cfg: EvalConfig) -> dict:
     meta = {"config": asdict(cfg), "policy": {"spec": spec, "name": policy_name, "note": note,
                                               "class": f"{type(policy).__module__}."
                                                        f"{type(policy).__qualname__}"},
-            "backend": backend, "versions": versions(), "started": started}
+            "backend": backend, "versions": versions(), "started": started,
+            "tasks": all_tasks}
 
     def selected() -> list[dict]:
         names, seeds = {t.name for t in tasks}, set(cfg.seeds)
@@ -877,34 +922,13 @@ def evaluate(cfg: EvalConfig) -> dict:
                 and int(r["episode"]) < cfg.episodes]
 
     def write_results(final: bool) -> dict:
-        records = sorted(selected(), key=lambda r: ([t.name for t in tasks].index(r["task"]),
-                                                    r["seed"], r["episode"]))
-        summary = aggregate(records, [t.name for t in tasks])
-        out_dir.mkdir(parents=True, exist_ok=True)
-        results = {**meta, "finished": datetime.now().isoformat(timespec="seconds") if final
-                   else None, "wall_s": round(time.perf_counter() - t0, 2),
-                   "complete": len(records) == len(tasks) * len(cfg.seeds) * cfg.episodes,
-                   "summary": summary, "episodes": records}
+        extra = {}
         if hasattr(policy, "llm_report"):  # requests, retries, failures, what was sent
-            results["llm"] = policy.llm_report()
+            extra["llm"] = policy.llm_report()
         if hasattr(policy, "remote_report"):  # requests to a policy server, failures
-            results["remote"] = policy.remote_report()
-        atomic_write(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
-        atomic_write(out_dir / "results.csv", format_csv(summary))
-        title = (f"policy {policy_name}, backend {backend}, seeds "
-                 f"{','.join(map(str, cfg.seeds))}, {cfg.episodes} episodes per seed")
-        compare = None
-        if cfg.compare:
-            from agnostos_mjx.paper import published
-
-            compare = published(cfg.compare)
-        results["markdown"] = format_markdown(summary, title, compare, cfg.compare or "")
-        atomic_write(out_dir / "results.md", results["markdown"])
-        if final:
-            from agnostos_mjx.report_plot import plot_summary
-
-            plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")
-        return results
+            extra["remote"] = policy.remote_report()
+        return write_outputs(out_dir, meta, selected(), [t.name for t in tasks], cfg,
+                             time.perf_counter() - t0, final, extra)
 
     def on_records(records: list[dict]) -> None:
         append_records(episodes_path, records)
@@ -929,11 +953,79 @@ def evaluate(cfg: EvalConfig) -> dict:
     return write_results(final=True)
 
 
+def write_outputs(out_dir: Path, meta: dict, records: Sequence[dict], tasks: Sequence[str],
+                  cfg: EvalConfig, wall_s: float, final: bool, extra: dict | None = None
+                  ) -> dict:
+    """results.json/.csv/.md (and .png when `final`) of `records` over `tasks` (their
+    order); shared by a run and by `merge`.  Returns results.json's dict + markdown."""
+    records = sorted(records, key=lambda r: (list(tasks).index(r["task"]), r["seed"],
+                                             r["episode"]))
+    summary = aggregate(records, tasks)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results = {**meta, "finished": datetime.now().isoformat(timespec="seconds") if final
+               else None, "wall_s": round(wall_s, 2),
+               "complete": len(records) == len(tasks) * len(cfg.seeds) * cfg.episodes,
+               "summary": summary, "episodes": records, **(extra or {})}
+    atomic_write(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
+    atomic_write(out_dir / "results.csv", format_csv(summary))
+    title = (f"policy {meta['policy']['name']}, backend {meta['backend']}, seeds "
+             f"{','.join(map(str, cfg.seeds))}, {cfg.episodes} episodes per seed")
+    compare = None
+    if cfg.compare:
+        from agnostos_mjx.paper import published
+
+        compare = published(cfg.compare)
+    results["markdown"] = format_markdown(summary, title, compare, cfg.compare or "")
+    atomic_write(out_dir / "results.md", results["markdown"])
+    if final:
+        from agnostos_mjx.report_plot import plot_summary
+
+        plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")
+    return results
+
+
+def merge(out: Path) -> dict:
+    """Merge the per-process runs in out/proc-* (``--num-processes``) into out's
+    episodes.jsonl and results files, as one process running every task would have
+    written them.  Returns results.json's dict; "complete" is false while episodes are
+    missing (a process not yet finished); merging again later completes it."""
+    parts = sorted(out.glob("proc-*/results.json"))
+    if not parts:
+        raise UsageError(f"{out}: no proc-*/results.json to merge (run the processes with "
+                         f"--num-processes N --out {out} first)")
+    metas = [json.loads(p.read_text(encoding="utf-8")) for p in parts]
+    first = metas[0]
+    cfg = EvalConfig(**{**first["config"], "process_id": 0, "num_processes": 1,
+                        "coordinator": None, "merge": False, "resume": False})
+    expected = first["config"]["num_processes"]
+    missing = sorted(set(range(expected)) - {m["config"]["process_id"] for m in metas})
+    if missing:
+        log.warning("%s: no results yet from process %s", out, ", ".join(map(str, missing)))
+    records: dict[tuple, dict] = {}
+    for p in parts:
+        for r in load_records(p.parent / EPISODES_FILE):
+            records.setdefault(record_key(r), r)
+    merged = list(records.values())
+    meta = {k: first[k] for k in ("config", "policy", "backend", "versions", "tasks")}
+    meta["config"] = asdict(cfg)
+    meta["started"] = min(m["started"] for m in metas)
+    meta["processes"] = [{"process_id": m["config"]["process_id"], "wall_s": m["wall_s"],
+                          "finished": m["finished"], "episodes": len(m["episodes"])}
+                         for m in metas]
+    tasks = first["tasks"]
+    atomic_write(out / EPISODES_FILE, _jsonl(sorted(merged, key=lambda r: (
+        tasks.index(r["task"]), r["seed"], r["episode"]))))
+    return write_outputs(out, meta, merged, tasks, cfg, max(m["wall_s"] for m in metas),
+                         final=True)
+
+
 def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None) -> int:
     """Command-line entry point; returns the exit code (2 for usage errors, 1 for file
     errors, 130 when interrupted).  `guard` (the command line's) bounds Ctrl-C's delay."""
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse_config(argv)
+    if cfg.merge:
+        return merge_main(cfg)
     try:
         spec, _, note = resolve_policy(cfg)
     except Exception as e:  # e.g. an LLM URL without a model
@@ -950,11 +1042,15 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     except ValueError as e:
         print(f"error: --gpu-mem-fraction: {e}", file=sys.stderr)
         return 2
+    if cfg.coordinator:  # before anything touches a device
+        import jax
+
+        jax.distributed.initialize(cfg.coordinator, cfg.num_processes, cfg.process_id)
     out_dir = None
     try:
         out_dir = resolve_out(cfg, spec)
         existed = out_dir.exists()
-        message = functools.partial(interrupted_message, out_dir, argv)
+        message = functools.partial(interrupted_message, out_dir, argv, Path(cfg.out))
         if guard is not None:
             guard.message = message
         results = evaluate(cfg)
@@ -976,6 +1072,23 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
     return max(llm_summary(results.get("llm")), remote_summary(results.get("remote")))
+
+
+def merge_main(cfg: EvalConfig) -> int:
+    """``--merge``: write --out's results from its proc-* folders and print the table."""
+    setup_logging(cfg.quiet)
+    try:
+        if cfg.out is None:
+            raise UsageError("--merge needs --out DIR, the folder the processes shared")
+        results = merge(Path(cfg.out))
+    except UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(results["markdown"], end="", flush=True)
+    if not results["complete"]:
+        log.warning("%s: episodes are missing (a process has not finished); merge again "
+                    "once it has", cfg.out)
+    return 0
 
 
 def remote_summary(report: dict | None) -> int:

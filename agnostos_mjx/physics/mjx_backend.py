@@ -4,6 +4,12 @@
 The mjx.Model is closed over by the jitted step function, never passed as a
 jit argument (passing it cost ~0.9 s a call).  The per-world grasp weld data
 is the one batched model field.
+
+With several local devices (agnostos_mjx.sharding, ``--devices``) MJX-jax places the
+runner's inputs with their world axis split over a mesh, and jit partitions the vmapped
+step: worlds are independent, so each device steps its share with no communication.
+MJX-warp is not sharded yet: its FFI step needs per-device contact buffers (shard_map),
+which wants a multi-GPU test first.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from agnostos_mjx import sharding
 from agnostos_mjx.physics.base import PhysicsState, check_steps
 
 
@@ -43,6 +50,8 @@ class MjxBackend:
         self.mx = mjx.put_model(model, impl=impl, **options)
         self.contacts_per_world = contacts_per_world
         self.constraints_per_world = constraints_per_world
+        mesh = sharding.mesh() if impl == "jax" else None
+        self.mesh = mesh if mesh is not None and sharding.device_count(mesh) > 1 else None
 
     @functools.lru_cache(maxsize=16)
     def _runner(self, batch: int, nstep: int):
@@ -72,6 +81,8 @@ class MjxBackend:
         # so each rollout only overwrites the state fields.
         template = jax.jit(jax.vmap(lambda _: mjx.make_data(source, impl=impl, **kwargs)))(
             jnp.arange(batch))
+        if self.mesh is not None:
+            template = jax.device_put(template, sharding.batch_sharding(self.mesh))
 
         def to_data(template, state: PhysicsState):
             return template.replace(qpos=state.qpos, qvel=state.qvel, act=state.act,
@@ -130,6 +141,10 @@ class MjxBackend:
         steps = jnp.asarray(check_steps(steps, state.batch, int(np.shape(ctrl)[1])))
         state = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if x.dtype != bool else jnp.asarray(x), state)
         ctrl = jnp.asarray(ctrl, jnp.float32)
+        if self.mesh is not None:  # padded worlds repeat the last one; cut from the results
+            (state, ctrl, steps), n = sharding.shard((state, ctrl, steps), self.mesh)
+            runner = self._runner(state.batch, int(ctrl.shape[1]))
+            return sharding.unpad(runner(state, ctrl, steps), n)
         runner = self._runner(state.batch, int(ctrl.shape[1]))
         if self.impl != "warp":
             return runner(state, ctrl, steps)
