@@ -124,9 +124,9 @@ def test_slow_streaming_server_computes_each_request_once():
     """llama.cpp with one slot, each answer taking twice the client's timeout but
     streaming keepalive bytes: the client sends one request at a time (the published
     slot count caps --llm-concurrency 8), waits, and nothing is computed twice."""
-    with ScriptedLLMServer(echo, kind="llamacpp", slots=1, latency_s=2.0,
+    with ScriptedLLMServer(echo, kind="llamacpp", slots=1, latency_s=5.0,
                            keepalive_s=0.1) as server:
-        client = client_for(server, timeout_s=1.0, concurrency=8)
+        client = client_for(server, timeout_s=2.5, concurrency=8)
         info = client.preflight()
         prompts = [f"q{i}" for i in range(2)]
         out = client.complete_batch([[{"role": "user", "content": p}] for p in prompts])
