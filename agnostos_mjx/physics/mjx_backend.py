@@ -141,13 +141,12 @@ class MjxBackend:
         steps = jnp.asarray(check_steps(steps, state.batch, int(np.shape(ctrl)[1])))
         state = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32) if x.dtype != bool else jnp.asarray(x), state)
         ctrl = jnp.asarray(ctrl, jnp.float32)
+        n = state.batch
         if self.mesh is not None:  # padded worlds repeat the last one; cut from the results
             (state, ctrl, steps), n = sharding.shard((state, ctrl, steps), self.mesh)
-            runner = self._runner(state.batch, int(ctrl.shape[1]))
-            return sharding.unpad(runner(state, ctrl, steps), n)
         runner = self._runner(state.batch, int(ctrl.shape[1]))
         if self.impl != "warp":
-            return runner(state, ctrl, steps)
+            return sharding.unpad(runner(state, ctrl, steps), n)
         with gc_paused():
             return jax.block_until_ready(runner(state, ctrl, steps))
 
