@@ -1,29 +1,43 @@
 """Seen-task demos with observations as VLA training data: ``python -m agnostos_mjx.data.export``.
 
-Format: RLBench's per-episode folders, as PerAct, RVT and RVT-2 read them (LeRobot's format
-is not written: ``lerobot`` pulls in torch and could not be checked here)::
+Format: RLBench's per-episode folders as its dataset generator (PerAct's fork, ``--all_variations``)
+writes them, read as they are by ``rlbench.utils.get_stored_demos`` (PerAct, and RVT's
+``peract_colab`` loader); LeRobot's format is not written (``lerobot`` pulls in torch)::
 
     <out>/<task>/all_variations/episodes/episode<i>/
         <camera>_rgb/<k>.png      RGB
-        <camera>_depth/<k>.png    depth, RLBench's encoding: (d - near) / (far - near) as a
-                                  24-bit integer in R (low byte), G, B (high byte)
-        <camera>_mask/<k>.png     segmentation, geom id + 1 as a 24-bit integer the same way
-                                  (0: nothing), RLBench's handle encoding
-        low_dim_obs.npz           per frame k: gripper_pose (x y z qx qy qz qw),
-                                  gripper_open, joint_positions, joint_velocities,
-                                  gripper_joint_positions, <camera>_camera_{intrinsics,
-                                  extrinsics,near,far}, key_action (the action after frame k:
-                                  the next frame's gripper pose and open flag)
+        <camera>_depth/<k>.png    depth, RLBench's encoding: (d - near) / (far - near) * (2^24 - 1)
+                                  as a 24-bit integer, R the high byte, B the low byte
+        <camera>_mask/<k>.png     segmentation, geom id + 1 as a 24-bit integer with R the LOW
+                                  byte (RLBench's handle encoding; 0: nothing)
+        low_dim_obs.pkl           RLBench's pickle: an ``rlbench.demo.Demo`` of
+                                  ``rlbench.backend.observation.Observation``s, images None
+                                  (written without rlbench: see data/rlbench_demo.py):
+                                  gripper_pose (x y z qx qy qz qw), gripper_open (1.0/0.0),
+                                  gripper_matrix, joint_positions, joint_velocities,
+                                  gripper_joint_positions, task_low_dim_state (poses of the
+                                  task's observed frames, then its joint positions),
+                                  ignore_collisions (0), joint_forces and
+                                  gripper_touch_forces (zeros: not simulated), misc with
+                                  <camera>_camera_{extrinsics,intrinsics,near,far}
         variation_descriptions.pkl, variation_number.pkl   as RLBench (plain pickles)
-        SHA256SUMS                checksums of the files above (written last: the marker
+        SHA256SUMS                checksums of every file above (written last: the marker
                                   that the episode is complete)
     <out>/manifest.json           settings, segmentation names per task, episode counts
 
-Frames are the keyframes: the scene after reset and after every expert key action (our
-experts act in RLBench's waypoints, which PerAct's keyframe discovery recovers).  RLBench
-pickles ``low_dim_obs.pkl`` as rlbench ``Demo`` objects; without rlbench we store the same
-fields as npz, and :func:`read_episode` reads an episode back (a converter to rlbench's
-pickle is a few lines with rlbench installed: build ``Observation``s from these arrays).
+Cameras: RLBench's five by default; ``get_stored_demos`` lists the rgb and depth folders of
+all five even when its ObservationConfig asks for fewer, so a ``--cameras`` subset is only
+for readers of our own (:func:`read_episode`, which needs no rlbench).  Upstream RLBench's
+``get_stored_demos`` has no ``all_variations`` and reads ``<task>/variation<v>/episodes``:
+symlink our episodes there.  Checked with these readers (images, depth, point clouds,
+masks, poses against ours): eval/reports/rlbench_reader_check
+(``python eval/reports/rlbench_reader_check/check.py --reader-python <numpy 1.x python>``).
+
+Frames are the keyframes only: the scene after reset and after every expert key action (our
+experts act in RLBench's waypoints), not RLBench's every simulation step.  PerAct's
+``keypoint_discovery`` heuristic (PerAct's and RVT's replay filling), made for dense demos,
+finds only some of them (open_drawer: 2 of 5; figures in the reader check): use every frame
+after the first as a keypoint, ``list(range(1, len(demo)))``.
 
 Demos are the demo bank's (same keys: ``generate.demo_keys``, variation ``i % n``), re-run
 with observations.  Resumable: complete episodes are skipped, an interrupted one is redone.
@@ -51,10 +65,20 @@ from pathlib import Path
 
 import numpy as np
 
+from agnostos_mjx.data.rlbench_demo import Demo, Observation, dumps, loads
+
 log = logging.getLogger("agnostos_mjx.data.export")
-PERACT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
+# RLBench's five cameras, in the order its misc dict lists them; get_stored_demos needs the
+# rgb and depth folders of all five.
+RLBENCH_CAMERAS = ("left_shoulder", "right_shoulder", "overhead", "front", "wrist")
 DEPTH_SCALE = 2**24 - 1  # RLBench's DEPTH_SCALE
 SUMS = "SHA256SUMS"
+LOW_DIM_PICKLE = "low_dim_obs.pkl"
+FORMAT = 2  # 1: low_dim_obs.npz and depth with R as the low byte (not RLBench's)
+# Observation fields stacked per frame by read_episode (besides misc's camera keys).
+LOW_DIM_FIELDS = ("gripper_pose", "gripper_open", "joint_positions", "joint_velocities",
+                  "joint_forces", "gripper_matrix", "gripper_joint_positions",
+                  "gripper_touch_forces", "task_low_dim_state", "ignore_collisions")
 # Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
 BYTES_PER_CAMERA_FRAME_128 = 30_000
 CPU_CAMERA_FRAMES_PER_S = 15.0  # export incl. physics, 2 shared cores (8 demos: 10/s at batch 4)
@@ -66,7 +90,7 @@ class ExportConfig:
     tasks: tuple[str, ...]
     demos: int = 200
     seed: int = 0
-    cameras: tuple[str, ...] = PERACT_CAMERAS
+    cameras: tuple[str, ...] = RLBENCH_CAMERAS
     size: int = 128
     batch: int = 25
     max_attempts: int = 10
@@ -74,7 +98,8 @@ class ExportConfig:
 
 # ---- RLBench image encodings (pure) --------------------------------------------------------
 def int_to_rgb(values: np.ndarray) -> np.ndarray:
-    """Non-negative integers < 2^24 -> uint8 RGB (R low byte), RLBench's encoding."""
+    """Non-negative integers < 2^24 -> uint8 RGB with R the low byte: RLBench's mask
+    encoding (``rgb_handles_to_mask``: R + 256 G + 65536 B)."""
     v = np.asarray(values, np.int64)
     return np.stack([v & 255, (v >> 8) & 255, (v >> 16) & 255], -1).astype(np.uint8)
 
@@ -85,14 +110,53 @@ def rgb_to_int(rgb: np.ndarray) -> np.ndarray:
 
 
 def encode_depth(depth: np.ndarray, near: float, far: float) -> np.ndarray:
-    """Metres -> RLBench depth PNG pixels."""
-    unit = np.clip((np.asarray(depth, np.float64) - near) / (far - near), 0.0, 1.0)
-    return int_to_rgb(np.round(unit * DEPTH_SCALE))
+    """Metres -> RLBench depth PNG pixels: ``float_array_to_rgb_image((d - near) / (far -
+    near), DEPTH_SCALE)``, a 24-bit integer with R the HIGH byte (unlike masks)."""
+    unit = (np.asarray(depth, np.float64) - near) / (far - near)
+    return int_to_rgb(np.clip(np.floor(unit * DEPTH_SCALE + 0.5), 0, DEPTH_SCALE))[..., ::-1]
 
 
 def decode_depth(rgb: np.ndarray, near: float, far: float) -> np.ndarray:
-    """RLBench depth PNG pixels -> metres."""
-    return (near + rgb_to_int(rgb) / DEPTH_SCALE * (far - near)).astype(np.float32)
+    """RLBench depth PNG pixels -> metres (``image_to_float_array``, then near/far)."""
+    unit = rgb_to_int(np.asarray(rgb)[..., ::-1]) / DEPTH_SCALE
+    return (near + unit * (far - near)).astype(np.float32)
+
+
+def quat_to_matrix(pose: np.ndarray) -> np.ndarray:
+    """RLBench gripper pose (x y z qx qy qz qw) -> its 4x4 ``gripper_matrix``."""
+    x, y, z, w = np.asarray(pose[3:], np.float64) / np.linalg.norm(pose[3:])
+    m = np.eye(4)
+    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    m[:3, 3] = pose[:3]
+    return m
+
+
+def rlbench_observation(frame: dict, cameras: Sequence[str]) -> Observation:
+    """One frame (RLBenchObservation.world dict, plus ``task_low_dim_state``) -> the
+    ``Observation`` that RLBench's dataset generator pickles: images None, low-dim fields as
+    float64 arrays; fields we do not simulate (joint_forces, gripper_touch_forces) are zeros
+    and ignore_collisions is 0 (our key actions carry no collision flag)."""
+    f64 = lambda v: np.array(v, np.float64)  # noqa: E731
+    misc: dict = {}
+    for cam in sorted(cameras, key=lambda c: (RLBENCH_CAMERAS + (c,)).index(c)):
+        m = frame["misc"]
+        misc[f"{cam}_camera_extrinsics"] = f64(m[f"{cam}_camera_extrinsics"])
+        misc[f"{cam}_camera_intrinsics"] = f64(m[f"{cam}_camera_intrinsics"])
+        misc[f"{cam}_camera_near"] = float(m[f"{cam}_camera_near"])
+        misc[f"{cam}_camera_far"] = float(m[f"{cam}_camera_far"])
+    pose = f64(frame["gripper_pose"])
+    joints = f64(frame["joint_positions"])
+    return Observation(
+        joint_velocities=f64(frame["joint_velocities"]), joint_positions=joints,
+        joint_forces=f64(frame.get("joint_forces", np.zeros_like(joints))),
+        gripper_open=float(frame["gripper_open"]), gripper_pose=pose,
+        gripper_matrix=quat_to_matrix(pose),
+        gripper_joint_positions=f64(frame["gripper_joint_positions"]),
+        gripper_touch_forces=f64(frame.get("gripper_touch_forces", np.zeros(6))),
+        task_low_dim_state=f64(frame.get("task_low_dim_state", np.zeros(0))),
+        ignore_collisions=np.array(float(frame.get("ignore_collisions", 0.0))), misc=misc)
 
 
 # ---- writing ---------------------------------------------------------------------------------
@@ -120,7 +184,6 @@ def write_episode(path: Path, frames: list[dict], description: list[str], variat
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     cameras = [k[: -len("_camera_near")] for k in frames[0]["misc"] if k.endswith("_camera_near")]
-    low: dict[str, list] = {}
     for k, f in enumerate(frames):
         for cam in cameras:
             near, far = f["misc"][f"{cam}_camera_near"], f["misc"][f"{cam}_camera_far"]
@@ -133,16 +196,8 @@ def write_episode(path: Path, frames: list[dict], description: list[str], variat
                 if img is not None:
                     (tmp / f"{cam}_{kind}").mkdir(exist_ok=True)
                     _png(tmp / f"{cam}_{kind}" / f"{k}.png", img)
-            for key in ("intrinsics", "extrinsics", "near", "far"):
-                low.setdefault(f"{cam}_camera_{key}", []).append(f["misc"][f"{cam}_camera_{key}"])
-        for key in ("gripper_pose", "gripper_open", "joint_positions", "joint_velocities",
-                    "gripper_joint_positions"):
-            low.setdefault(key, []).append(f[key])
-    arrays = {k: np.asarray(v) for k, v in low.items()}
-    nxt = np.concatenate([arrays["gripper_pose"][1:], arrays["gripper_pose"][-1:]])
-    opened = np.concatenate([arrays["gripper_open"][1:], arrays["gripper_open"][-1:]])
-    arrays["key_action"] = np.concatenate([nxt, opened[:, None]], 1).astype(np.float32)
-    np.savez_compressed(tmp / "low_dim_obs.npz", **arrays)
+    demo = Demo([rlbench_observation(f, cameras) for f in frames], None, int(variation))
+    (tmp / LOW_DIM_PICKLE).write_bytes(dumps(demo))
     (tmp / "variation_descriptions.pkl").write_bytes(pickle.dumps(list(description)))
     (tmp / "variation_number.pkl").write_bytes(pickle.dumps(int(variation)))
     files = sorted(p for p in tmp.rglob("*") if p.is_file())
@@ -153,26 +208,37 @@ def write_episode(path: Path, frames: list[dict], description: list[str], variat
 
 
 def verify_episode(path: Path) -> None:
-    """Raise ValueError naming the first file whose checksum does not match."""
+    """Raise ValueError naming the first file whose checksum does not match, or that
+    SHA256SUMS does not list."""
+    listed = set()
     for line in (path / SUMS).read_text().splitlines():
         digest, name = line.split("  ", 1)
-        if _sha256(path / name) != digest:
+        listed.add(name)
+        if not (path / name).is_file() or _sha256(path / name) != digest:
             raise ValueError(f"checksum mismatch: {path / name}")
+    for p in sorted(path.rglob("*")):
+        if p.is_file() and p.name != SUMS and str(p.relative_to(path)) not in listed:
+            raise ValueError(f"not in {SUMS}: {p}")
 
 
 def read_episode(path: Path, verify: bool = True) -> dict:
-    """An exported episode -> {"low_dim": {...}, "<cam>_rgb"/"_depth" (metres)/"_mask"
-    (geom id, -1 none): (T, H, W[, 3]) arrays, "descriptions", "variation"}."""
+    """An exported episode -> {"demo": the unpickled ``low_dim_obs.pkl`` (stand-in
+    ``Demo``), "low_dim": {field or misc key: per-frame stack}, "<cam>_rgb"/"_depth"
+    (metres)/"_mask" (geom id, -1 none): (T, H, W[, 3]) arrays, "descriptions",
+    "variation"}.  Needs no rlbench."""
     from PIL import Image
 
     path = Path(path)
     if verify:
         verify_episode(path)
-    low = dict(np.load(path / "low_dim_obs.npz"))
-    out: dict = {"low_dim": low,
+    demo = loads((path / LOW_DIM_PICKLE).read_bytes())
+    low = {name: np.stack([np.asarray(getattr(o, name)) for o in demo])
+           for name in LOW_DIM_FIELDS}
+    low.update({key: np.stack([np.asarray(o.misc[key]) for o in demo]) for key in demo[0].misc})
+    out: dict = {"demo": demo, "low_dim": low,
                  "descriptions": pickle.loads((path / "variation_descriptions.pkl").read_bytes()),
                  "variation": pickle.loads((path / "variation_number.pkl").read_bytes())}
-    n = len(low["gripper_pose"])
+    n = len(demo)
     for folder in sorted(p for p in path.iterdir() if p.is_dir()):
         cam, kind = folder.name.rsplit("_", 1)
         imgs = np.stack([np.asarray(Image.open(folder / f"{k}.png")) for k in range(n)])
@@ -192,12 +258,15 @@ def keyframe_observations(episodes, env, spec) -> tuple[object, list[list[dict]]
     from agnostos_mjx.observation import observe
 
     frames: list[list[dict]] = [[] for _ in range(len(env.variation))]
+    task = episodes.scene.task
 
-    def snap(obs, worlds):
+    def snap(env, worlds):
+        obs = observe(episodes, env, spec)
+        state = task_low_dim_state(task, env.obs)
         for w in worlds:
-            frames[w].append(obs.world(int(w)))
+            frames[w].append({**obs.world(int(w)), "task_low_dim_state": state[w]})
 
-    snap(observe(episodes, env, spec), range(len(frames)))
+    snap(env, range(len(frames)))
     import jax
 
     actions = episodes.expert_actions(env)
@@ -207,8 +276,22 @@ def keyframe_observations(episodes, env, spec) -> tuple[object, list[list[dict]]
         if not running.any():
             break
         env, _ = episodes.step(env, step)
-        snap(observe(episodes, env, spec), np.nonzero(running)[0])
+        snap(env, np.nonzero(running)[0])
     return env, frames
+
+
+def task_low_dim_state(task, obs) -> np.ndarray:
+    """(B, n) RLBench-style ``task_low_dim_state``: the pose (x y z qx qy qz qw) of each of
+    the task's observed frames (``task.observed_frames`` order), then its joint positions
+    (``task.joints``), as RLBench's ``Task.get_low_dim_state`` lists its objects' poses and
+    joint positions."""
+    parts = []
+    for frame in task.observed_frames:
+        quat = np.asarray(obs.quat(frame), np.float64)
+        parts += [np.asarray(obs.pos(frame), np.float64), quat[..., [1, 2, 3, 0]]]
+    parts += [np.asarray(obs.joint(j), np.float64)[..., None] for j in task.joints]
+    batch = np.asarray(obs.data).shape[0]
+    return np.concatenate(parts, -1) if parts else np.zeros((batch, 0))
 
 
 def export_task(cfg: ExportConfig, task_name: str) -> dict:
@@ -273,6 +356,10 @@ def export(cfg: ExportConfig) -> dict:
     # Settings that change what an episode holds must match between runs.
     config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()
               if k in ("seed", "cameras", "size")}
+    config["format"] = FORMAT
+    if missing := [c for c in RLBENCH_CAMERAS if c not in cfg.cameras]:
+        log.warning("cameras %s not exported: RLBench's get_stored_demos (PerAct, RVT) needs "
+                    "the rgb and depth folders of all five", ",".join(missing))
     if manifest.get("config", config) != config:
         raise ValueError(f"{cfg.out} was exported with {manifest['config']}, not {config}")
     manifest["config"] = config
@@ -302,7 +389,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--tasks", default="seen", help="task names and/or split names")
     p.add_argument("--demos", type=int, default=200, help="demos per task")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--cameras", default=",".join(PERACT_CAMERAS))
+    p.add_argument("--cameras", default=",".join(RLBENCH_CAMERAS),
+                   help="RLBench's reader needs all five")
     p.add_argument("--size", type=int, default=128, help="image height and width")
     p.add_argument("--batch", type=int, default=25, help="worlds simulated at once")
     p.add_argument("--quiet", action="store_true")
