@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="physics steps per timed backend.run call")
     p.add_argument("--min-time", type=float, default=1.0,
                    help="repeat the timed physics call until this many seconds have passed")
+    p.add_argument("--reset-only", type=_int_list, default=[],
+                   help="comma-separated batches (also listed in --batches) at which only the "
+                        "reset is timed (first call with compiles, then a second): e.g. 8192")
     p.add_argument("--no-episodes", action="store_true",
                    help="measure physics steps/s only, skip the full oracle episodes")
     p.add_argument("--quick", action="store_true",
@@ -102,8 +105,8 @@ def seconds_per_call(fn, min_time: float) -> tuple[float, int]:
     return (time.perf_counter() - t0) / calls, calls
 
 
-def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float]:
-    """One batch of oracle episodes: (wall seconds, success fraction)."""
+def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float, float]:
+    """One batch of oracle episodes: (wall seconds, success fraction, reset seconds)."""
     from agnostos_mjx.episode import Outcome
     from agnostos_mjx.eval import episode_keys
     from agnostos_mjx.policies.oracle import OraclePolicy
@@ -111,21 +114,37 @@ def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float]:
     t0 = time.perf_counter()
     keys = episode_keys(np.full(batch, seed), np.arange(batch))
     env = runner.reset(keys, np.arange(batch) % runner.task.num_variations)
+    reset = time.perf_counter() - t0
     policy = OraclePolicy()
     policy.reset(runner, env, [""] * batch)
     for _ in range(runner.task.max_key_actions):
         if env.done.all():
             break
         env, _ = runner.step(env, policy.act(runner, env))
-    return time.perf_counter() - t0, float(np.mean(env.outcome == Outcome.SUCCESS))
+    return time.perf_counter() - t0, float(np.mean(env.outcome == Outcome.SUCCESS)), reset
 
 
 def bench_episodes(runner, batch: int) -> dict[str, float]:
     """Oracle episodes/s at `batch`, after a warm-up batch (compiles every shape)."""
-    warmup, _ = _oracle_batch(runner, batch, seed=1)
-    wall, success = _oracle_batch(runner, batch, seed=0)
+    warmup, _, _ = _oracle_batch(runner, batch, seed=1)
+    wall, success, reset = _oracle_batch(runner, batch, seed=0)
     return {"episodes_per_s": batch / wall, "episode_batch_wall_s": wall,
-            "oracle_success": success, "episode_warmup_s": warmup}
+            "oracle_success": success, "episode_warmup_s": warmup, "reset_s": reset}
+
+
+def bench_reset(runner, batch: int) -> dict[str, float]:
+    """Seconds to reset `batch` worlds (sampling, settling, the expert-reachability check
+    and re-sampling of rejected scenes): the first call (compiles) and a second one."""
+    from agnostos_mjx.eval import episode_keys
+
+    times = []
+    for seed in (1, 0):
+        t0 = time.perf_counter()
+        env = runner.reset(episode_keys(np.full(batch, seed), np.arange(batch)),
+                           np.arange(batch) % runner.task.num_variations)
+        _block(env.physics)
+        times.append(time.perf_counter() - t0)
+    return {"reset_first_s": times[0], "reset_s": times[1]}
 
 
 def _fmt(value: float | None, digits: int = 0) -> str:
@@ -135,13 +154,14 @@ def _fmt(value: float | None, digits: int = 0) -> str:
 
 
 def format_table(rows: list[dict]) -> str:
-    lines = ["| task | backend | batch | physics steps/s | vs native | episodes/s | "
-             "oracle success % |", "|---|---|---|---|---|---|---|"]
+    lines = ["| task | backend | batch | physics steps/s | vs native | episodes/s | vs native "
+             "| reset s | oracle success % |", "|---|---|---|---|---|---|---|---|---|"]
+    ratio = lambda x: "-" if x is None else f"{x:.2f}x"  # noqa: E731
     for r in rows:
-        ratio = r.get("vs_native")
         lines.append(
             f"| {r['task']} | {r['backend']} | {r['batch']} | {_fmt(r.get('steps_per_s'))} | "
-            f"{'-' if ratio is None else f'{ratio:.2f}x'} | {_fmt(r.get('episodes_per_s'), 2)} | "
+            f"{ratio(r.get('vs_native'))} | {_fmt(r.get('episodes_per_s'), 2)} | "
+            f"{ratio(r.get('episodes_vs_native'))} | {_fmt(r.get('reset_s'), 1)} | "
             f"{_fmt(None if r.get('oracle_success') is None else 100 * r['oracle_success'])} |")
     return "\n".join(lines) + "\n"
 
@@ -192,16 +212,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             for batch in batches:
                 row: dict[str, Any] = {"task": task.name, "backend": runner.backend_name,
                                        "batch": batch, "steps": steps}
+                if batch in args.reset_only:
+                    log.info("%s / %s / batch %d: reset", task.name, backend, batch)
+                    rows.append(row | bench_reset(runner, batch))
+                    continue
                 log.info("%s / %s / batch %d: physics", task.name, backend, batch)
                 row |= bench_physics(runner, batch, steps, min_time)
                 if not args.no_episodes:
                     log.info("%s / %s / batch %d: oracle episodes", task.name, backend, batch)
                     row |= bench_episodes(runner, batch)
                 rows.append(row)
-    native = {(r["task"], r["batch"]): r["steps_per_s"] for r in rows if r["backend"] == "native"}
-    for r in rows:
-        base = native.get((r["task"], r["batch"]))
-        r["vs_native"] = r["steps_per_s"] / base if base else None
+    for key in ("steps_per_s", "episodes_per_s"):
+        native = {(r["task"], r["batch"]): r.get(key) for r in rows if r["backend"] == "native"}
+        for r in rows:
+            base, value = native.get((r["task"], r["batch"])), r.get(key)
+            name = "vs_native" if key == "steps_per_s" else "episodes_vs_native"
+            r[name] = value / base if base and value else None
 
     table = format_table(rows)
     print(table, end="", flush=True)

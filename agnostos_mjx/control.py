@@ -443,32 +443,52 @@ def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
     return path, duration, status
 
 
-def arm_targets(path, duration, nstep: int, dt: float):
-    """Per-substep joint targets (B, nstep, 7) following each world's `path`
-    with a smooth time profile of its own `duration`."""
-    xp = array_module(path, duration)
-    t = xp.arange(1, nstep + 1) * dt
-    s = _smoothstep(xp, t[None] / duration[:, None]) * (path.shape[1] - 1)
+def _along_path(path, duration, t):
+    """Joint targets (B, T, 7) at times t (1 or B, T) since the move began: each world
+    follows its `path` (B, S, 7) with a smooth time profile of its own `duration` (B,)."""
+    xp = array_module(path, duration, t)
+    s = _smoothstep(xp, t / duration[:, None]) * (path.shape[1] - 1)
     i = xp.clip(xp.floor(s).astype(xp.int32), 0, path.shape[1] - 2)
     frac = (s - i)[..., None]
     take = lambda idx: xp.take_along_axis(path, idx[..., None], axis=1)  # noqa: E731
     return take(i) * (1 - frac) + take(i + 1) * frac
 
 
-def bucket_steps(seconds: float, dt: float) -> int:
-    """Round a duration up to a few static lengths so jitted code compiles rarely."""
-    need = int(np.ceil(seconds / dt))
-    for b in STEP_BUCKETS:
-        if need <= b:
-            return b
-    return int(np.ceil(need / STEP_BUCKETS[-1]) * STEP_BUCKETS[-1])
+def arm_targets(path, duration, nstep: int, dt: float):
+    """Per-substep joint targets (B, nstep, 7) for the substeps 1..nstep."""
+    xp = array_module(path, duration)
+    return _along_path(path, duration, (xp.arange(1, nstep + 1) * dt)[None])
+
+
+def arm_target_at(path, duration, t):
+    """Joint targets (B, 7) at time t (scalar, s): one substep of `arm_targets`."""
+    xp = array_module(path, duration, t)
+    return _along_path(path, duration, xp.reshape(xp.asarray(t, path.dtype), (1, 1)))[:, 0]
+
+
+def bucket_steps(seconds, dt: float):
+    """Round durations up to a few lengths (STEP_BUCKETS, then multiples of the last), so
+    moves of similar length share a timeline on every backend.  Scalar or array."""
+    xp = array_module(seconds)
+    need = xp.ceil(xp.asarray(seconds) / dt).astype(xp.int32)
+    out = xp.ceil(need / STEP_BUCKETS[-1]).astype(xp.int32) * STEP_BUCKETS[-1]
+    for b in reversed(STEP_BUCKETS):
+        out = xp.where(need <= b, b, out)
+    return int(out) if xp is np and np.ndim(out) == 0 else out
 
 
 def gripper_targets(start, goal, nstep: int, dt: float):
     """Finger position targets (B, nstep) for the gripper phase (linear, then hold)."""
     xp = array_module(start, goal)
-    s = xp.clip(xp.arange(1, nstep + 1) * dt / (0.6 * GRIPPER_TIME), 0.0, 1.0)
-    return start[:, None] + s[None] * (goal - start)[:, None]
+    return gripper_target_at(start[:, None], goal[:, None], xp.arange(1, nstep + 1) * dt)
+
+
+def gripper_target_at(start, goal, t):
+    """Finger position targets at time t (s) of the gripper phase: start, goal and t
+    broadcast together."""
+    xp = array_module(start, goal, t)
+    s = xp.clip(t / (0.6 * GRIPPER_TIME), 0.0, 1.0)
+    return start + s * (goal - start)
 
 
 def finger_target(open_amount):

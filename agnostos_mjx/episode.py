@@ -5,6 +5,7 @@ comes through the Task's sampler, conditions and observables.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import functools
 import logging
@@ -14,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx import control
+from agnostos_mjx import control, sharding
 from agnostos_mjx.control import PandaKinematics, Status
 from agnostos_mjx.math3d import quat_conj, quat_mul, quat_rotate
 from agnostos_mjx.observables import Observation
@@ -159,6 +160,8 @@ class Episodes:
         # Control runs where the physics runs: jitted on device next to MJX,
         # plain numpy next to native MuJoCo (see control.py).
         self.on_device = self.backend_name != "native" and jax.default_backend() != "cpu"
+        self.on_mjx = self.backend_name != "native"
+        self._device_steps: dict = {}  # batch size -> KeyActionStep (compiled once each)
         if not self.on_device:
             self._plan = lambda q, p, r: control.plan_arm(self.kin, q, p, r)
             self._reachable = functools.partial(reachable_host, self.kin)
@@ -292,7 +295,7 @@ class Episodes:
             step = jax.tree.map(lambda x, k=k: x[:, k], actions)
             if not step.valid.any() or env.done.all():
                 break
-            env, results = self.step(env, step)
+            env, results = self.step(env, step, record=record is not None)
             if record is not None:
                 record.extend(results)
         return env
@@ -346,9 +349,10 @@ class Episodes:
             self._jit_conditions(env.carry, sens, attached, valid, env.variation),
         )
         s_idx, f_idx = np.asarray(s_idx), np.asarray(f_idx)
-        succeeded = active & (s_idx >= 0)
-        # A failure condition ends the episode unless success came first.
-        failed = active & (f_idx >= 0) & ~(succeeded & (s_idx <= np.where(f_idx < 0, t, f_idx)))
+        # A failure condition ends the episode unless success came first (or at the same
+        # step); a success after a failure does not count.
+        failed = active & (f_idx >= 0) & ~((s_idx >= 0) & (s_idx <= f_idx))
+        succeeded = active & (s_idx >= 0) & ~failed
         stop = succeeded & env.stop_at_success
         end = np.where(stop, s_idx, np.where(failed, f_idx, steps - 1))
         last = sens[np.arange(len(end)), np.maximum(end, 0)]
@@ -362,12 +366,17 @@ class Episodes:
                                np.where(failed, Outcome.FAILURE_CONDITION, env.outcome))
         return StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]))
 
-    def step(self, env: EnvState, actions: KeyActions) -> tuple[EnvState, list[StepResult]]:
+    def step(self, env: EnvState, actions: KeyActions, record: bool = False
+             ) -> tuple[EnvState, list[StepResult]]:
         """Execute one key action (arm, then gripper) in every running world.
 
         `actions` holds one action per world (pos (B,3), quat (B,4), gripper
         (B,), valid (B,)); a world whose action is not valid ends with
-        Outcome.NO_ACTION."""
+        Outcome.NO_ACTION.  On the MJX backends this is one device program
+        (key_action.py); `record=True` (the per-step sensor data of every phase, for
+        demonstrations) and native MuJoCo take the host path below."""
+        if self.on_mjx and not record:
+            return self._step_on_device(env, actions), []
         active = ~env.done
         valid = np.asarray(actions.valid, bool)
         running = env.outcome == Outcome.RUNNING
@@ -388,8 +397,7 @@ class Episodes:
         if active.any():
             # Arm phase: move, then hold so the arm comes to rest; each world for its own
             # move's (bucketed) length.
-            steps = np.array([control.bucket_steps(float(d) + control.SETTLE_TIME, self.dt)
-                              for d in duration]) * active
+            steps = control.bucket_steps(duration + control.SETTLE_TIME, self.dt) * active
             path = np.where(active[:, None, None], path, q0[:, None])
             arm = control.arm_targets(path, np.maximum(duration, 1e-3), int(steps.max()), self.dt)
             ctrl = np.concatenate([arm, np.broadcast_to(env.gripper[:, None, None], (*arm.shape[:2], 1))], -1)
@@ -417,6 +425,35 @@ class Episodes:
         over = (env.outcome == Outcome.RUNNING) & (env.key_actions >= self.task.max_key_actions)
         env.outcome = np.where(over, Outcome.MAX_STEPS, env.outcome)
         return env, results
+
+    def _step_on_device(self, env: EnvState, actions: KeyActions) -> EnvState:
+        """`step` as one device program; the physics state and condition carries stay on
+        the device, the host receives the per-world bookkeeping and latest sensor row."""
+        from agnostos_mjx.key_action import KeyActionStep, to_device
+        from agnostos_mjx.physics.mjx_backend import gc_paused
+
+        dev = to_device(env)
+        acts = KeyActions(jnp.asarray(actions.pos, jnp.float32), jnp.asarray(actions.quat, jnp.float32),
+                          jnp.asarray(actions.gripper, jnp.float32), jnp.asarray(actions.valid, bool))
+        n = len(env.outcome)
+        mesh = getattr(self.backend, "mesh", None)
+        if mesh is not None:  # worlds split over the local devices (sharding.py)
+            (dev, acts), n = sharding.shard((dev, acts), mesh)
+        rows = len(dev.outcome)
+        if rows not in self._device_steps:
+            self._device_steps[rows] = KeyActionStep(self, rows)
+        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+            new = jax.block_until_ready(self._device_steps[rows](dev, acts, env.stop_at_success))
+        new = sharding.unpad(new, n)
+        data, attached, gripper, outcome, key_actions, sim_steps = jax.device_get(
+            (new.data, new.attached, new.gripper, new.outcome, new.key_actions, new.sim_steps))
+        env.physics, env.carry = new.physics, new.carry
+        env.obs = self._obs(np.asarray(data), np.asarray(attached))
+        env.gripper, env.outcome = np.asarray(gripper, np.float64), np.asarray(outcome)
+        env.key_actions, env.sim_steps = np.asarray(key_actions), np.asarray(sim_steps)
+        env.geom_rgba = self._state_colors.update(env.geom_rgba, env.initial_obs, env.obs,
+                                                  env.variation)
+        return env
 
     def _set_attached(self, env: EnvState, attached: np.ndarray) -> None:
         """Activate/deactivate grasp welds, freezing the current relative pose."""

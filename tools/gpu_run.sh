@@ -5,7 +5,8 @@
 #   bash tools/gpu_run.sh bank DEMOS         the seen-task bank (native physics in 16 processes, EGL)
 #   bash tools/gpu_run.sh bank-warp TASKS DEMOS   a bank of TASKS with the warp backend
 #   bash tools/gpu_run.sh default BACKEND     the main job (python -m agnostos_mjx.eval --batch 75)
-#   bash tools/gpu_run.sh start BACKEND...    the main job per BACKEND, one after the other,
+#   bash tools/gpu_run.sh bench               oracle key actions warp vs native at batch 75, reset of 8,192
+#   bash tools/gpu_run.sh start BACKEND[:LABEL]...  the main job per BACKEND, one after the other,
 #                                             detached: it runs on between calls while the
 #                                             machine stays warm (start twice to overlap)
 #   bash tools/gpu_run.sh collect SECONDS     wait up to SECONDS for detached runs, then bring
@@ -42,17 +43,26 @@ case "$1" in
       --compare "X-ICM 7B" --out /tmp/agnostos/default_$2 2>&1 | grep -v "solver iterations\|warn_overflow" | tail -45
     echo "wall $((SECONDS - t0)) s"
     tar -C /tmp/agnostos -czf "$OUT/default_$2.tgz" default_$2 ;;
+  bench)  # key-action throughput, warp against native, then the reset of 8,192 worlds
+    t0=$SECONDS; python3 -m agnostos_mjx.bench --tasks lamp_on,stack_blocks --backends native,warp \
+      --batches 75 --out "$OUT/bench_75.json" 2>&1 | grep -v "solver iterations\|warn_overflow" | tail -12
+    python3 -m agnostos_mjx.bench --tasks stack_blocks --backends warp --batches 8192 \
+      --reset-only 8192 --out "$OUT/reset_8192.json" 2>&1 | grep -v "solver iterations\|warn_overflow" | tail -6
+    echo "wall $((SECONDS - t0)) s" ;;
   start)
     # Run from a private copy: the call's working tree may be replaced by the next call.
     mkdir -p /tmp/agnostos/src && cp -r agnostos_mjx scenes pyproject.toml /tmp/agnostos/src/
     job=""
-    for b in "${@:2}"; do
-      mkdir -p /tmp/agnostos/default_$b
-      job+="t0=\$SECONDS; python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume \
-        --quiet --compare 'X-ICM 7B' --out /tmp/agnostos/default_$b 2>&1 \
+    for spec in "${@:2}"; do  # BACKEND or BACKEND:LABEL (e.g. warp:cold warp:warm)
+      b=${spec%%:*}; label=${spec#*:}
+      mkdir -p /tmp/agnostos/default_$label
+      py="python3"  # a LABEL with "prof" in it runs under cProfile (profile.pstats)
+      [[ $label == *prof* ]] && py="python3 -m cProfile -o /tmp/agnostos/default_$label/profile.pstats"
+      job+="t0=\$SECONDS; $py -m agnostos_mjx.eval --batch 75 --backend $b --resume \
+        --quiet --compare 'X-ICM 7B' --out /tmp/agnostos/default_$label 2>&1 \
         | grep --line-buffered -v 'solver iterations\|warn_overflow\|linesearch iterations' \
-        >> /tmp/agnostos/default_$b/log.txt; echo \"exit \${PIPESTATUS[0]} wall \$((SECONDS - t0)) s\" \
-        >> /tmp/agnostos/default_$b/log.txt; "
+        >> /tmp/agnostos/default_$label/log.txt; echo \"exit \${PIPESTATUS[0]} wall \$((SECONDS - t0)) s\" \
+        >> /tmp/agnostos/default_$label/log.txt; "
     done
     (cd /tmp/agnostos/src && PYTHONPATH=/tmp/site:/tmp/agnostos/src \
       XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 setsid nohup bash -c "$job" > /dev/null 2>&1 < /dev/null &)

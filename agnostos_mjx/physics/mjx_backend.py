@@ -17,7 +17,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
@@ -27,6 +28,37 @@ from mujoco import mjx
 
 from agnostos_mjx import sharding
 from agnostos_mjx.physics.base import PhysicsState, check_steps
+
+
+def keep_rows(live: jax.Array, new: jax.Array, old: jax.Array) -> jax.Array:
+    """Rows of `new` where `live` (per world), else rows of `old`."""
+    return jnp.where(live.reshape(-1, *[1] * (new.ndim - 1)), new, old)
+
+
+def freeze(live: jax.Array, new: mjx.Data, old: mjx.Data) -> mjx.Data:
+    """`new` for live worlds; a world past its own end keeps its state (its ctrl too:
+    the last control it was stepped with)."""
+    return new.replace(qpos=keep_rows(live, new.qpos, old.qpos),
+                       qvel=keep_rows(live, new.qvel, old.qvel),
+                       act=keep_rows(live, new.act, old.act),
+                       ctrl=keep_rows(live, new.ctrl, old.ctrl),
+                       time=keep_rows(live, new.time, old.time))
+
+
+@dataclass(frozen=True)
+class DevicePhysics:
+    """Pure, jittable pieces of an MJX backend for one batch size.
+
+    load(state) -> (model, data): the per-world model (grasp weld data, MJX-jax's mocap
+        fix) and data of a `PhysicsState`;
+    step(model, data, ctrl (B, nu)) -> data: one physics step of every world;
+    poses(model, data) -> (xpos (B, nbody, 3), xquat (B, nbody, 4)) at the current qpos;
+    save(state, data) -> state: the `PhysicsState` of `data`."""
+
+    load: Callable[[PhysicsState], tuple[mjx.Model, mjx.Data]]
+    step: Callable[[mjx.Model, mjx.Data, jax.Array], mjx.Data]
+    poses: Callable[[mjx.Model, mjx.Data], tuple[jax.Array, jax.Array]]
+    save: Callable[[PhysicsState, mjx.Data], PhysicsState]
 
 
 class MjxBackend:
@@ -54,7 +86,9 @@ class MjxBackend:
         self.mesh = mesh if mesh is not None and sharding.device_count(mesh) > 1 else None
 
     @functools.lru_cache(maxsize=16)
-    def _runner(self, batch: int, nstep: int):
+    def device_physics(self, batch: int) -> DevicePhysics:
+        """The pure pieces of this backend for a batch of `batch` worlds, for jitted
+        programs that fuse physics with control and conditions (episode.KeyActionStep)."""
         mx = self.mx
         impl = self.impl
         # make_data wants the MjModel for warp and accepts the mjx.Model for jax.
@@ -76,31 +110,9 @@ class MjxBackend:
         fix_mocap = impl == "jax" and len(mocap_bodies) > 0
         if fix_mocap:
             model_axes = model_axes.tree_replace({"body_pos": 0, "body_quat": 0})
-
-        # A template batch of Data, made once per batch size and passed in,
-        # so each rollout only overwrites the state fields.
-        template = jax.jit(jax.vmap(lambda _: mjx.make_data(source, impl=impl, **kwargs)))(
-            jnp.arange(batch))
-        if self.mesh is not None:
-            template = jax.device_put(template, sharding.batch_sharding(self.mesh))
-
-        def to_data(template, state: PhysicsState):
-            return template.replace(qpos=state.qpos, qvel=state.qvel, act=state.act,
-                                    ctrl=state.ctrl, mocap_pos=state.mocap_pos,
-                                    mocap_quat=state.mocap_quat, eq_active=state.eq_active,
-                                    time=state.time)
-
-        def step(m, d, u):
-            return mjx.step(m, d.replace(ctrl=u))
-
         model_batched = batched_eq or fix_mocap
-        if model_batched:
-            batched_step = jax.vmap(step, in_axes=(model_axes, 0, 0))
-        else:  # close over the model, as MJX advises, when no field is per world
-            batched_step = lambda m, d, u: jax.vmap(lambda d, u: step(mx, d, u))(d, u)  # noqa: E731
 
-        @jax.jit
-        def run(template, state: PhysicsState, ctrl: jnp.ndarray, steps: jnp.ndarray):
+        def load(state: PhysicsState) -> tuple[mjx.Model, mjx.Data]:
             m = mx.tree_replace({"eq_data": state.eq_data}) if batched_eq else mx
             if fix_mocap:
                 b = state.qpos.shape[0]
@@ -109,31 +121,61 @@ class MjxBackend:
                 pos = pos.at[:, mocap_bodies].set(state.mocap_pos[:, mocap_rows])
                 quat = quat.at[:, mocap_bodies].set(state.mocap_quat[:, mocap_rows])
                 m = m.tree_replace({"body_pos": pos, "body_quat": quat})
-            d = to_data(template, state)
+            # Zero-filled Data made inside the program (a device memset), so no template
+            # batch is baked into it as a constant.
+            d = jax.vmap(lambda _: mjx.make_data(source, impl=impl, **kwargs))(jnp.arange(batch))
+            d = d.replace(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
+                          mocap_pos=state.mocap_pos, mocap_quat=state.mocap_quat,
+                          eq_active=state.eq_active, time=state.time)
+            return m, d
+
+        def per_world(fn: Callable) -> Callable:
+            """fn(model, data, *args) of one world -> the batched function."""
+            if model_batched:
+                return lambda m, d, *args: jax.vmap(fn, in_axes=(model_axes, 0) + (0,) * len(args))(
+                    m, d, *args)
+            # close over the model, as MJX advises, when no field is per world
+            return lambda m, d, *args: jax.vmap(lambda d, *a: fn(mx, d, *a))(d, *args)
+
+        step = per_world(lambda m, d, u: mjx.step(m, d.replace(ctrl=u)))
+
+        def pose(m: mjx.Model, d: mjx.Data) -> tuple[jax.Array, jax.Array]:
+            k = mjx.kinematics(m, d)
+            return k.xpos, k.xquat
+
+        poses = per_world(pose)
+
+        def save(state: PhysicsState, d: mjx.Data) -> PhysicsState:
+            return state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl,
+                                 mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
+                                 eq_active=d.eq_active, time=d.time)
+
+        return DevicePhysics(load=load, step=step, poses=poses, save=save)
+
+    @functools.lru_cache(maxsize=16)
+    def _runner(self, batch: int, nstep: int):
+        dev = self.device_physics(batch)
+
+        @jax.jit
+        def run(state: PhysicsState, ctrl: jnp.ndarray, steps: jnp.ndarray):
+            m, d = dev.load(state)
 
             def body(carry, inputs):
                 # One scan over the longest move; a world past its own end keeps its state
                 # (and its last sensor row), so per-world lengths never change a shape.
                 d, sens = carry
                 u, t = inputs
-                new = batched_step(m, d, u)
+                new = dev.step(m, d, u)
                 live = t < steps
-                keep = lambda a, b: jnp.where(live.reshape(-1, *[1] * (a.ndim - 1)), a, b)  # noqa: E731
-                d = new.replace(qpos=keep(new.qpos, d.qpos), qvel=keep(new.qvel, d.qvel),
-                                act=keep(new.act, d.act), time=keep(new.time, d.time))
-                sens = keep(new.sensordata, sens)
+                d = freeze(live, new, d)
+                sens = keep_rows(live, new.sensordata, sens)
                 return (d, sens), sens
 
             (d, _), sens = jax.lax.scan(body, (d, d.sensordata),
                                         (jnp.swapaxes(ctrl, 0, 1), jnp.arange(ctrl.shape[1])))
-            last = jnp.take_along_axis(ctrl, jnp.maximum(steps - 1, 0)[:, None, None], 1)[:, 0]
-            new = state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act,
-                                ctrl=jnp.where((steps > 0)[:, None], last, state.ctrl),
-                                mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
-                                eq_active=d.eq_active, time=d.time)
-            return new, jnp.swapaxes(sens, 0, 1)
+            return dev.save(state, d), jnp.swapaxes(sens, 0, 1)
 
-        return functools.partial(run, template)
+        return run
 
     def run(self, state: PhysicsState, ctrl: np.ndarray, steps: np.ndarray | None = None
             ) -> tuple[PhysicsState, np.ndarray]:
