@@ -49,13 +49,16 @@ physics state of their step (no extra simulation: the native backend's rollout r
 every step), with that step's joint velocities, gripper and object poses.  A dense episode
 also holds ``keyframes.json``, the indices of its keyframes (``read_episode``'s
 "keyframes"; RLBench's readers ignore the file).  Cost: ~190 frames per seen-task demo
-instead of ~8.5 (22x the images and time).  PerAct's heuristic on dense episodes (18 seen
-tasks x 1 demo, tests/test_export.py::test_dense_frames for open_drawer): 116 of 122 key
-actions get a keypoint among their own frames within 3.3 mm and 0.4 deg of the keyframe's
-gripper pose, usually the first frame of the rest that ends the move, 1-8 frames before the
-keyframe (29 exactly at it); the other 6 end before every joint is below 0.1 rad/s; long
-rests add a keypoint every 5th frame (328 keypoints in all).  Using ``keyframes.json`` as
-the keypoints is exact.
+instead of ~8.7 (22x the images and bytes, ~10x the time;
+eval/reports/export_estimate_cpu_2core.md).  PerAct's heuristic on dense episodes (18 seen
+tasks x 1 demo, same report; tests/test_export.py::test_dense_frames for open_drawer):
+116 of 122 key actions get a keypoint among their own frames, with the keyframe's gripper
+state and within 3.3 mm and 0.4 deg of its gripper pose: the heuristic marks the first
+frame of the rest that ends a move (all joints < 0.1 rad/s), then every 5th frame of it, so
+it lands on the keyframe (29) or 1 to 4 frames before it.  The other 6 moves end with a
+joint still above 0.1 rad/s (short holds; a wrist joint capped at 1.2 rad/s by its
+actuator).  Long rests add keypoints (328 for 122 key actions).  Using
+``keyframes.json`` as the keypoints is exact.
 
 Demos are the demo bank's (same keys: ``generate.demo_keys``, variation ``i % n``), re-run
 with observations.  Resumable: complete episodes are skipped, an interrupted one is redone.
@@ -101,12 +104,17 @@ LOW_DIM_FIELDS = ("gripper_pose", "gripper_open", "joint_positions", "joint_velo
                   "gripper_touch_forces", "task_low_dim_state", "ignore_collisions")
 # Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
 BYTES_PER_CAMERA_FRAME_128 = 30_000
-# Seen tasks' expert demos (4 each, 18 tasks): 7.5 key actions and 9.25 s (1,850 steps) of
-# simulation per demo; the scenes' timestep (world.xml) for the estimate.
-SEEN_KEY_ACTIONS = 7.5
+# Seen tasks' expert demos (18 tasks x 12 demos): 7.7 key actions and 9.25 s (1,850 steps)
+# of simulation per demo; the scenes' timestep (world.xml) for the estimate.
+SEEN_KEY_ACTIONS = 7.7
 SEEN_DEMO_SECONDS = 9.25
 TIMESTEP = 0.005
-CPU_CAMERA_FRAMES_PER_S = 15.0  # export incl. physics, 2 shared cores (8 demos: 10/s at batch 4)
+# Time on 2 shared CPU cores (eval/reports/export_estimate_cpu_2core.md): per task (scene,
+# compiles), per demo (reset + expert physics, no images; seen-task mean at batch 4) and
+# rendering + PNG writing per camera-frame (4 cameras, rgb, depth, segmentation, 128 px).
+CPU_TASK_SETUP_S = 3.0
+CPU_PHYSICS_S_PER_DEMO = 0.5
+CPU_CAMERA_FRAMES_PER_S = 85.0
 
 
 @dataclass(frozen=True)
@@ -472,20 +480,30 @@ def frames_per_demo(every: int | str | None) -> float:
     return 1 + steps / frame_every(every, TIMESTEP) + SEEN_KEY_ACTIONS / 2
 
 
+def _every_text(every: int | str | None) -> str:
+    if every is None:
+        return ", keyframes only"
+    return ", RLBench's 20 Hz frames" if every == "rlbench" else f", frames every {every} steps"
+
+
 def estimate(cfg: ExportConfig, frames: float | None = None) -> tuple[float, float]:
     """(bytes, seconds) to expect: a rough guide printed before starting; `frames` per demo
     defaults to :func:`frames_per_demo`."""
     frames = frames_per_demo(cfg.every) if frames is None else frames
     camera_frames = len(cfg.tasks) * cfg.demos * frames * len(cfg.cameras)
-    size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * (cfg.size / 128) ** 2
-    return size, camera_frames / CPU_CAMERA_FRAMES_PER_S * (cfg.size / 128) ** 2
+    pixels = (cfg.size / 128) ** 2
+    size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * pixels
+    seconds = (len(cfg.tasks) * (CPU_TASK_SETUP_S + cfg.demos * CPU_PHYSICS_S_PER_DEMO)
+               + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels)
+    return size, seconds
 
 
 def export(cfg: ExportConfig) -> dict:
     cfg.out.mkdir(parents=True, exist_ok=True)
     size, seconds = estimate(cfg)
     print(f"export: {len(cfg.tasks)} tasks x {cfg.demos} demos, cameras {','.join(cfg.cameras)}"
-          f" at {cfg.size}px: about {size / 1e9:.2f} GB and {seconds / 60:.0f} min on 2 CPU "
+          f" at {cfg.size}px{_every_text(cfg.every)}"
+          f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and {seconds / 60:.0f} min on 2 CPU "
           f"cores (rough; complete episodes in {cfg.out} are skipped)", flush=True)
     t0 = time.perf_counter()
     manifest_path = cfg.out / "manifest.json"
