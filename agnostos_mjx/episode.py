@@ -110,6 +110,8 @@ class StepResult:
     sensordata: np.ndarray  # (B, T, nsensordata)
     attached: np.ndarray  # (B, T, ngraspable)
     valid: np.ndarray  # (B, T): False after a world finished
+    # (B, T, nq) qpos after each step when Episodes.record_qpos (native backend), else None
+    qpos: np.ndarray | None = None
 
 
 def reachable_host(kin: PandaKinematics, q, pos, quat, valid) -> np.ndarray:
@@ -144,6 +146,9 @@ def reachable_device(kin: PandaKinematics, q, pos, quat, valid) -> jax.Array:
 
 class Episodes:
     """Runs batches of episodes of one task on one backend."""
+
+    # StepResults carry each step's qpos (native backend only), to render in-between frames.
+    record_qpos: bool = False
 
     def __init__(self, task: Task, backend: str = "auto", threads: int | None = None):
         self.task = task
@@ -329,7 +334,10 @@ class Episodes:
         batch, as in RLBench, which runs one episode at a time.  One backend call (MJX: one
         masked scan of the longest move).  Returns sensordata (B, T, S) for T = ctrl.shape[1],
         rows after a world's last step repeating its last row."""
-        state, sens = self.backend.run(env.physics, ctrl, steps)
+        if self.record_qpos:
+            state, sens, self._last_qpos = self.backend.run_with_qpos(env.physics, ctrl, steps)
+        else:
+            state, sens = self.backend.run(env.physics, ctrl, steps)
         sens = np.array(sens, copy=True)
         frozen = steps == 0
         sens[frozen] = np.asarray(env.obs.data)[frozen][:, None]
@@ -364,7 +372,8 @@ class Episodes:
         env.sim_steps = env.sim_steps + np.where(active, end + 1, 0).astype(np.int32)
         env.outcome = np.where(succeeded, Outcome.SUCCESS,
                                np.where(failed, Outcome.FAILURE_CONDITION, env.outcome))
-        return StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]))
+        return StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]),
+                          self._last_qpos if self.record_qpos else None)
 
     def step(self, env: EnvState, actions: KeyActions, record: bool = False
              ) -> tuple[EnvState, list[StepResult]]:

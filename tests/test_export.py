@@ -124,3 +124,152 @@ def test_export_two_tasks_two_demos(tmp_path, capsys) -> None:
     with pytest.raises(ValueError, match="not in SHA256SUMS"):
         ex.read_episode(second)
     assert json.loads((tmp_path / "manifest.json").read_text())["config"]["size"] == 32
+
+
+# ---- dense frames (--every) ------------------------------------------------------------------
+# PerAct's keypoint heuristic, copied unchanged (logging and the 'random' / 'fixed_interval'
+# methods left out) from peract/peract helpers/demo_loading_utils.py at commit
+# 02fb87681c5a47be9dbf20141bedb836ee2d3ef9 (RVT uses the same function).
+def _is_stopped(demo, i, obs, stopped_buffer, delta=0.1):
+    next_is_not_final = i == (len(demo) - 2)
+    gripper_state_no_change = (
+            i < (len(demo) - 2) and
+            (obs.gripper_open == demo[i + 1].gripper_open and
+             obs.gripper_open == demo[i - 1].gripper_open and
+             demo[i - 2].gripper_open == demo[i - 1].gripper_open))
+    small_delta = np.allclose(obs.joint_velocities, 0, atol=delta)
+    stopped = (stopped_buffer <= 0 and small_delta and
+               (not next_is_not_final) and gripper_state_no_change)
+    return stopped
+
+
+def keypoint_discovery(demo, stopping_delta=0.1):
+    episode_keypoints = []
+    prev_gripper_open = demo[0].gripper_open
+    stopped_buffer = 0
+    for i, obs in enumerate(demo):
+        stopped = _is_stopped(demo, i, obs, stopped_buffer, stopping_delta)
+        stopped_buffer = 4 if stopped else stopped_buffer - 1
+        # If change in gripper, or end of episode.
+        last = i == (len(demo) - 1)
+        if i != 0 and (obs.gripper_open != prev_gripper_open or
+                       last or stopped):
+            episode_keypoints.append(i)
+        prev_gripper_open = obs.gripper_open
+    if len(episode_keypoints) > 1 and (episode_keypoints[-1] - 1) == \
+            episode_keypoints[-2]:
+        episode_keypoints.pop(-2)
+    return episode_keypoints
+
+
+def test_frame_every_and_estimate() -> None:
+    assert ex.frame_every(None, 0.005) is None
+    assert ex.frame_every("rlbench", 0.005) == 10  # RLBench's 50 ms frames
+    assert ex.frame_every("rlbench", 0.002) == 25 and ex.frame_every(3, 0.005) == 3
+    with pytest.raises(ValueError):
+        ex.frame_every(0, 0.005)
+    assert ex._parse_every("rlbench") == "rlbench" and ex._parse_every("7") == 7
+    for bad in ("0", "x", "-2"):
+        with pytest.raises(Exception, match="positive"):
+            ex._parse_every(bad)
+    cfg = ex.ExportConfig(out=None, tasks=("open_drawer",), demos=10)
+    size, seconds = ex.estimate(cfg)
+    dense_size, dense_seconds = ex.estimate(ex.ExportConfig(**{**vars(cfg), "every": "rlbench"}))
+    # ~9 s of simulation per demo at 20 Hz: ~190 frames instead of ~8.7 keyframes (images:
+    # 22x the bytes; time: the physics and per-task setup stay as they were).
+    assert ex.frames_per_demo(None) < 10 and 150 < ex.frames_per_demo("rlbench") < 250
+    assert 15 < dense_size / size < 30 and 5 < dense_seconds / seconds < dense_size / size
+    assert ex.estimate(ex.ExportConfig(**{**vars(cfg), "every": 5}))[0] > dense_size
+
+
+def test_dense_frames(tmp_path) -> None:
+    """--every rlbench on 1 demo of open_drawer: the expected frames, the keyframes among
+    them exactly as a keyframes-only export writes them, joint velocities from the physics
+    and PerAct's keypoint heuristic finding every key action."""
+    import jax
+
+    from agnostos_mjx.data.generate import demo_keys
+    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    task = "open_drawer"
+    keys_cfg = ex.ExportConfig(out=tmp_path / "keys", tasks=(task,), demos=1,
+                               cameras=("front",), size=32, batch=1)
+    ex.export(keys_cfg)
+    manifest = ex.export(ex.ExportConfig(**{**vars(keys_cfg), "out": tmp_path / "dense",
+                                            "every": "rlbench"}))
+    assert manifest["config"]["every"] == "rlbench"
+    assert manifest["tasks"][task]["every_steps"] == 10
+    sparse = ex.read_episode(ex.episode_dir(tmp_path / "keys", task, 0))
+    dense = ex.read_episode(ex.episode_dir(tmp_path / "dense", task, 0))
+
+    # The physics steps of each key action, from the same demo run again without images.
+    episodes = Episodes(get_task(task), "native")
+    env = episodes.reset(demo_keys(0, task, np.array([0]), np.array([0])),
+                         np.zeros(1, np.int32), stop_at_success=False)
+    actions, steps = episodes.expert_actions(env), []
+    for k in range(actions.pos.shape[1]):
+        if not actions.valid[0, k]:
+            break
+        before = int(env.sim_steps[0])
+        env, _ = episodes.step(env, jax.tree.map(lambda x, k=k: x[:, k], actions))
+        steps.append(int(env.sim_steps[0]) - before)
+    # The native backend's per-step qpos: that of run()'s final state at each world's end,
+    # repeated after it; a world with 0 steps keeps its qpos.
+    three = env.physics.rows(np.zeros(3, int))
+    ctrl = np.repeat(np.asarray(three.ctrl)[:, None], 20, axis=1)
+    ctrl[:, :, 0] += 0.3
+    state, sens, qpos = episodes.backend.run_with_qpos(three, ctrl, np.array([0, 7, 20]))
+    state2, sens2 = episodes.backend.run(three, ctrl, np.array([0, 7, 20]))
+    np.testing.assert_array_equal(sens[1:], sens2[1:])
+    np.testing.assert_array_equal(state.qpos, state2.qpos)
+    assert qpos.shape == (3, 20, episodes.scene.model.nq)
+    np.testing.assert_array_equal(qpos[0], np.repeat(three.qpos[:1], 20, axis=0))
+    np.testing.assert_array_equal(qpos[1, 6:], np.repeat(state.qpos[1:2], 14, axis=0))
+    np.testing.assert_array_equal(qpos[2, -1], state.qpos[2])
+    assert np.all(np.abs(np.diff(qpos[2], axis=0)).max(1) > 0)  # every step its own qpos
+    # A key action of S steps: frames after steps 10, 20, ... < S, then its keyframe.
+    expected = np.cumsum([0] + [-(-s // 10) for s in steps]).tolist()
+    assert dense["keyframes"] == expected and len(dense["demo"]) == expected[-1] + 1
+    assert len(sparse["demo"]) == len(steps) + 1 and sparse["keyframes"] == list(range(6))
+    assert "keyframes.json" not in (ex.episode_dir(tmp_path / "keys", task, 0) / "SHA256SUMS"
+                                    ).read_text()
+    kf = np.array(dense["keyframes"])
+    for name in ex.LOW_DIM_FIELDS + ("front_camera_extrinsics",):
+        np.testing.assert_array_equal(dense["low_dim"][name][kf], sparse["low_dim"][name],
+                                      err_msg=name)
+    for name in ("front_rgb", "front_depth", "front_mask"):
+        np.testing.assert_array_equal(dense[name][kf], sparse[name], err_msg=name)
+    for obs in dense["demo"]:
+        check_rlbench_fields(obs, cameras=("front",))
+
+    # Joint velocities: at rest (PerAct's 0.1 rad/s) at every keyframe, moving in between.
+    speed = np.abs(dense["low_dim"]["joint_velocities"]).max(1)
+    assert np.all(speed[kf] < 0.1), speed[kf]
+    for lo, hi in zip(kf[:-1], kf[1:]):
+        assert speed[lo + 1: hi].max() > 0.5  # every key action moves the arm
+    # Dense frames move the scene: the arm in every frame differs from the one before.
+    joints = dense["low_dim"]["joint_positions"]
+    assert np.all(np.abs(np.diff(joints, axis=0)).max(1) > 1e-5)
+    pose = dense["low_dim"]["gripper_pose"]
+    assert np.abs(pose[kf[0] + 20, :3] - pose[kf[0], :3]).max() > 0.01
+    images = dense["front_rgb"].reshape(len(joints), -1).astype(int)
+    moved = np.abs(np.diff(images[kf[0]: kf[1] + 1], axis=0)).max(1) > 0
+    assert moved.mean() > 0.8  # at 32 px the first and last steps may look alike
+
+    # PerAct's heuristic on the dense episode: every key action has a keypoint among its own
+    # frames, at its keyframe's gripper state and within 2 mm and 0.1 deg of its gripper
+    # pose.  The heuristic marks the first frame of the rest that ends a move (all joints
+    # < 0.1 rad/s) and then every 5th frame of it (its stopped_buffer), so the keyframe, the
+    # rest's last frame, is found exactly or 1 to 4 frames (<= 0.2 s) early, and long rests
+    # give more keypoints than key actions.
+    found = keypoint_discovery(dense["demo"])
+    grip = dense["low_dim"]["gripper_open"]
+    for lo, hi in zip(kf[:-1], kf[1:]):
+        near = [k for k in found if lo < k <= hi and grip[k] == grip[hi]
+                and np.linalg.norm(pose[k, :3] - pose[hi, :3]) < 0.002
+                and abs(np.dot(pose[k, 3:], pose[hi, 3:])) > np.cos(np.deg2rad(0.1) / 2)]
+        assert near and hi - max(near) <= 4, (hi, found)
+    assert len(found) > len(steps)
+    # On the keyframes alone it finds only some (the reason for --every).
+    assert len(keypoint_discovery(sparse["demo"])) < len(steps)

@@ -33,11 +33,32 @@ symlink our episodes there.  Checked with these readers (images, depth, point cl
 masks, poses against ours): eval/reports/rlbench_reader_check
 (``python eval/reports/rlbench_reader_check/check.py --reader-python <numpy 1.x python>``).
 
-Frames are the keyframes only: the scene after reset and after every expert key action (our
-experts act in RLBench's waypoints), not RLBench's every simulation step.  PerAct's
-``keypoint_discovery`` heuristic (PerAct's and RVT's replay filling), made for dense demos,
-finds only some of them (open_drawer: 2 of 5; figures in the reader check): use every frame
-after the first as a keypoint, ``list(range(1, len(demo)))``.
+Frames: by default the keyframes only, the scene after reset and after every expert key
+action (our experts act in RLBench's waypoints).  PerAct's ``keypoint_discovery`` heuristic
+(PerAct's and RVT's replay filling: a keypoint where gripper_open changes or all joint
+velocities fall below 0.1 rad/s), made for RLBench's dense demos, finds only some of them
+(open_drawer: 2 of 5; figures in the reader check): use every frame after the first as a
+keypoint, ``list(range(1, len(demo)))``.
+
+``--every K`` adds dense frames as RLBench stores them (every simulation step, 50 ms):
+the scene after every K-th physics step of each key action (counted from the action's
+start, arm and gripper phases together), then the action's keyframe, so a key action of S
+steps gives ceil(S / K) frames and the keyframes stay in the frame list, in order, once each.
+``--every rlbench`` is RLBench's 20 Hz (K = 10 at our 5 ms timestep).  Dense frames are the
+physics state of their step (no extra simulation: the native backend's rollout returns
+every step), with that step's joint velocities, gripper and object poses.  A dense episode
+also holds ``keyframes.json``, the indices of its keyframes (``read_episode``'s
+"keyframes"; RLBench's readers ignore the file).  Cost: ~190 frames per seen-task demo
+instead of ~8.7 (22x the images and bytes, ~10x the time;
+eval/reports/export_estimate_cpu_2core.md).  PerAct's heuristic on dense episodes (18 seen
+tasks x 1 demo, same report; tests/test_export.py::test_dense_frames for open_drawer):
+116 of 122 key actions get a keypoint among their own frames, with the keyframe's gripper
+state and within 3.3 mm and 0.4 deg of its gripper pose: the heuristic marks the first
+frame of the rest that ends a move (all joints < 0.1 rad/s), then every 5th frame of it, so
+it lands on the keyframe (29) or 1 to 4 frames before it.  The other 6 moves end with a
+joint still above 0.1 rad/s (short holds; a wrist joint capped at 1.2 rad/s by its
+actuator).  Long rests add keypoints (328 for 122 key actions).  Using
+``keyframes.json`` as the keypoints is exact.
 
 Demos are the demo bank's (same keys: ``generate.demo_keys``, variation ``i % n``), re-run
 with observations.  Resumable: complete episodes are skipped, an interrupted one is redone.
@@ -60,7 +81,7 @@ import shutil
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +95,8 @@ RLBENCH_CAMERAS = ("left_shoulder", "right_shoulder", "overhead", "front", "wris
 DEPTH_SCALE = 2**24 - 1  # RLBench's DEPTH_SCALE
 SUMS = "SHA256SUMS"
 LOW_DIM_PICKLE = "low_dim_obs.pkl"
+KEYFRAMES = "keyframes.json"  # dense episodes only: indices of the keyframes among the frames
+RLBENCH_FRAME_PERIOD = 0.05  # s: RLBench stores every simulation step (50 ms, 20 Hz)
 FORMAT = 2  # 1: low_dim_obs.npz and depth with R as the low byte (not RLBench's)
 # Observation fields stacked per frame by read_episode (besides misc's camera keys).
 LOW_DIM_FIELDS = ("gripper_pose", "gripper_open", "joint_positions", "joint_velocities",
@@ -81,7 +104,17 @@ LOW_DIM_FIELDS = ("gripper_pose", "gripper_open", "joint_positions", "joint_velo
                   "gripper_touch_forces", "task_low_dim_state", "ignore_collisions")
 # Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
 BYTES_PER_CAMERA_FRAME_128 = 30_000
-CPU_CAMERA_FRAMES_PER_S = 15.0  # export incl. physics, 2 shared cores (8 demos: 10/s at batch 4)
+# Seen tasks' expert demos (18 tasks x 12 demos): 7.7 key actions and 9.25 s (1,850 steps)
+# of simulation per demo; the scenes' timestep (world.xml) for the estimate.
+SEEN_KEY_ACTIONS = 7.7
+SEEN_DEMO_SECONDS = 9.25
+TIMESTEP = 0.005
+# Time on 2 shared CPU cores (eval/reports/export_estimate_cpu_2core.md): per task (scene,
+# compiles), per demo (reset + expert physics, no images; seen-task mean at batch 4) and
+# rendering + PNG writing per camera-frame (4 cameras, rgb, depth, segmentation, 128 px).
+CPU_TASK_SETUP_S = 3.0
+CPU_PHYSICS_S_PER_DEMO = 0.5
+CPU_CAMERA_FRAMES_PER_S = 85.0
 
 
 @dataclass(frozen=True)
@@ -94,6 +127,7 @@ class ExportConfig:
     size: int = 128
     batch: int = 25
     max_attempts: int = 10
+    every: int | str | None = None  # dense frames: see frame_every
 
 
 # ---- RLBench image encodings (pure) --------------------------------------------------------
@@ -178,8 +212,10 @@ def is_complete(path: Path) -> bool:
     return (path / SUMS).exists()
 
 
-def write_episode(path: Path, frames: list[dict], description: list[str], variation: int) -> None:
-    """One demo's frames (RLBenchObservation.world dicts) -> an episode folder, atomically."""
+def write_episode(path: Path, frames: list[dict], description: list[str], variation: int,
+                  keyframes: Sequence[int] | None = None) -> None:
+    """One demo's frames (RLBenchObservation.world dicts) -> an episode folder, atomically;
+    `keyframes` (indices of the keyframes among dense frames) go to keyframes.json."""
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -200,6 +236,8 @@ def write_episode(path: Path, frames: list[dict], description: list[str], variat
     (tmp / LOW_DIM_PICKLE).write_bytes(dumps(demo))
     (tmp / "variation_descriptions.pkl").write_bytes(pickle.dumps(list(description)))
     (tmp / "variation_number.pkl").write_bytes(pickle.dumps(int(variation)))
+    if keyframes is not None:
+        (tmp / KEYFRAMES).write_text(json.dumps([int(k) for k in keyframes]) + "\n")
     files = sorted(p for p in tmp.rglob("*") if p.is_file())
     sums = "".join(f"{_sha256(p)}  {p.relative_to(tmp)}\n" for p in files)
     (tmp / SUMS).write_text(sums)
@@ -225,7 +263,8 @@ def read_episode(path: Path, verify: bool = True) -> dict:
     """An exported episode -> {"demo": the unpickled ``low_dim_obs.pkl`` (stand-in
     ``Demo``), "low_dim": {field or misc key: per-frame stack}, "<cam>_rgb"/"_depth"
     (metres)/"_mask" (geom id, -1 none): (T, H, W[, 3]) arrays, "descriptions",
-    "variation"}.  Needs no rlbench."""
+    "variation", "keyframes": indices of the keyframes (every frame unless dense)}.
+    Needs no rlbench."""
     from PIL import Image
 
     path = Path(path)
@@ -239,6 +278,8 @@ def read_episode(path: Path, verify: bool = True) -> dict:
                  "descriptions": pickle.loads((path / "variation_descriptions.pkl").read_bytes()),
                  "variation": pickle.loads((path / "variation_number.pkl").read_bytes())}
     n = len(demo)
+    keys = path / KEYFRAMES
+    out["keyframes"] = json.loads(keys.read_text()) if keys.exists() else list(range(n))
     for folder in sorted(p for p in path.iterdir() if p.is_dir()):
         cam, kind = folder.name.rsplit("_", 1)
         imgs = np.stack([np.asarray(Image.open(folder / f"{k}.png")) for k in range(n)])
@@ -253,31 +294,121 @@ def read_episode(path: Path, verify: bool = True) -> dict:
 
 
 # ---- running the experts ---------------------------------------------------------------------
+def frame_every(every: int | str | None, dt: float) -> int | None:
+    """``--every`` -> physics steps between dense frames: None (keyframes only), a positive
+    number of steps, or ``"rlbench"``: RLBench's frame period (50 ms, 20 Hz) at timestep
+    `dt` (10 steps at our 5 ms)."""
+    if every is None:
+        return None
+    if every == "rlbench":
+        steps = max(1, round(RLBENCH_FRAME_PERIOD / dt))
+        if abs(steps * dt - RLBENCH_FRAME_PERIOD) > 1e-9:
+            log.warning("timestep %g s: frames every %d steps (%g s), not RLBench's %g s",
+                        dt, steps, steps * dt, RLBENCH_FRAME_PERIOD)
+        return steps
+    steps = int(every)
+    if steps < 1:
+        raise ValueError(f"--every: a positive number of physics steps or 'rlbench', got {every!r}")
+    return steps
+
+
+def _parse_every(text: str) -> int | str:
+    if text == "rlbench":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"a positive number of physics steps or 'rlbench', "
+                                         f"not {text!r}")
+    return value
+
+
 def keyframe_observations(episodes, env, spec) -> tuple[object, list[list[dict]]]:
     """Run the expert; per world the observation after reset and after each key action."""
-    from agnostos_mjx.observation import observe
+    env, frames, _ = episode_observations(episodes, env, spec)
+    return env, frames
 
-    frames: list[list[dict]] = [[] for _ in range(len(env.variation))]
-    task = episodes.scene.task
 
-    def snap(env, worlds):
-        obs = observe(episodes, env, spec)
-        state = task_low_dim_state(task, env.obs)
-        for w in worlds:
-            frames[w].append({**obs.world(int(w)), "task_low_dim_state": state[w]})
+def episode_observations(episodes, env, spec, every: int | None = None
+                         ) -> tuple[object, list[list[dict]], list[list[int]]]:
+    """Run the expert; per world its frames (RLBenchObservation.world dicts plus
+    ``task_low_dim_state``) and the indices of its keyframes among them.
 
-    snap(env, range(len(frames)))
+    Keyframes: the scene after reset and after each key action.  With `every` = K (physics
+    steps, native backend) also the scene after every K-th physics step of each key action,
+    counted from the action's start over its arm and gripper phases, before the action's
+    keyframe (a step that ends the action is its keyframe, not repeated): a key action of S
+    steps gives ceil(S / K) frames, the last its keyframe.  A dense frame is the physics
+    state of that step (qpos, the step's sensordata: joint velocities, gripper, object
+    poses), painted with the state colours as the runtime would paint them had the phase
+    ended there."""
     import jax
 
+    from agnostos_mjx.observables import Observation
+    from agnostos_mjx.observation import observe
+
+    n = len(env.variation)
+    frames: list[list[dict]] = [[] for _ in range(n)]
+    keyframes: list[list[int]] = [[] for _ in range(n)]
+    task = episodes.scene.task
+    layout = episodes.scene.layout
+
+    def snap(view, worlds, key: bool, rows=None):
+        """Observe `view` and append its row rows[i] (default: worlds[i]) to world
+        worlds[i]'s frames."""
+        obs = observe(episodes, view, spec)
+        state = task_low_dim_state(task, view.obs)
+        for i, w in enumerate(worlds):
+            row = int(w) if rows is None else int(rows[i])
+            if key:
+                keyframes[w].append(len(frames[w]))
+            frames[w].append({**obs.world(row), "task_low_dim_state": state[row]})
+
+    def dense(env, results, rgba, running):
+        """The in-between frames of one key action from its phases' StepResults."""
+        colours = episodes._state_colors
+        offset = np.zeros(n, np.int64)  # steps of this action before the phase
+        total = sum(r.valid.sum(1) for r in results)
+        for r in results:
+            steps = r.valid.sum(1)
+            s = offset[:, None] + np.arange(r.valid.shape[1])[None] + 1
+            want = r.valid & running[:, None] & (s % every == 0) & (s < total[:, None])
+            for t in np.nonzero(want.any(0))[0]:
+                rows = np.nonzero(want[:, t])[0]
+                obs_t = Observation(r.sensordata[:, t], layout, r.attached[:, t])
+                painted = colours.update(rgba, env.initial_obs, obs_t, env.variation)
+                view = replace(
+                    env, physics=env.physics.rows(rows).replace(qpos=r.qpos[rows, t]),
+                    obs=Observation(r.sensordata[rows, t], layout, r.attached[rows, t]),
+                    geom_rgba=np.asarray(painted)[rows], variation=env.variation[rows])
+                snap(view, rows, key=False, rows=range(len(rows)))
+            # The colours after the phase, as Episodes._run_phase paints them.
+            last = np.maximum(steps - 1, 0)
+            obs_end = Observation(r.sensordata[np.arange(n), last], layout,
+                                  r.attached[np.arange(n), last])
+            rgba = colours.update(rgba, env.initial_obs, obs_end, env.variation)
+            offset += steps
+
+    snap(env, range(n), key=True)
     actions = episodes.expert_actions(env)
-    for k in range(actions.pos.shape[1]):
-        step = jax.tree.map(lambda x, k=k: x[:, k], actions)
-        running = ~env.done & np.asarray(step.valid, bool)
-        if not running.any():
-            break
-        env, _ = episodes.step(env, step)
-        snap(env, np.nonzero(running)[0])
-    return env, frames
+    recording = episodes.record_qpos
+    episodes.record_qpos = every is not None
+    try:
+        for k in range(actions.pos.shape[1]):
+            step = jax.tree.map(lambda x, k=k: x[:, k], actions)
+            running = ~env.done & np.asarray(step.valid, bool)
+            if not running.any():
+                break
+            rgba = env.geom_rgba
+            env, results = episodes.step(env, step)
+            if every is not None and results:
+                dense(env, results, rgba, running)
+            snap(env, np.nonzero(running)[0], key=True)
+    finally:
+        episodes.record_qpos = recording
+    return env, frames, keyframes
 
 
 def task_low_dim_state(task, obs) -> np.ndarray:
@@ -307,8 +438,10 @@ def export_task(cfg: ExportConfig, task_name: str) -> dict:
     if not todo:
         return stats
     episodes = Episodes(task, "native")
+    every = frame_every(cfg.every, episodes.dt)
     spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
                            modalities=MODALITIES, renderer="cpu")
+    stats["every_steps"] = every
     stats["labels"] = {"geom_names": list(scene_labels(episodes.scene).geom_names),
                        "objects": {k: list(v) for k, v in
                                    scene_labels(episodes.scene).objects.items()}}
@@ -318,13 +451,14 @@ def export_task(cfg: ExportConfig, task_name: str) -> dict:
         keys = demo_keys(cfg.seed, task.name, batch, np.array([attempts[i] for i in batch]))
         variations = (batch % task.num_variations).astype(np.int32)
         env = episodes.reset(keys, variations, stop_at_success=False)
-        env, frames = keyframe_observations(episodes, env, spec)
+        env, frames, keyframes = episode_observations(episodes, env, spec, every)
         for w, index in enumerate(batch):
             index = int(index)
             if env.outcome[w] == Outcome.SUCCESS:
                 v = int(variations[w])
                 write_episode(episode_dir(cfg.out, task.name, index), frames[w],
-                              task.descriptions(v), v)
+                              task.descriptions(v), v,
+                              None if every is None else keyframes[w])
                 stats["written"] += 1
                 todo.remove(index)
             else:
@@ -337,18 +471,39 @@ def export_task(cfg: ExportConfig, task_name: str) -> dict:
     return stats
 
 
-def estimate(cfg: ExportConfig, frames_per_demo: float = 11.0) -> tuple[float, float]:
-    """(bytes, seconds) to expect: a rough guide printed before starting."""
-    camera_frames = len(cfg.tasks) * cfg.demos * frames_per_demo * len(cfg.cameras)
-    size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * (cfg.size / 128) ** 2
-    return size, camera_frames / CPU_CAMERA_FRAMES_PER_S * (cfg.size / 128) ** 2
+def frames_per_demo(every: int | str | None) -> float:
+    """Mean frames of a seen-task demo: 1 + its key actions, and with dense frames every K
+    steps about S / K + A / 2 more (each action's ceil(S_a / K))."""
+    if every is None:
+        return 1 + SEEN_KEY_ACTIONS
+    steps = SEEN_DEMO_SECONDS / TIMESTEP
+    return 1 + steps / frame_every(every, TIMESTEP) + SEEN_KEY_ACTIONS / 2
+
+
+def _every_text(every: int | str | None) -> str:
+    if every is None:
+        return ", keyframes only"
+    return ", RLBench's 20 Hz frames" if every == "rlbench" else f", frames every {every} steps"
+
+
+def estimate(cfg: ExportConfig, frames: float | None = None) -> tuple[float, float]:
+    """(bytes, seconds) to expect: a rough guide printed before starting; `frames` per demo
+    defaults to :func:`frames_per_demo`."""
+    frames = frames_per_demo(cfg.every) if frames is None else frames
+    camera_frames = len(cfg.tasks) * cfg.demos * frames * len(cfg.cameras)
+    pixels = (cfg.size / 128) ** 2
+    size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * pixels
+    seconds = (len(cfg.tasks) * (CPU_TASK_SETUP_S + cfg.demos * CPU_PHYSICS_S_PER_DEMO)
+               + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels)
+    return size, seconds
 
 
 def export(cfg: ExportConfig) -> dict:
     cfg.out.mkdir(parents=True, exist_ok=True)
     size, seconds = estimate(cfg)
     print(f"export: {len(cfg.tasks)} tasks x {cfg.demos} demos, cameras {','.join(cfg.cameras)}"
-          f" at {cfg.size}px: about {size / 1e9:.2f} GB and {seconds / 60:.0f} min on 2 CPU "
+          f" at {cfg.size}px{_every_text(cfg.every)}"
+          f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and {seconds / 60:.0f} min on 2 CPU "
           f"cores (rough; complete episodes in {cfg.out} are skipped)", flush=True)
     t0 = time.perf_counter()
     manifest_path = cfg.out / "manifest.json"
@@ -357,6 +512,8 @@ def export(cfg: ExportConfig) -> dict:
     config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()
               if k in ("seed", "cameras", "size")}
     config["format"] = FORMAT
+    if cfg.every is not None:  # absent for keyframes only, as in exports made before --every
+        config["every"] = cfg.every
     if missing := [c for c in RLBENCH_CAMERAS if c not in cfg.cameras]:
         log.warning("cameras %s not exported: RLBench's get_stored_demos (PerAct, RVT) needs "
                     "the rgb and depth folders of all five", ",".join(missing))
@@ -367,7 +524,8 @@ def export(cfg: ExportConfig) -> dict:
     for name in cfg.tasks:
         stats = export_task(cfg, name)
         entry = manifest["tasks"].setdefault(name, {})
-        entry.update({k: v for k, v in stats.items() if k == "labels"})
+        entry.update({k: v for k, v in stats.items() if k in ("labels", "every_steps")
+                      and v is not None})
         entry["episodes"] = sum(is_complete(episode_dir(cfg.out, name, i))
                                 for i in range(cfg.demos))
         log.info("%s: %d written, %d skipped, %d failed attempts", name, stats["written"],
@@ -393,12 +551,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="RLBench's reader needs all five")
     p.add_argument("--size", type=int, default=128, help="image height and width")
     p.add_argument("--batch", type=int, default=25, help="worlds simulated at once")
+    p.add_argument("--every", type=_parse_every, default=None, metavar="K|rlbench",
+                   help="dense frames: also the scene every K physics steps of each key "
+                        "action; 'rlbench': RLBench's 20 Hz (10 steps of 5 ms); default: "
+                        "keyframes only")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
     setup_logging(a.quiet)
     cfg = ExportConfig(out=Path(a.out), tasks=tuple(t.name for t in parse_tasks(a.tasks)),
                        demos=a.demos, seed=a.seed, cameras=tuple(a.cameras.split(",")),
-                       size=a.size, batch=a.batch)
+                       size=a.size, batch=a.batch, every=a.every)
     manifest = export(cfg)
     print(f"done in {manifest['wall_s']:.0f} s: {cfg.out}")
     return 0

@@ -81,22 +81,36 @@ class NativeBackend:
             ) -> tuple[PhysicsState, np.ndarray]:
         """See Backend.run.  Worlds with equal step counts run as one rollout (a few groups:
         step counts come from control.STEP_BUCKETS); frozen worlds cost nothing here."""
+        state, sens, _ = self.run_with_qpos(state, ctrl, steps)
+        return state, sens
+
+    def run_with_qpos(self, state: PhysicsState, ctrl: np.ndarray,
+                      steps: np.ndarray | None = None
+                      ) -> tuple[PhysicsState, np.ndarray, np.ndarray]:
+        """`run`, plus qpos (B, T, nq) after each step, for rendering intermediate frames
+        (the rollout computes every step's state anyway: no extra physics).  Rows past a
+        world's end repeat its last row, as sensordata's; a world with 0 steps has its
+        current qpos in every row."""
         state = state.numpy()
         b, t = ctrl.shape[:2]
         steps = check_steps(steps, b, t)
         if np.all(steps == t):
             return self._rollout(state, ctrl)
         sens = np.zeros((b, t, self.model.nsensordata))
+        qpos = np.repeat(np.asarray(state.qpos, np.float64)[:, None], t, axis=1)
         out = state
         for n in np.unique(steps[steps > 0]):
             idx = np.nonzero(steps == n)[0]
-            part, s = self._rollout(state.rows(idx), ctrl[idx, :n])
+            part, s, q = self._rollout(state.rows(idx), ctrl[idx, :n])
             out = out.with_rows(idx, part)
             sens[idx, :n] = s
             sens[idx, n:] = s[:, -1:]
-        return out, sens
+            qpos[idx, :n] = q
+            qpos[idx, n:] = q[:, -1:]
+        return out, sens, qpos
 
-    def _rollout(self, state: PhysicsState, ctrl: np.ndarray) -> tuple[PhysicsState, np.ndarray]:
+    def _rollout(self, state: PhysicsState, ctrl: np.ndarray
+                 ) -> tuple[PhysicsState, np.ndarray, np.ndarray]:
         ctrl = np.asarray(ctrl, np.float64)
         if self.model.neq and np.any(state.eq_data != self.model.eq_data):
             models = self._world_models(state.eq_data)
@@ -111,4 +125,5 @@ class NativeBackend:
             name: last[:, sl].reshape(np.shape(getattr(state, name)))
             for name, sl in self._state_slices.items()
         }
-        return state.replace(ctrl=ctrl[:, -1], **fields), sensordata
+        qpos = states[..., self._state_slices["qpos"]]
+        return state.replace(ctrl=ctrl[:, -1], **fields), sensordata, qpos
