@@ -13,8 +13,10 @@ then a separate gripper phase once the arm has arrived.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import jax
@@ -90,6 +92,13 @@ class PandaKinematics:
             upper=ranges[:, 1],
             home=np.array(HOME_QPOS),
         )
+
+    @functools.cached_property
+    def fingerprint(self) -> bytes:
+        """The kinematic constants as bytes: equal for every task (one Panda), so jitted
+        programs keyed by it (`jit_for_robot`) compile once per run, not once per task."""
+        return b"".join(np.ascontiguousarray(getattr(self, f.name), np.float64).tobytes()
+                        for f in dataclasses.fields(self))
 
     @functools.cached_property
     def _constant_frames(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -350,6 +359,18 @@ def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int =
     return pick(qs), pick(ok), pick(pe), pick(re)
 
 
+_ROBOT_PROGRAMS: dict[tuple, Callable] = {}
+
+
+def jit_for_robot(fn: Callable, kin: PandaKinematics) -> Callable:
+    """`jax.jit(partial(fn, kin))`, shared by every task with the same robot in this process
+    (a cache keyed by the kinematic constants), so the IK programs of a run compile once."""
+    key = (fn, kin.fingerprint)
+    if key not in _ROBOT_PROGRAMS:
+        _ROBOT_PROGRAMS[key] = jax.jit(functools.partial(fn, kin))
+    return _ROBOT_PROGRAMS[key]
+
+
 def _smoothstep(xp, x):
     x = xp.clip(x, 0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
@@ -416,16 +437,17 @@ def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
     if xp is np:
         cart_path, cart_ok = _cartesian_np(kin, q0, p0, r0, target_pos, target_quat,
                                            finite & inside)
-    else:
-        cart, cart_ok, q = [q0], xp.ones(q0.shape[0], bool), q0
-        for k in range(1, CART_SEGMENTS + 1):
-            t = k / CART_SEGMENTS
+    else:  # a scan over the segments: one traced segment, so the program compiles quickly
+        def segment(carry, t):
+            q, ok = carry
             q_next, pe, re = _ik_from(kin, q, p0 + t * (target_pos - p0),
-                                      slerp(r0, target_quat, xp.full(q0.shape[0], t)), 25)
-            cart_ok = cart_ok & _ok(pe, re) & (xp.max(xp.abs(q_next - q), -1) < 0.5)
-            cart.append(q_next)
-            q = q_next
-        cart_path = xp.stack(cart, 1)
+                                      slerp(r0, target_quat, xp.full(q0.shape[0], t)), CART_ITERS)
+            ok = ok & _ok(pe, re) & (xp.max(xp.abs(q_next - q), -1) < MAX_SEGMENT_JUMP)
+            return (q_next, ok), q_next
+
+        ts = xp.arange(1, CART_SEGMENTS + 1, dtype=q0.dtype) / CART_SEGMENTS
+        (_, cart_ok), qs = jax.lax.scan(segment, (q0, xp.ones(q0.shape[0], bool)), ts)
+        cart_path = xp.concatenate([q0[:, None], xp.swapaxes(qs, 0, 1)], 1)
     ts = xp.linspace(0.0, 1.0, CART_SEGMENTS + 1)[None, :, None]
     joint_path = q0[:, None] + ts * (q_goal - q0)[:, None]
     path = xp.where(cart_ok[:, None, None], cart_path, joint_path)

@@ -166,13 +166,15 @@ class Episodes:
         # plain numpy next to native MuJoCo (see control.py).
         self.on_device = self.backend_name != "native" and jax.default_backend() != "cpu"
         self.on_mjx = self.backend_name != "native"
+        # The key-action planner of the device path: one program for every task of a run.
+        self._device_plan = control.jit_for_robot(control.plan_arm, self.kin)
         self._device_steps: dict = {}  # batch size -> KeyActionStep (compiled once each)
         if not self.on_device:
             self._plan = lambda q, p, r: control.plan_arm(self.kin, q, p, r)
             self._reachable = functools.partial(reachable_host, self.kin)
         else:
-            self._plan = jax.jit(lambda q, p, r: control.plan_arm(self.kin, q, p, r))
-            self._reachable = jax.jit(functools.partial(reachable_device, self.kin))
+            self._plan = control.jit_for_robot(control.plan_arm, self.kin)
+            self._reachable = control.jit_for_robot(reachable_device, self.kin)
         self._jit_expert = jax.jit(jax.vmap(task.expert))
         self._jit_attach = jax.jit(jax.vmap(self._attach_test))
         self._state_colors = StateColors(task, self.scene.model, self.scene.layout)

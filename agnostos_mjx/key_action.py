@@ -1,6 +1,7 @@
 """The hot path on the MJX backends: one key action for B worlds as one device program.
 
-    plan (IK with restarts, Cartesian or joint path)  ->  arm phase  ->  gripper phase
+    plan (IK with restarts, Cartesian or joint path: one program shared by all tasks)
+    ->  arm phase  ->  gripper phase
     each phase: a `lax.while_loop` over physics steps; after every step the task's success
     and failure conditions; a world is frozen past its own end, at a failure, or at its
     success, and the loop stops when no world is left moving (not after the longest move)
@@ -72,11 +73,14 @@ class KeyActionStep:
         self._program = jax.jit(self._key_action, static_argnames="stop_at_success")
 
     def __call__(self, env: DeviceEnv, actions: KeyActions, stop_at_success: bool) -> DeviceEnv:
-        return self._program(env, actions, stop_at_success=stop_at_success)
+        # The plan is its own program, shared by every task (control.jit_for_robot): the IK
+        # is most of the compile time, and the robot is the same in every scene.
+        plan = self.ep._device_plan(env.data[:, self.ep._arm_q], actions.pos, actions.quat)
+        return self._program(env, actions, plan, stop_at_success=stop_at_success)
 
     # ---- the program ------------------------------------------------------------------
-    def _key_action(self, env: DeviceEnv, actions: KeyActions, stop_at_success: bool
-                    ) -> DeviceEnv:
+    def _key_action(self, env: DeviceEnv, actions: KeyActions, plan: tuple,
+                    stop_at_success: bool) -> DeviceEnv:
         ep, out = self.ep, self.outcome
         running = env.outcome == out.RUNNING
         done = ~running if stop_at_success else ~running & (env.outcome != out.SUCCESS)
@@ -85,8 +89,7 @@ class KeyActionStep:
         active = ~done & valid
 
         q0 = env.data[:, ep._arm_q]
-        path, duration, status = control.plan_arm(
-            ep.kin, q0, jnp.asarray(actions.pos, q0.dtype), jnp.asarray(actions.quat, q0.dtype))
+        path, duration, status = plan
         bad = active & (status != Status.OK)
         for code, reason in ((Status.OUT_OF_WORKSPACE, out.OUT_OF_WORKSPACE),
                              (Status.UNREACHABLE, out.UNREACHABLE),
