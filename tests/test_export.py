@@ -273,3 +273,59 @@ def test_dense_frames(tmp_path) -> None:
     assert len(found) > len(steps)
     # On the keyframes alone it finds only some (the reason for --every).
     assert len(keypoint_discovery(sparse["demo"])) < len(steps)
+
+
+# ---- --workers -------------------------------------------------------------------------------
+def _tree_sums(root) -> dict[str, str]:
+    """SHA256 of every file under root; manifest.json without its wall-time field."""
+    import hashlib
+
+    out = {}
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        data = path.read_bytes()
+        if path.name == "manifest.json":
+            manifest = json.loads(data)
+            manifest.pop("wall_s")
+            data = json.dumps(manifest, indent=1).encode()
+        out[str(path.relative_to(root))] = hashlib.sha256(data).hexdigest()
+    return out
+
+
+def test_workers_same_files(tmp_path, capsys) -> None:
+    """--workers 2 writes the same bytes as --workers 1; a failing task (an unknown name) is
+    reported with its name, the others finish and the exit code is 1."""
+    tasks = ("open_drawer", "no_such_task", "push_buttons")
+    cfg = ex.ExportConfig(out=tmp_path / "one", tasks=tasks, demos=1, cameras=("front",),
+                          size=32, batch=1)
+    one = ex.export(cfg)
+    assert list(one["failed_tasks"]) == ["no_such_task"]
+    assert "KeyError" in one["failed_tasks"]["no_such_task"]
+    ex.export(ex.ExportConfig(**{**vars(cfg), "out": tmp_path / "two"}), workers=2)
+    captured = capsys.readouterr()
+    assert "no_such_task FAILED: KeyError" in captured.err
+    for task in ("open_drawer", "push_buttons"):
+        assert f"export: {task}: 1/1 episodes" in captured.out
+    two = json.loads((tmp_path / "two" / "manifest.json").read_text())
+    assert list(two["tasks"]) == ["open_drawer", "push_buttons"] and two["tasks"] == one["tasks"]
+    sums = _tree_sums(tmp_path / "one")
+    assert sums == _tree_sums(tmp_path / "two")
+    assert any(name.endswith("front_rgb/0.png") for name in sums)
+    assert not list((tmp_path / "two").glob(".manifest.json.tmp*"))
+    # The estimate's time is divided by the tasks run at once.
+    assert ex.estimate(cfg, workers=2)[1] == pytest.approx(
+        ex.estimate(cfg)[1] / min(2, ex.cpu_cores()))
+
+
+
+def test_main_exit_code_on_failed_task(tmp_path, monkeypatch) -> None:
+    calls = []
+
+    def fake_export(cfg, workers):
+        calls.append(workers)
+        return {"wall_s": 0.0, "failed_tasks": {"open_drawer": "KeyError: x"}}
+
+    monkeypatch.setattr(ex, "export", fake_export)
+    args = ["--out", str(tmp_path), "--tasks", "open_drawer", "--workers", "3", "--quiet"]
+    assert ex.main(args) == 1 and calls == [3]
+    with pytest.raises(SystemExit):
+        ex.main(args[:-2] + ["--workers", "0"])

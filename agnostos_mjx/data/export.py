@@ -62,25 +62,34 @@ actuator).  Long rests add keypoints (328 for 122 key actions).  Using
 
 Demos are the demo bank's (same keys: ``generate.demo_keys``, variation ``i % n``), re-run
 with observations.  Resumable: complete episodes are skipped, an interrupted one is redone.
-A size and time estimate is printed before work starts.
+A size and time estimate is printed before work starts, and a line per finished task.
+
+``--workers N`` exports N tasks at once, each in its own process (spawned: JAX and the GL
+context are created fresh in each), with the native physics' and llvmpipe's threads split
+between them (``cores // N`` each); the files are the same as with one worker (every task
+is deterministic on its own).  Only the parent writes ``manifest.json`` (atomically).  A task
+that fails is reported with its name and the others go on; the exit code is then 1.
 
 Examples::
 
-    python -m agnostos_mjx.data.export --out data/peract --tasks seen --demos 200
+    python -m agnostos_mjx.data.export --out data/peract --tasks seen --demos 200 --workers 16
     python -m agnostos_mjx.data.export --out /tmp/x --tasks open_drawer --demos 2 --size 64
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import logging
+import os
 import pickle
 import shutil
+import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -425,8 +434,9 @@ def task_low_dim_state(task, obs) -> np.ndarray:
     return np.concatenate(parts, -1) if parts else np.zeros((batch, 0))
 
 
-def export_task(cfg: ExportConfig, task_name: str) -> dict:
-    """Export one task's missing demos; returns counts."""
+def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -> dict:
+    """Export one task's missing demos; returns counts.  `threads`: the native physics'
+    threads (default: all cores)."""
     from agnostos_mjx.data.generate import demo_keys
     from agnostos_mjx.episode import Episodes, Outcome
     from agnostos_mjx.observation import MODALITIES, ObservationSpec, scene_labels
@@ -437,7 +447,7 @@ def export_task(cfg: ExportConfig, task_name: str) -> dict:
     stats = {"task": task.name, "skipped": cfg.demos - len(todo), "written": 0, "failed": 0}
     if not todo:
         return stats
-    episodes = Episodes(task, "native")
+    episodes = Episodes(task, "native", threads=threads)
     every = frame_every(cfg.every, episodes.dt)
     spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
                            modalities=MODALITIES, renderer="cpu")
@@ -486,25 +496,92 @@ def _every_text(every: int | str | None) -> str:
     return ", RLBench's 20 Hz frames" if every == "rlbench" else f", frames every {every} steps"
 
 
-def estimate(cfg: ExportConfig, frames: float | None = None) -> tuple[float, float]:
+def cpu_cores() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def parallel_tasks(cfg: ExportConfig, workers: int) -> int:
+    """Tasks exported at once: min(workers, tasks, cores)."""
+    return max(1, min(workers, len(cfg.tasks), cpu_cores()))
+
+
+def estimate(cfg: ExportConfig, frames: float | None = None, workers: int = 1
+             ) -> tuple[float, float]:
     """(bytes, seconds) to expect: a rough guide printed before starting; `frames` per demo
-    defaults to :func:`frames_per_demo`."""
+    defaults to :func:`frames_per_demo`; the time is divided by the tasks run at once
+    (:func:`parallel_tasks`)."""
     frames = frames_per_demo(cfg.every) if frames is None else frames
     camera_frames = len(cfg.tasks) * cfg.demos * frames * len(cfg.cameras)
     pixels = (cfg.size / 128) ** 2
     size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * pixels
     seconds = (len(cfg.tasks) * (CPU_TASK_SETUP_S + cfg.demos * CPU_PHYSICS_S_PER_DEMO)
                + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels)
-    return size, seconds
+    return size, seconds / parallel_tasks(cfg, workers)
 
 
-def export(cfg: ExportConfig) -> dict:
+def _run_task(cfg: ExportConfig, name: str, threads: int | None = None) -> dict:
+    """export_task, timed (what a worker runs)."""
+    t0 = time.perf_counter()
+    stats = export_task(cfg, name, threads)
+    stats["seconds"] = time.perf_counter() - t0
+    return stats
+
+
+def _worker_init() -> None:
+    # Ctrl-C is the parent's to handle: it stops the workers itself.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _worker_env(threads: int) -> Iterator[None]:
+    """Thread caps for spawned workers (inherited at spawn; the parent renders nothing while
+    they run): llvmpipe's render threads and OpenMP/BLAS pools.  Set ones are kept."""
+    names = ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {k: os.environ.get(k) for k in names}
+    for k in names:
+        os.environ.setdefault(k, str(threads))
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _one_line(err: BaseException, limit: int = 500) -> str:
+    text = " ".join(f"{type(err).__name__}: {err}".split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _stop_workers(pool) -> None:
+    """Cancel the queued tasks and end the running workers (Ctrl-C)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())  # before shutdown
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        proc.terminate()
+    for proc in processes:
+        proc.join(5)
+
+
+def export(cfg: ExportConfig, workers: int = 1) -> dict:
+    """Export `cfg`'s tasks, `workers` at once (each in its own process when more than 1);
+    returns the manifest, with "failed_tasks" {task: one-line error} when some failed."""
     cfg.out.mkdir(parents=True, exist_ok=True)
-    size, seconds = estimate(cfg)
+    workers = max(1, int(workers))
+    size, seconds = estimate(cfg, workers=workers)
+    at_once = parallel_tasks(cfg, workers)
     print(f"export: {len(cfg.tasks)} tasks x {cfg.demos} demos, cameras {','.join(cfg.cameras)}"
           f" at {cfg.size}px{_every_text(cfg.every)}"
-          f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and {seconds / 60:.0f} min on 2 CPU "
-          f"cores (rough; complete episodes in {cfg.out} are skipped)", flush=True)
+          f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and "
+          f"{seconds / 60:.0f} min with {at_once} task(s) at once ({workers} worker(s), "
+          f"{cpu_cores()} cores; rough: the time per task measured on 2 shared cores; "
+          f"complete episodes in {cfg.out} are skipped)", flush=True)
     t0 = time.perf_counter()
     manifest_path = cfg.out / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
@@ -520,19 +597,73 @@ def export(cfg: ExportConfig) -> dict:
     if manifest.get("config", config) != config:
         raise ValueError(f"{cfg.out} was exported with {manifest['config']}, not {config}")
     manifest["config"] = config
-    manifest.setdefault("tasks", {})
-    for name in cfg.tasks:
-        stats = export_task(cfg, name)
-        entry = manifest["tasks"].setdefault(name, {})
+    manifest.pop("failed_tasks", None)
+    order = list(manifest.get("tasks", {})) + [t for t in cfg.tasks
+                                               if t not in manifest.get("tasks", {})]
+    failed: dict[str, str] = {}
+    done = 0
+
+    def write() -> None:
+        from agnostos_mjx.cli import atomic_write
+
+        tasks = manifest.get("tasks", {})
+        manifest["tasks"] = {t: tasks[t] for t in order if t in tasks}  # cfg's order
+        if failed:
+            manifest["failed_tasks"] = {t: failed[t] for t in order if t in failed}
+        atomic_write(manifest_path, json.dumps(manifest, indent=1) + "\n")
+
+    def finished(name: str, stats: dict | None, err: BaseException | None) -> None:
+        nonlocal done
+        done += 1
+        if err is not None:
+            failed[name] = _one_line(err)
+            log.debug("%s failed", name, exc_info=err)
+            print(f"export: {name} FAILED: {failed[name]}", file=sys.stderr, flush=True)
+            write()
+            return
+        entry = manifest.setdefault("tasks", {}).setdefault(name, {})
         entry.update({k: v for k, v in stats.items() if k in ("labels", "every_steps")
                       and v is not None})
         entry["episodes"] = sum(is_complete(episode_dir(cfg.out, name, i))
                                 for i in range(cfg.demos))
-        log.info("%s: %d written, %d skipped, %d failed attempts", name, stats["written"],
-                 stats["skipped"], stats["failed"])
-        manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
+        print(f"export: {name}: {entry['episodes']}/{cfg.demos} episodes ({stats['written']} "
+              f"written, {stats['skipped']} skipped, {stats['failed']} failed attempts) in "
+              f"{stats['seconds']:.1f} s [{done}/{len(cfg.tasks)} tasks]", flush=True)
+        write()
+
+    manifest.setdefault("tasks", {})
+    if workers == 1:
+        for name in cfg.tasks:
+            try:
+                stats = _run_task(cfg, name)
+            except Exception as err:
+                finished(name, None, err)
+            else:
+                finished(name, stats, None)
+    else:
+        import multiprocessing
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+        threads = max(1, cpu_cores() // at_once)
+        with _worker_env(threads):
+            pool = ProcessPoolExecutor(at_once, multiprocessing.get_context("spawn"),
+                                       initializer=_worker_init)
+            try:
+                futures = {pool.submit(_run_task, cfg, name, threads): name
+                           for name in cfg.tasks}
+                pending = set(futures)
+                while pending:
+                    ready, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in sorted(ready, key=lambda f: cfg.tasks.index(futures[f])):
+                        err = fut.exception()
+                        finished(futures[fut], None if err else fut.result(), err)
+            except BaseException:
+                _stop_workers(pool)
+                write()
+                raise
+            pool.shutdown()
     manifest["wall_s"] = round(time.perf_counter() - t0, 1)
-    manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
+    write()
     return manifest
 
 
@@ -555,13 +686,27 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="dense frames: also the scene every K physics steps of each key "
                         "action; 'rlbench': RLBench's 20 Hz (10 steps of 5 ms); default: "
                         "keyframes only")
+    p.add_argument("--workers", type=int, default=1,
+                   help="tasks exported at once, each in its own process (at most the "
+                        "cores; the native physics' threads are split between them)")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
+    if a.workers < 1:
+        p.error("--workers: at least 1")
     setup_logging(a.quiet)
     cfg = ExportConfig(out=Path(a.out), tasks=tuple(t.name for t in parse_tasks(a.tasks)),
                        demos=a.demos, seed=a.seed, cameras=tuple(a.cameras.split(",")),
                        size=a.size, batch=a.batch, every=a.every)
-    manifest = export(cfg)
+    try:
+        manifest = export(cfg, a.workers)
+    except KeyboardInterrupt:
+        print(f"interrupted: complete episodes in {cfg.out} are kept; run again to resume",
+              file=sys.stderr)
+        return 130
+    if failed := manifest.get("failed_tasks"):
+        print(f"done in {manifest['wall_s']:.0f} s with {len(failed)} failed task(s) "
+              f"({', '.join(failed)}): {cfg.out}", file=sys.stderr)
+        return 1
     print(f"done in {manifest['wall_s']:.0f} s: {cfg.out}")
     return 0
 
