@@ -538,12 +538,17 @@ def _worker_init() -> None:
 
 @contextlib.contextmanager
 def _worker_env(threads: int) -> Iterator[None]:
-    """Thread caps for spawned workers (inherited at spawn; the parent renders nothing while
-    they run): llvmpipe's render threads and OpenMP/BLAS pools.  Set ones are kept."""
-    names = ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    saved = {k: os.environ.get(k) for k in names}
-    for k in names:
-        os.environ.setdefault(k, str(threads))
+    """Settings for spawned workers (inherited at spawn; the parent renders nothing while
+    they run): thread caps for llvmpipe's render threads and OpenMP/BLAS pools, and JAX on
+    the CPU: a worker simulates with native MuJoCo and renders on the CPU, and N processes
+    each pre-allocating most of one GPU's memory would fail (seen on a lent H100 with 16
+    workers).  Values the user set are kept."""
+    values = {k: str(threads) for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS",
+                                         "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    values["JAX_PLATFORMS"] = "cpu"
+    saved = {k: os.environ.get(k) for k in values}
+    for k, v in values.items():
+        os.environ.setdefault(k, v)
     try:
         yield
     finally:
