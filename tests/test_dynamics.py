@@ -417,3 +417,116 @@ def test_dynamics_benchmark_quick_mode(tmp_path):
     assert [r["batch"] for r in result["features"]] == [1, 4]
     assert all(r["queries_per_s"] > 0 for r in result["features"])
 
+
+
+# ---- issue 13: the CPU-specialised layers compute what flax's layers computed ----
+
+
+def _randomized(module: nnx.Module, seed: int) -> nnx.Module:
+    """`module` with every float parameter perturbed: the untrained presets zero-initialise
+    the last convolutions and projections, so their features would hide a difference."""
+    graphdef, state = nnx.split(module)
+    leaves, tree = jax.tree.flatten(state)
+    keys = jax.random.split(jax.random.key(seed), len(leaves))
+    leaves = [x + 0.3 * jax.random.normal(k, x.shape, x.dtype)
+              if jax.numpy.issubdtype(x.dtype, jax.numpy.floating) else x
+              for k, x in zip(keys, leaves)]
+    return nnx.merge(graphdef, jax.tree.unflatten(tree, leaves))
+
+
+def _assert_stock(module: nnx.Module) -> None:
+    """The reference really runs flax's own layers (else the comparison proves nothing)."""
+    kinds = {type(m) for _, m in nnx.iter_modules(module)}
+    assert nnx.GroupNorm in kinds and not any(k is not nnx.GroupNorm
+                                              and issubclass(k, nnx.GroupNorm) for k in kinds)
+    for _, m in nnx.iter_modules(module):
+        if isinstance(m, nnx.MultiHeadAttention):
+            assert m.attention_fn is nnx.dot_product_attention
+
+
+def test_cpu_layers_give_flax_layers_features():
+    """GroupNorm and attention specialised for the CPU (layers.py) against flax's own, on a
+    quick-preset model with random weights: the same features up to float round-off."""
+    from agnostos_mjx.dynamics.bench import quick_pipeline, reference_pipeline
+
+    pipe = quick_pipeline()
+    pipe = replace(pipe, ae=_randomized(pipe.ae, 1), model=_randomized(pipe.model, 2), chunk=4)
+    ref = reference_pipeline(pipe)
+    _assert_stock(ref.model)
+    _assert_stock(ref.ae)
+    assert not any(type(m) is nnx.GroupNorm for _, m in nnx.iter_modules(pipe.model))
+    rng = np.random.default_rng(0)
+    first = rng.integers(0, 255, (6, 128, 128, 3), dtype=np.uint8)
+    words = ["turn on the lamp", "open the grill", "", "push the red button", "x", "open it"]
+    new, old = extract(pipe, first, words), extract(ref, first, words)
+    for part in ("vis.in", "vis.out", "lang"):
+        norm = np.linalg.norm(old[part], axis=1)
+        assert norm.min() > 1.0, part  # features that could show a difference
+        rel = np.abs(new[part] - old[part]).max(axis=1) / norm
+        assert rel.max() < 1e-5, (part, rel.max())
+
+
+def test_cpu_group_norm_and_attention_match_flax():
+    from agnostos_mjx.dynamics.layers import GroupNorm, dot_product_attention
+
+    rng = np.random.default_rng(1)
+    for shape, groups in (((3, 8, 8, 64), 32), ((2, 16, 16, 12), 4), ((2, 5, 48), 8)):
+        norm = _randomized(GroupNorm(shape[-1], num_groups=groups, rngs=nnx.Rngs(0)), 3)
+        stock = nnx.GroupNorm(shape[-1], num_groups=groups, rngs=nnx.Rngs(0))
+        nnx.update(stock, nnx.state(norm))
+        x = jax.numpy.asarray(rng.normal(2.0, 3.0, shape).astype(np.float32))
+        np.testing.assert_allclose(norm(x), stock(x), atol=2e-5, rtol=1e-5)
+        mask = jax.numpy.asarray(rng.random(shape) > 0.3)  # the general path: flax's
+        np.testing.assert_array_equal(norm(x, mask=mask), stock(x, mask=mask))
+    q = jax.numpy.asarray(rng.normal(size=(3, 40, 4, 16)).astype(np.float32))
+    k = jax.numpy.asarray(rng.normal(size=(3, 24, 4, 16)).astype(np.float32))
+    v = jax.numpy.asarray(rng.normal(size=(3, 24, 4, 16)).astype(np.float32))
+    mask = jax.numpy.asarray(np.arange(24)[None, :] < np.array([[1], [7], [24]]))[:, None, None]
+    for m in (None, mask):
+        np.testing.assert_allclose(dot_product_attention(q, k, v, mask=m),
+                                   nnx.dot_product_attention(q, k, v, mask=m),
+                                   atol=1e-5, rtol=1e-5)
+
+
+def _first_frames(tasks: tuple[str, ...], n: int) -> tuple[np.ndarray, list[str]]:
+    """The evaluation's first queries: n scenes of each task (seed 0, variation 0) rendered
+    by the front camera, with the task's instruction."""
+    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.eval import episode_keys
+    from agnostos_mjx.tasks import get_task
+
+    frames, words = [], []
+    for name in tasks:
+        runner = Episodes(get_task(name), "native")
+        env = runner.reset(episode_keys(np.zeros(n), np.arange(n)), np.zeros(n, np.int32))
+        frames.append(runner.render(env, "front", 128, 128))
+        words += [runner.task.descriptions(0)[0]] * n
+    return np.concatenate(frames), words
+
+
+@pytest.mark.slow  # the shipped model, old and new, on 32 scenes: ~2 minutes on 2 cores
+def test_shipped_query_features_and_top18_unchanged_by_cpu_work():
+    """Issue 13's gate: the query features of the shipped model (the evaluation's 10 DDIM
+    steps) of 32 scenes of two unseen tasks, computed as before the CPU work (flax's layers,
+    chunks of 64) and as now, agree to 1e-4 of their norm, and select the same top-18."""
+    from agnostos_mjx.dynamics.bench import reference_pipeline
+    from agnostos_mjx.xicm.dynamics_selector import QUERY_SAMPLE_STEPS, load_pipeline
+    from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
+
+    frames, words = _first_frames(("lamp_on", "open_grill"), 16)
+    pipe = load_pipeline(None, QUERY_SAMPLE_STEPS)
+    ref = reference_pipeline(pipe)
+    _assert_stock(ref.model)
+    new, old = extract(pipe, frames, words), extract(ref, frames, words)
+    for part in ("vis.in", "vis.out", "lang"):
+        rel = np.abs(new[part] - old[part]).max(axis=1) / np.linalg.norm(old[part], axis=1)
+        assert rel.max() < 1e-4, (part, rel.max())
+    bank = DemoMemory.load(default_memory_path()).features
+    sims = [similarity(f, bank, "lang+vis.out") for f in (new, old)]
+    top = [np.argsort(-s, axis=1, kind="stable")[:, :18] for s in sims]
+    # The same demos in the same order, but for exact near-ties (neighbouring ranks of these
+    # queries lie as little as 1e-6 apart, the size of the round-off): where the lists
+    # differ, each rank's two demos must be equally similar under the old features.
+    rows = np.arange(len(words))[:, None]
+    assert np.abs(sims[1][rows, top[0]] - sims[1][rows, top[1]]).max() < 1e-5
+    assert (top[0] == top[1]).mean() > 0.99

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from agnostos_mjx.dynamics.config import LATENT_CHANNELS, AutoencoderConfig
-from agnostos_mjx.dynamics.layers import Downsample, ResBlock, Upsample
+from agnostos_mjx.dynamics.layers import Downsample, GroupNorm, ResBlock, Upsample
 
 
 def to_unit(frames: jax.Array) -> jax.Array:
@@ -37,7 +37,7 @@ class Encoder(nnx.Module):
                 layers.append(Downsample(c, rngs=rngs))
         self.layers = nnx.List(layers)
         self.mid = ResBlock(cin, cin, g, rngs=rngs)
-        self.norm = nnx.GroupNorm(cin, num_groups=g, rngs=rngs)
+        self.norm = GroupNorm(cin, num_groups=g, rngs=rngs)
         self.conv_out = nnx.Conv(cin, 2 * LATENT_CHANNELS, (3, 3), rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -61,7 +61,7 @@ class Decoder(nnx.Module):
             if level < len(ch) - 1:
                 layers.append(Upsample(c, rngs=rngs))
         self.layers = nnx.List(layers)
-        self.norm = nnx.GroupNorm(cin, num_groups=g, rngs=rngs)
+        self.norm = GroupNorm(cin, num_groups=g, rngs=rngs)
         self.conv_out = nnx.Conv(cin, 3, (3, 3), rngs=rngs)
 
     def __call__(self, z: jax.Array) -> jax.Array:

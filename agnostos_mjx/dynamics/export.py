@@ -166,7 +166,7 @@ def read_export(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]
     return meta, arrays
 
 
-def load_export(path: str | Path, chunk: int = 64, **sampling: Any):
+def load_export(path: str | Path, chunk: int | None = None, **sampling: Any):
     """A feature-extraction `Pipeline` from an export directory (float32 weights, no
     decoder).  `sampling` overrides sampling fields, as in `Pipeline.load`."""
     from agnostos_mjx.dynamics.pipeline import Pipeline

@@ -95,21 +95,38 @@ def _pooled(model: DynamicsModel, ids: jax.Array, mask: jax.Array) -> jax.Array:
     return model.text(ids, mask)[1]
 
 
+# Rows per compiled call.  On an accelerator a large chunk costs little more than a small
+# one.  On the CPU the 10-step query features cost per query (2-core x86, 32 queries):
+# chunks of 1: 460 ms, 4: 302, 8: 283, 16: 270, 32: 276; 8 also pads the evaluation's
+# replans (often 2-25 worlds) least.  Chunks of 64 ran 2x slower per row before the
+# attention of layers.py, its weights no longer fitting the caches.
+ACCELERATOR_CHUNK, CPU_CHUNK = 64, 8
+
+
+def default_chunk() -> int:
+    return CPU_CHUNK if jax.default_backend() == "cpu" else ACCELERATOR_CHUNK
+
+
 @dataclass
 class Pipeline:
-    """Latents are in the diffusion model's units: autoencoder mean x latent_scale."""
+    """Latents are in the diffusion model's units: autoencoder mean x latent_scale.
+    `chunk`: rows per compiled call, None for `default_chunk()` (by backend)."""
 
     ae: Autoencoder
     latent_scale: float
     model: DynamicsModel | None = None
     text: TextConfig | None = None
     diffusion: DiffusionConfig = DiffusionConfig()
-    chunk: int = 64
+    chunk: int | None = None
     identity: str = ""  # run path, step and sampling settings: keys cached feature indices
 
     @classmethod
     def load(
-        cls, run: str | Path, ae_run: str | Path | None = None, chunk: int = 64, **sampling: Any
+        cls,
+        run: str | Path,
+        ae_run: str | Path | None = None,
+        chunk: int | None = None,
+        **sampling: Any,
     ) -> Pipeline:
         """Load a dynamics run (and the autoencoder it was trained on, or `ae_run`), or an
         export directory (python -m agnostos_mjx.train.export: float16 weights cast back to
@@ -139,17 +156,19 @@ class Pipeline:
         identity = f"{Path(run).absolute()}@{meta['step']}|{to_dict(diffusion)}"
         return cls(ae, meta["latent_scale"], model, text, diffusion, chunk, identity)
 
+    @property
+    def chunk_size(self) -> int:
+        return self.chunk or default_chunk()
+
     def encode(self, frames: np.ndarray) -> np.ndarray:
         """uint8 (N,128,128,3) -> scaled latents (N,16,16,4)."""
-        return (
-            map_chunks(lambda f: _encode(self.ae, f), frames, size=self.chunk) * self.latent_scale
-        )
+        latents = map_chunks(lambda f: _encode(self.ae, f), frames, size=self.chunk_size)
+        return latents * self.latent_scale
 
     def decode(self, latents: np.ndarray) -> np.ndarray:
         """Scaled latents -> uint8 frames."""
-        return map_chunks(
-            lambda z: _decode(self.ae, z), np.asarray(latents) / self.latent_scale, size=self.chunk
-        )
+        latents = np.asarray(latents) / self.latent_scale
+        return map_chunks(lambda z: _decode(self.ae, z), latents, size=self.chunk_size)
 
     def tokens(self, instructions: list[str]) -> tuple[np.ndarray, np.ndarray]:
         return tokenize(instructions, self.text.max_len)
@@ -158,9 +177,11 @@ class Pipeline:
         """Predicted last-frame latents (N,16,16,4) by guided DDIM from fixed noise."""
         ids, mask = self.tokens(instructions)
         fn = lambda z, i, m: _sample(self.model, self.diffusion, z, i, m)
-        return map_chunks(fn, np.asarray(first_latents, np.float32), ids, mask, size=self.chunk)
+        z = np.asarray(first_latents, np.float32)
+        return map_chunks(fn, z, ids, mask, size=self.chunk_size)
 
     def lang(self, instructions: list[str]) -> np.ndarray:
         """Pooled, projected instruction features (N, 1024)."""
         ids, mask = self.tokens(instructions)
-        return map_chunks(lambda i, m: _pooled(self.model, i, m), ids, mask, size=self.chunk)
+        fn = lambda i, m: _pooled(self.model, i, m)
+        return map_chunks(fn, ids, mask, size=self.chunk_size)

@@ -12,14 +12,22 @@ import jax.numpy as jnp
 from flax import nnx
 
 from agnostos_mjx.dynamics.config import FEATURE_DIM, LATENT_CHANNELS, UNetConfig
-from agnostos_mjx.dynamics.layers import MLP, Downsample, ResBlock, Upsample, attention, sinusoidal
+from agnostos_mjx.dynamics.layers import (
+    MLP,
+    Downsample,
+    GroupNorm,
+    ResBlock,
+    Upsample,
+    attention,
+    sinusoidal,
+)
 
 
 class Transformer(nnx.Module):
     """Self-attention over latent pixels, cross-attention to text tokens, MLP."""
 
     def __init__(self, c: int, ctx_width: int, heads: int, groups: int, *, rngs: nnx.Rngs):
-        self.norm = nnx.GroupNorm(c, num_groups=groups, rngs=rngs)
+        self.norm = GroupNorm(c, num_groups=groups, rngs=rngs)
         self.norm1, self.self_attn = nnx.LayerNorm(c, rngs=rngs), attention(heads, c, rngs=rngs)
         self.norm2 = nnx.LayerNorm(c, rngs=rngs)
         self.cross_attn = attention(heads, c, kv_width=ctx_width, rngs=rngs)
@@ -98,7 +106,7 @@ class UNet(nnx.Module):
             if level > 0:
                 up.append(Upsample(cin, rngs=rngs))
         self.up = nnx.List(up)
-        self.norm_out = nnx.GroupNorm(cin, num_groups=cfg.groups, rngs=rngs)
+        self.norm_out = GroupNorm(cin, num_groups=cfg.groups, rngs=rngs)
         self.conv_out = nnx.Conv(
             cin, LATENT_CHANNELS, (3, 3), kernel_init=nnx.initializers.zeros, rngs=rngs
         )

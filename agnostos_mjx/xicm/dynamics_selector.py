@@ -66,9 +66,11 @@ class DynamicsSelector:
         import jax
 
         if jax.default_backend() == "cpu" and "vis.out" in self.parts:
-            log.info("dynamics features run on the CPU here: about %.1f s per query per core "
+            # 2-core x86: 0.30-0.37 s per query at 10 steps in the evaluation's batches
+            # (eval/reports/cpu_query_features_2core.md), i.e. ~0.07 core-s per step.
+            log.info("dynamics features run on the CPU here: about %.2f s per query per core "
                      "(%d DDIM steps x 3 guided passes), once per (re)plan; --selection text "
-                     "is the fast model-free mode", 0.08 * sample_steps, sample_steps)
+                     "is the fast model-free mode", 0.07 * sample_steps, sample_steps)
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
         from agnostos_mjx.dynamics.features import extract, similarity
