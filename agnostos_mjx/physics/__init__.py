@@ -13,7 +13,9 @@ BACKENDS = ("auto", "native", "jax", "warp")
 # the GPU host's CPU threads is faster (H200 host, lamp_on: 1.41M vs 96k env-steps/s at
 # batch 75, 1.49M vs 428k at 1,024, 1.35M vs 2.10M at 8,192; eval/reports/gpu_probe_h200.json;
 # the default run, 23 tasks x 75 episodes: 669 s native vs ~1,000 s warp) and is
-# bit-reproducible, which warp's atomics are not.
+# bit-reproducible, which warp's atomics are not.  With the device key-action step (key_action.py)
+# warp's oracle episodes/s at batch 75 are 0.54x native on lamp_on and 1.11x on stack_blocks
+# (H100 host, eval/reports/gpu_h100_session13): still no reason to pick warp at small batches.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
