@@ -86,6 +86,27 @@ for a, b in zip(jax.tree.leaves(out[1]), jax.tree.leaves(out[4])):
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-5)
 """
 
+KEY_ACTION = """
+import jax, numpy as np
+from agnostos_mjx import sharding
+from agnostos_mjx.episode import Episodes
+from agnostos_mjx.tasks import get_task
+
+keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(0), e))(np.arange(3))
+out = {}
+for devices in (1, 4):
+    sharding.configure(devices)
+    ep = Episodes(get_task("lamp_on"), "jax")  # the device key-action step, worlds sharded
+    assert (ep.backend.mesh is None) == (devices == 1)
+    env = ep.reset(keys, [0, 0, 0])
+    expert = ep.expert_actions(env)
+    env, _ = ep.step(env, jax.tree.map(lambda x: np.asarray(x)[:, 0], expert))
+    out[devices] = (env.outcome, env.sim_steps, np.asarray(env.obs.data))
+np.testing.assert_array_equal(out[4][0], out[1][0])
+np.testing.assert_array_equal(out[4][1], out[1][1])
+np.testing.assert_allclose(out[4][2], out[1][2], rtol=0, atol=1e-3)
+"""
+
 
 def run_on_4_devices(code: str, timeout: float) -> None:
     """Run `code` in a child Python that sees 4 CPU devices; fail with its output."""
@@ -108,6 +129,13 @@ def test_sharded_features_equal_one_device() -> None:
 def test_sharded_mjx_jax_run_equals_one_device() -> None:
     """Two MJX-jax compiles on CPU (about 85 s on 2 cores)."""
     run_on_4_devices(MJX, timeout=600)
+
+
+@pytest.mark.slow
+def test_sharded_key_action_step_equals_one_device() -> None:
+    """The device key-action step (key_action.py) with its worlds split over 4 devices
+    (3 worlds padded to 4) gives one device's outcomes (MJX-jax compiles: minutes)."""
+    run_on_4_devices(KEY_ACTION, timeout=1800)
 
 
 EVAL = ["--policy", "oracle", "--tasks", "lamp_on,lamp_off", "--seeds", "0", "--episodes", "2",
