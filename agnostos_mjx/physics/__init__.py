@@ -9,13 +9,13 @@ import mujoco
 from agnostos_mjx.physics.base import Backend, PhysicsState
 
 BACKENDS = ("auto", "native", "jax", "warp")
-# `auto` picks MJX-warp only from this many worlds per batch: below it, native MuJoCo on
-# the GPU host's CPU threads is faster (H200 host, lamp_on: 1.41M vs 96k env-steps/s at
-# batch 75, 1.49M vs 428k at 1,024, 1.35M vs 2.10M at 8,192; eval/reports/gpu_probe_h200.json;
-# the default run, 23 tasks x 75 episodes: 669 s native vs ~1,000 s warp) and is
-# bit-reproducible, which warp's atomics are not.  With the device key-action step (key_action.py)
-# warp's oracle episodes/s at batch 75 are 0.54x native on lamp_on and 1.11x on stack_blocks
-# (H100 host, eval/reports/gpu_h100_session13): still no reason to pick warp at small batches.
+# `auto` picks MJX-warp only from this many worlds per batch, by measurement (H100 host, lamp_on,
+# oracle, one run per line; eval/reports/gpu_h100_session13): with warp's key action one device
+# program, warp's episodes/s against native MuJoCo on 16 threads are 0.54x at 75 worlds, 1.48x at
+# 256, 1.42x at 512, 2.25x at 1,024 and 6.87x at 4,096; but warp compiles ~10 s of programs per
+# task (native: none), so for a task's few batches native finishes first below ~4,096 worlds
+# (1,024 x 3 seeds: ~11.5 s native vs ~5 s + 10 s warp).  Native is also bit-reproducible,
+# which warp's atomics are not.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
