@@ -83,7 +83,7 @@ class KeyActionStep:
                     stop_at_success: bool) -> DeviceEnv:
         ep, out = self.ep, self.outcome
         running = env.outcome == out.RUNNING
-        done = ~running if stop_at_success else ~running & (env.outcome != out.SUCCESS)
+        done = self._done(env.outcome, stop_at_success)
         valid = jnp.asarray(actions.valid, bool)
         outcome = jnp.where(~done & ~valid & running, out.NO_ACTION, env.outcome)
         active = ~done & valid
@@ -96,15 +96,14 @@ class KeyActionStep:
                              (Status.INVALID_ACTION, out.INVALID_ACTION)):
             outcome = jnp.where(bad & (status == code), reason, outcome)
         active = active & ~bad
-        env = env.replace(outcome=outcome,
-                               key_actions=env.key_actions + active)
+        env = env.replace(outcome=outcome, key_actions=env.key_actions + active)
 
         # Arm phase: move along the path, then hold so the arm comes to rest.
         steps = control.bucket_steps(duration + control.SETTLE_TIME, ep.dt) * active
         duration = jnp.maximum(duration, 1e-3)
         dt = jnp.asarray(ep.dt, q0.dtype)
 
-        def arm_ctrl(t, d):
+        def arm_ctrl(t):
             arm = control.arm_target_at(path, duration, (t + 1) * dt)
             return jnp.concatenate([arm, env.gripper[:, None].astype(arm.dtype)], -1)
 
@@ -112,23 +111,19 @@ class KeyActionStep:
 
         # Gripper phase, only for worlds whose gripper command changes.
         target = control.finger_target(jnp.asarray(actions.gripper, env.gripper.dtype))
-        done = env.outcome != out.RUNNING
-        if not stop_at_success:
-            done = done & (env.outcome != out.SUCCESS)
+        done = self._done(env.outcome, stop_at_success)
         moving = active & ~done & (jnp.abs(target - env.gripper) > 1e-4)
         opening = moving & (target > env.gripper)
         env = self._with_welds(env, env.attached & ~opening[:, None])
         hold = env.physics.ctrl[:, :7]
         start, goal = env.gripper, jnp.where(moving, target, env.gripper)
 
-        def grip_ctrl(t, d):
+        def grip_ctrl(t):
             finger = control.gripper_target_at(start, goal, (t + 1) * dt)
             return jnp.concatenate([hold, finger[:, None].astype(hold.dtype)], -1)
 
         env = self._phase(env, self.gripper_steps * moving, grip_ctrl, stop_at_success)
-        done = env.outcome != out.RUNNING
-        if not stop_at_success:
-            done = done & (env.outcome != out.SUCCESS)
+        done = self._done(env.outcome, stop_at_success)
         closing = moving & ~opening & ~done
         env = env.replace(gripper=jnp.where(moving, target, env.gripper))
         if ep.task.graspables:
@@ -136,12 +131,16 @@ class KeyActionStep:
             env = self._with_welds(env, env.attached | (hits & closing[:, None]))
 
         over = (env.outcome == out.RUNNING) & (env.key_actions >= ep.task.max_key_actions)
-        return env.replace(outcome=jnp.where(over, out.MAX_STEPS,
-                                                                   env.outcome))
+        return env.replace(outcome=jnp.where(over, out.MAX_STEPS, env.outcome))
+
+    def _done(self, outcome: jax.Array, stop_at_success: bool) -> jax.Array:
+        """EnvState.done: evaluation ends at the first success, demonstrations do not."""
+        done = outcome != self.outcome.RUNNING
+        return done if stop_at_success else done & (outcome != self.outcome.SUCCESS)
 
     def _phase(self, env: DeviceEnv, steps: jax.Array, ctrl_at, stop_at_success: bool
                ) -> DeviceEnv:
-        """Step world w for steps[w] physics steps under ctrl_at(t, data) (B, nu), checking
+        """Step world w for steps[w] physics steps under ctrl_at(t) (B, nu), checking
         the conditions after each step; update outcomes, step counts and the last row."""
         ep, out = self.ep, self.outcome
         m, d = self.dev.load(env.physics)
@@ -154,7 +153,7 @@ class KeyActionStep:
 
         def body(c):
             t, d, data, carry, s_at, f_at, live = c
-            new = self.dev.step(m, d, ctrl_at(t, d))
+            new = self.dev.step(m, d, ctrl_at(t))
             new_carry, s, f = cond_step(carry, new.sensordata, env.attached, env.variation)
             carry = jax.tree.map(lambda n, o: keep_rows(live, n, o), new_carry, carry)
             s_at = jnp.where(live & s & (s_at < 0), t, s_at)
