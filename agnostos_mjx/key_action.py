@@ -22,7 +22,6 @@ end; the episode is over either way, and its final observation is the same.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -31,7 +30,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from agnostos_mjx import control
-from agnostos_mjx.control import Status
 from agnostos_mjx.math3d import quat_conj, quat_mul, quat_rotate
 from agnostos_mjx.physics.base import PhysicsState
 from agnostos_mjx.physics.mjx_backend import DevicePhysics, freeze, keep_rows
@@ -64,10 +62,11 @@ class KeyActionStep:
     """`KeyActionStep(episodes, batch)(env, actions) -> env` for an MJX backend."""
 
     def __init__(self, episodes: Episodes, batch: int):
-        from agnostos_mjx.episode import Outcome
+        from agnostos_mjx.episode import _STATUS_OUTCOME, Outcome
 
         self.ep = episodes
         self.outcome = Outcome
+        self.status_outcome = _STATUS_OUTCOME
         self.dev: DevicePhysics = episodes.backend.device_physics(batch)
         self.gripper_steps = control.bucket_steps(control.GRIPPER_TIME, episodes.dt)
         self._program = jax.jit(self._key_action, static_argnames="stop_at_success")
@@ -90,10 +89,8 @@ class KeyActionStep:
 
         q0 = env.data[:, ep._arm_q]
         path, duration, status = plan
-        bad = active & (status != Status.OK)
-        for code, reason in ((Status.OUT_OF_WORKSPACE, out.OUT_OF_WORKSPACE),
-                             (Status.UNREACHABLE, out.UNREACHABLE),
-                             (Status.INVALID_ACTION, out.INVALID_ACTION)):
+        bad = active & (status != control.Status.OK)
+        for code, reason in self.status_outcome.items():
             outcome = jnp.where(bad & (status == code), reason, outcome)
         active = active & ~bad
         env = env.replace(outcome=outcome, key_actions=env.key_actions + active)
@@ -144,7 +141,7 @@ class KeyActionStep:
         the conditions after each step; update outcomes, step counts and the last row."""
         ep, out = self.ep, self.outcome
         m, d = self.dev.load(env.physics)
-        cond_step = jax.vmap(functools.partial(_condition_step, ep))
+        cond_step = jax.vmap(ep._condition_step)
         b = steps.shape[0]
         none = jnp.full(b, -1, jnp.int32)
 
@@ -196,15 +193,6 @@ class KeyActionStep:
             eq_active = eq_active.at[:, eq].set(attached[:, g])
         physics = env.physics.replace(eq_data=eq_data, eq_active=eq_active)
         return env.replace(physics=physics, attached=attached)
-
-
-def _condition_step(ep: Episodes, carry, data, attached, variation):
-    """One physics step of one world's success and failure trees: (carry, met, failed)."""
-    obs = ep._obs(data, attached)
-    success, failure = ep.task.success(variation), ep.task.failure(variation)
-    sc, s = success.step(carry[0], obs)
-    fc, f = failure.step(carry[1], obs)
-    return (sc, fc), jnp.asarray(s, bool), jnp.asarray(f, bool)
 
 
 def to_device(env, physics_dtype=jnp.float32) -> DeviceEnv:
