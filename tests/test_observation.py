@@ -5,6 +5,8 @@ Tiny batches at 48 px keep this fast; one task scene (close_jar) is reset once p
 
 from __future__ import annotations
 
+import copy
+
 import jax
 import mujoco
 import numpy as np
@@ -204,6 +206,38 @@ def test_spec_validation() -> None:
         ob.ObservationSpec(cameras=("front", "front"))
     assert ob.observation_spec(object()) is None
     assert ob.ObservationSpec(modalities=("point_cloud",)).needs_depth
+
+
+def test_fixed_camlight_equals_mujoco_camlight() -> None:
+    """The closed-form camera and light poses the warp observation uses (instead of a full
+    forward) equal mj_forward's, for a moved arm and a batch of worlds in JAX."""
+    import jax.numpy as jnp
+
+    from agnostos_mjx.render import FixedCamLight
+
+    model = build_scene(get_task("close_jar")).model
+    rng = np.random.default_rng(0)
+    datas = []
+    for _ in range(3):
+        d = mujoco.MjData(model)
+        d.qpos[:] = model.qpos0 + 0.3 * rng.standard_normal(model.nq)
+        mujoco.mj_forward(model, d)
+        datas.append(d)
+    camlight = FixedCamLight(model)
+    xpos = jnp.asarray(np.stack([d.xpos for d in datas]))
+    xmat = jnp.asarray(np.stack([d.xmat.reshape(-1, 3, 3) for d in datas]))
+    got = camlight(xpos, xmat, jnp)
+    want = [np.stack([getattr(d, f) for d in datas]) for f in
+            ("cam_xpos", "cam_xmat", "light_xpos", "light_xdir")]
+    want[1] = want[1].reshape(3, -1, 3, 3)
+    assert want[0].std(axis=0).max() > 0.01  # the wrist camera moved between worlds
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(np.asarray(g), w, atol=1e-5)
+    tracking = copy.copy(model)  # scenes are cached: never edit a shared model
+    tracking.cam_mode[0] = mujoco.mjtCamLight.mjCAMLIGHT_TRACK
+    assert not FixedCamLight.supports(tracking) and FixedCamLight.supports(model)
+    with pytest.raises(ValueError, match="not fixed"):
+        FixedCamLight(tracking)
 
 
 @pytest.mark.slow
