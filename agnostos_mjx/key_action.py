@@ -22,6 +22,7 @@ end; the episode is over either way, and its final observation is the same.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -58,6 +59,21 @@ class DeviceEnv:
         return dataclasses.replace(self, **changes)
 
 
+def steps_per_iteration(backend_name: str) -> int:
+    """Physics steps per iteration of a phase's while loop.
+
+    Each iteration ends with the host reading the loop's condition from the device, so the
+    host cannot queue the next step before the device has finished this one: on MJX-Warp,
+    whose step is a Python FFI callback (~1 ms of host time for ~1 ms of GPU time at batch
+    75), host and device then take turns instead of overlapping.  Unrolling a few steps
+    lets them overlap; on MJX-jax a step is a large program, and unrolling would multiply
+    its compile time.  ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
+    override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
+    if override:
+        return max(1, int(override))
+    return 4 if backend_name == "warp" else 1
+
+
 class KeyActionStep:
     """`KeyActionStep(episodes, batch)(env, actions) -> env` for an MJX backend."""
 
@@ -69,6 +85,7 @@ class KeyActionStep:
         self.status_outcome = _STATUS_OUTCOME
         self.dev: DevicePhysics = episodes.backend.device_physics(batch)
         self.gripper_steps = control.bucket_steps(control.GRIPPER_TIME, episodes.dt)
+        self.steps_per_iteration = steps_per_iteration(episodes.backend_name)
         self._program = jax.jit(self._key_action, static_argnames="stop_at_success")
 
     def __call__(self, env: DeviceEnv, actions: KeyActions, stop_at_success: bool) -> DeviceEnv:
@@ -148,7 +165,7 @@ class KeyActionStep:
         def go_on(c):
             return jnp.any(c[-1])
 
-        def body(c):
+        def one_step(c):
             t, d, data, carry, s_at, f_at, live = c
             new = self.dev.step(m, d, ctrl_at(t))
             new_carry, s, f = cond_step(carry, new.sensordata, env.attached, env.variation)
@@ -159,6 +176,14 @@ class KeyActionStep:
             data = keep_rows(live, new.sensordata, data)
             ended = (t + 1 >= steps) | (f_at >= 0) | ((s_at >= 0) & stop_at_success)
             return t + 1, d, data, carry, s_at, f_at, live & ~ended
+
+        def body(c):
+            # Several masked steps per iteration: a step of a world past its end is undone
+            # by `freeze`, so this changes no result, only how often the loop's condition
+            # makes the host wait for the device (see steps_per_iteration).
+            for _ in range(self.steps_per_iteration):
+                c = one_step(c)
+            return c
 
         init = (jnp.int32(0), d, env.data, env.carry, none, none, steps > 0)
         _, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(go_on, body, init)

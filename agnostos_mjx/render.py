@@ -524,8 +524,8 @@ class WarpRenderer:
             return jax.vmap(lambda d: mjx.forward(mx, d))(d)
         d = jax.vmap(lambda d: mjx.kinematics(mx, d))(d)
         cam_xpos, cam_xmat, light_xpos, light_xdir = self._camlight(d.xpos, d.xmat, jnp)
-        return d.replace(cam_xpos=cam_xpos, cam_xmat=cam_xmat, light_xpos=light_xpos,
-                         light_xdir=light_xdir)
+        return d.tree_replace({"cam_xpos": cam_xpos, "cam_xmat": cam_xmat,
+                               "_impl.light_xpos": light_xpos, "_impl.light_xdir": light_xdir})
 
     def state_data(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
         """A posed warp ``mjx.Data`` batch from host or device state arrays."""

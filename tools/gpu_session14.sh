@@ -39,6 +39,13 @@ echo done >> $R/summary.txt
 JOB
     (setsid nohup bash $R/job.sh > $R/job.out 2>&1 < /dev/null &)
     echo started ;;
+  obs)  # steps 1 and 2 only, in the foreground
+    mkdir -p /tmp/agnostos/src $R "$OUT/s14" && cp -r agnostos_mjx scenes tests pyproject.toml /tmp/agnostos/src/
+    cd /tmp/agnostos/src
+    python3 -m agnostos_mjx.observation_bench --renderers warp --repeats 5 \
+      --out "$OUT/s14/observation_bench_h100.json" 2>&1 | grep -v "^Module\|warn_overflow" | tail -20
+    python3 -m pytest -q -s -m slow -p no:cacheprovider tests/test_observation.py -k warp_matches \
+      2>&1 | tail -15 ;;
   collect)
     end=$((SECONDS + $2))
     while ! grep -q "^done" $R/summary.txt 2>/dev/null && [ $SECONDS -lt $end ]; do sleep 5; done
