@@ -290,3 +290,25 @@ def test_readme_plugin_runs(tmp_path) -> None:
     results = evaluate(cfg)
     assert len(results["episodes"]) == 2
     assert all(r["outcome"] != "policy_error" for r in results["episodes"])
+
+
+def test_object_text_report_counts(tmp_path) -> None:
+    """The segmented-vs-ground-truth text report counts differing indices, omitted objects
+    and differing query lines; it runs end to end on a task and rejects unknown tasks."""
+    import json
+
+    from agnostos_mjx.xicm import object_text_report as rep
+
+    truth = [{"a": [1, 2, 3], "b": [4, 5, 6]}, {"a": [1, 1, 1], "b": [2, 2, 2]}]
+    seg = [{"a": [1, 2, 3], "b": [4, 7, 6]}, {"a": [1, 1, 1]}]
+    got = rep.compare_texts(truth, seg)
+    assert got == {"worlds": 2, "objects": 4, "omitted_objects": 1, "indices": 9,
+                   "indices_differing": 1, "max_index_difference": 2,
+                   "mean_abs_difference_where_differing": 2.0, "queries_differing": 2}
+    assert rep.main(["--tasks", "lamp_on", "--seeds", "0", "--episodes", "2",
+                     "--out", str(tmp_path)]) == 0
+    row = json.loads((tmp_path / "object_text.json").read_text())["rows"][0]
+    assert row["task"] == "lamp_on" and row["worlds"] == 2
+    assert row["indices"] == 3 * (row["objects"] - row["omitted_objects"]) > 0
+    assert "| **all** |" in (tmp_path / "object_text.md").read_text()
+    assert rep.main(["--tasks", "no_such_task"]) == 2
