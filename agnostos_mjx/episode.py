@@ -195,19 +195,22 @@ class Episodes:
     def _conditions(self, carry, data, attached, valid, variation):
         """Scan the condition trees over one world's steps: (carry, success
         step index or -1, failure step index or -1)."""
-        success, failure = self.task.success(variation), self.task.failure(variation)
-
         def body(c, inputs):
             d, a, v = inputs
-            obs = self._obs(d, a)
-            sc, s = success.step(c[0], obs)
-            fc, f = failure.step(c[1], obs)
+            new, s, f = self._condition_step(c, d, a, variation)
             keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(v, n, o), new, old)  # noqa: E731
-            return (keep(sc, c[0]), keep(fc, c[1])), (s & v, f & v)
+            return keep(new, c), (s & v, f & v)
 
         carry, (s, f) = jax.lax.scan(body, carry, (data, attached, valid))
         first = lambda m: jnp.where(jnp.any(m), jnp.argmax(m), -1)  # noqa: E731
         return carry, first(s), first(f)
+
+    def _condition_step(self, carry, data, attached, variation):
+        """One physics step of one world's success and failure trees: (carry, met, failed)."""
+        obs = self._obs(data, attached)
+        sc, s = self.task.success(variation).step(carry[0], obs)
+        fc, f = self.task.failure(variation).step(carry[1], obs)
+        return (sc, fc), jnp.asarray(s, bool), jnp.asarray(f, bool)
 
     def _attach_test(self, data, attached):
         """Which graspables lie in the attach volume (RLBench's grasp on close)."""

@@ -22,7 +22,7 @@ end; the episode is over either way, and its final observation is the same.
 from __future__ import annotations
 
 import dataclasses
-import functools
+import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -31,7 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from agnostos_mjx import control
-from agnostos_mjx.control import Status
 from agnostos_mjx.math3d import quat_conj, quat_mul, quat_rotate
 from agnostos_mjx.physics.base import PhysicsState
 from agnostos_mjx.physics.mjx_backend import DevicePhysics, freeze, keep_rows
@@ -60,16 +59,33 @@ class DeviceEnv:
         return dataclasses.replace(self, **changes)
 
 
+def steps_per_iteration(backend_name: str) -> int:
+    """Physics steps per iteration of a phase's while loop.
+
+    Each iteration ends with the host reading the loop's condition from the device, so the
+    host cannot queue the next step before the device has finished this one: on MJX-Warp,
+    whose step is a Python FFI callback (~1 ms of host time for ~1 ms of GPU time at batch
+    75), host and device then take turns instead of overlapping.  Unrolling a few steps
+    lets them overlap; on MJX-jax a step is a large program, and unrolling would multiply
+    its compile time.  ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
+    override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
+    if override:
+        return max(1, int(override))
+    return 4 if backend_name == "warp" else 1
+
+
 class KeyActionStep:
     """`KeyActionStep(episodes, batch)(env, actions) -> env` for an MJX backend."""
 
     def __init__(self, episodes: Episodes, batch: int):
-        from agnostos_mjx.episode import Outcome
+        from agnostos_mjx.episode import _STATUS_OUTCOME, Outcome
 
         self.ep = episodes
         self.outcome = Outcome
+        self.status_outcome = _STATUS_OUTCOME
         self.dev: DevicePhysics = episodes.backend.device_physics(batch)
         self.gripper_steps = control.bucket_steps(control.GRIPPER_TIME, episodes.dt)
+        self.steps_per_iteration = steps_per_iteration(episodes.backend_name)
         self._program = jax.jit(self._key_action, static_argnames="stop_at_success")
 
     def __call__(self, env: DeviceEnv, actions: KeyActions, stop_at_success: bool) -> DeviceEnv:
@@ -83,28 +99,25 @@ class KeyActionStep:
                     stop_at_success: bool) -> DeviceEnv:
         ep, out = self.ep, self.outcome
         running = env.outcome == out.RUNNING
-        done = ~running if stop_at_success else ~running & (env.outcome != out.SUCCESS)
+        done = self._done(env.outcome, stop_at_success)
         valid = jnp.asarray(actions.valid, bool)
         outcome = jnp.where(~done & ~valid & running, out.NO_ACTION, env.outcome)
         active = ~done & valid
 
         q0 = env.data[:, ep._arm_q]
         path, duration, status = plan
-        bad = active & (status != Status.OK)
-        for code, reason in ((Status.OUT_OF_WORKSPACE, out.OUT_OF_WORKSPACE),
-                             (Status.UNREACHABLE, out.UNREACHABLE),
-                             (Status.INVALID_ACTION, out.INVALID_ACTION)):
+        bad = active & (status != control.Status.OK)
+        for code, reason in self.status_outcome.items():
             outcome = jnp.where(bad & (status == code), reason, outcome)
         active = active & ~bad
-        env = env.replace(outcome=outcome,
-                               key_actions=env.key_actions + active)
+        env = env.replace(outcome=outcome, key_actions=env.key_actions + active)
 
         # Arm phase: move along the path, then hold so the arm comes to rest.
         steps = control.bucket_steps(duration + control.SETTLE_TIME, ep.dt) * active
         duration = jnp.maximum(duration, 1e-3)
         dt = jnp.asarray(ep.dt, q0.dtype)
 
-        def arm_ctrl(t, d):
+        def arm_ctrl(t):
             arm = control.arm_target_at(path, duration, (t + 1) * dt)
             return jnp.concatenate([arm, env.gripper[:, None].astype(arm.dtype)], -1)
 
@@ -112,23 +125,19 @@ class KeyActionStep:
 
         # Gripper phase, only for worlds whose gripper command changes.
         target = control.finger_target(jnp.asarray(actions.gripper, env.gripper.dtype))
-        done = env.outcome != out.RUNNING
-        if not stop_at_success:
-            done = done & (env.outcome != out.SUCCESS)
+        done = self._done(env.outcome, stop_at_success)
         moving = active & ~done & (jnp.abs(target - env.gripper) > 1e-4)
         opening = moving & (target > env.gripper)
         env = self._with_welds(env, env.attached & ~opening[:, None])
         hold = env.physics.ctrl[:, :7]
         start, goal = env.gripper, jnp.where(moving, target, env.gripper)
 
-        def grip_ctrl(t, d):
+        def grip_ctrl(t):
             finger = control.gripper_target_at(start, goal, (t + 1) * dt)
             return jnp.concatenate([hold, finger[:, None].astype(hold.dtype)], -1)
 
         env = self._phase(env, self.gripper_steps * moving, grip_ctrl, stop_at_success)
-        done = env.outcome != out.RUNNING
-        if not stop_at_success:
-            done = done & (env.outcome != out.SUCCESS)
+        done = self._done(env.outcome, stop_at_success)
         closing = moving & ~opening & ~done
         env = env.replace(gripper=jnp.where(moving, target, env.gripper))
         if ep.task.graspables:
@@ -136,25 +145,29 @@ class KeyActionStep:
             env = self._with_welds(env, env.attached | (hits & closing[:, None]))
 
         over = (env.outcome == out.RUNNING) & (env.key_actions >= ep.task.max_key_actions)
-        return env.replace(outcome=jnp.where(over, out.MAX_STEPS,
-                                                                   env.outcome))
+        return env.replace(outcome=jnp.where(over, out.MAX_STEPS, env.outcome))
+
+    def _done(self, outcome: jax.Array, stop_at_success: bool) -> jax.Array:
+        """EnvState.done: evaluation ends at the first success, demonstrations do not."""
+        done = outcome != self.outcome.RUNNING
+        return done if stop_at_success else done & (outcome != self.outcome.SUCCESS)
 
     def _phase(self, env: DeviceEnv, steps: jax.Array, ctrl_at, stop_at_success: bool
                ) -> DeviceEnv:
-        """Step world w for steps[w] physics steps under ctrl_at(t, data) (B, nu), checking
+        """Step world w for steps[w] physics steps under ctrl_at(t) (B, nu), checking
         the conditions after each step; update outcomes, step counts and the last row."""
         ep, out = self.ep, self.outcome
         m, d = self.dev.load(env.physics)
-        cond_step = jax.vmap(functools.partial(_condition_step, ep))
+        cond_step = jax.vmap(ep._condition_step)
         b = steps.shape[0]
         none = jnp.full(b, -1, jnp.int32)
 
         def go_on(c):
             return jnp.any(c[-1])
 
-        def body(c):
+        def one_step(c):
             t, d, data, carry, s_at, f_at, live = c
-            new = self.dev.step(m, d, ctrl_at(t, d))
+            new = self.dev.step(m, d, ctrl_at(t))
             new_carry, s, f = cond_step(carry, new.sensordata, env.attached, env.variation)
             carry = jax.tree.map(lambda n, o: keep_rows(live, n, o), new_carry, carry)
             s_at = jnp.where(live & s & (s_at < 0), t, s_at)
@@ -163,6 +176,14 @@ class KeyActionStep:
             data = keep_rows(live, new.sensordata, data)
             ended = (t + 1 >= steps) | (f_at >= 0) | ((s_at >= 0) & stop_at_success)
             return t + 1, d, data, carry, s_at, f_at, live & ~ended
+
+        def body(c):
+            # Several masked steps per iteration: a step of a world past its end is undone
+            # by `freeze`, so this changes no result, only how often the loop's condition
+            # makes the host wait for the device (see steps_per_iteration).
+            for _ in range(self.steps_per_iteration):
+                c = one_step(c)
+            return c
 
         init = (jnp.int32(0), d, env.data, env.carry, none, none, steps > 0)
         _, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(go_on, body, init)
@@ -197,15 +218,6 @@ class KeyActionStep:
             eq_active = eq_active.at[:, eq].set(attached[:, g])
         physics = env.physics.replace(eq_data=eq_data, eq_active=eq_active)
         return env.replace(physics=physics, attached=attached)
-
-
-def _condition_step(ep: Episodes, carry, data, attached, variation):
-    """One physics step of one world's success and failure trees: (carry, met, failed)."""
-    obs = ep._obs(data, attached)
-    success, failure = ep.task.success(variation), ep.task.failure(variation)
-    sc, s = success.step(carry[0], obs)
-    fc, f = failure.step(carry[1], obs)
-    return (sc, fc), jnp.asarray(s, bool), jnp.asarray(f, bool)
 
 
 def to_device(env, physics_dtype=jnp.float32) -> DeviceEnv:

@@ -280,12 +280,57 @@ def render_views(episodes: Episodes, env: EnvState, spec: ObservationSpec
     kind = _renderer_kind(episodes, spec)
     renderer = _renderer(episodes, spec, kind, len(p.qpos))
     if kind == "warp":
+        import jax.numpy as jnp
+
         data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
-        return renderer.render_views(data, np.asarray(env.geom_rgba, np.float32))
+        return renderer.render_views(data, jnp.asarray(env.geom_rgba, jnp.float32))
     return renderer.render_views(
         np.asarray(p.qpos), np.asarray(p.mocap_pos), np.asarray(p.mocap_quat), spec.cameras,
         env.geom_rgba, rgb=spec.wants("rgb"), depth=spec.needs_depth,
         segmentation=spec.wants("segmentation"))
+
+
+_CAMERA_ARRAYS = ("extrinsics", "rgb", "depth", "point_cloud", "segmentation")
+
+
+def _camera_constants(model: mujoco.MjModel, spec: ObservationSpec
+                      ) -> dict[str, tuple[np.ndarray, float, float]]:
+    """Per camera of `spec`: intrinsics, near, far."""
+    out = {}
+    for name in spec.cameras:
+        cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+        near, far = RLBENCH_NEAR_FAR.get(name, (0.01, 4.5))
+        out[name] = (intrinsics(float(model.cam_fovy[cam_id]), spec.height, spec.width), near, far)
+    return out
+
+
+def _warp_cameras(episodes: Episodes, env: EnvState, spec: ObservationSpec
+                  ) -> dict[str, CameraObservation]:
+    """Every camera of `spec` on MJX-Warp as one device program: pose (kinematics and
+    camera poses), trace, then depth clipping, extrinsics and point clouds; device arrays."""
+    import jax
+    import jax.numpy as jnp
+
+    p = env.physics
+    renderer = _renderer(episodes, spec, "warp", len(p.qpos))
+    constants = _camera_constants(episodes.scene.model, spec)
+    programs = episodes.__dict__.setdefault("_observation_programs", {})
+    key = (spec, len(p.qpos))
+    if key not in programs:
+        def observe_all(template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any,
+                        rgba: Any) -> dict[str, dict[str, Any]]:
+            views = renderer.views(renderer.pose(template, qpos, mocap_pos, mocap_quat), rgba)
+            out = {}
+            for name, (k, near, far) in constants.items():
+                cam = camera_observation(views[name], k, near, far, spec, jnp)
+                out[name] = {f: getattr(cam, f) for f in _CAMERA_ARRAYS}
+            return out
+
+        programs[key] = jax.jit(observe_all)
+    arrays = programs[key](renderer.template(), p.qpos, p.mocap_pos, p.mocap_quat,
+                     jnp.asarray(env.geom_rgba, jnp.float32))
+    return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
+            for name, (k, near, far) in constants.items()}
 
 
 def camera_observation(images: CameraImages, intrinsic: np.ndarray, near: float, far: float,
@@ -319,23 +364,17 @@ def proprioception(episodes: Episodes, env: EnvState) -> dict[str, np.ndarray]:
 
 def observe(episodes: Episodes, env: EnvState, spec: ObservationSpec) -> RLBenchObservation:
     """Render and assemble `spec`'s observation of every world of `env`."""
-    model = episodes.scene.model
-    views = render_views(episodes, env, spec)
-    xp = np
     if _renderer_kind(episodes, spec) == "warp":
-        import jax.numpy as jnp
-
-        xp = jnp
-    cameras = {}
-    for name in spec.cameras:
-        cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
-        near, far = RLBENCH_NEAR_FAR.get(name, (0.01, 4.5))
-        k = intrinsics(float(model.cam_fovy[cam_id]), spec.height, spec.width)
-        cam = camera_observation(views[name], k, near, far, spec, xp)
-        if xp is not np and spec.numpy:
-            cam = CameraObservation(**{f: (np.asarray(v) if hasattr(v, "shape") else v)
-                                       for f, v in vars(cam).items()})
-        cameras[name] = cam
+        cameras = _warp_cameras(episodes, env, spec)
+        if spec.numpy:
+            cameras = {name: CameraObservation(**{f: (np.asarray(v) if hasattr(v, "shape") else v)
+                                                  for f, v in vars(cam).items()})
+                       for name, cam in cameras.items()}
+    else:
+        views = render_views(episodes, env, spec)
+        cameras = {name: camera_observation(views[name], k, near, far, spec)
+                   for name, (k, near, far) in _camera_constants(episodes.scene.model,
+                                                                  spec).items()}
     task = episodes.task
     return RLBenchObservation(
         cameras=cameras, **proprioception(episodes, env),

@@ -65,15 +65,26 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _arrays(result: Any) -> list:
+    """The arrays of a result, observations included (a dataclass is not a pytree, and
+    ``block_until_ready`` on it would return before the device has finished)."""
+    import jax
+
+    if hasattr(result, "cameras"):
+        return [v for cam in result.cameras.values() for v in vars(cam).values()
+                if hasattr(v, "shape")]
+    return jax.tree.leaves(result)
+
+
 def _best(fn: Callable[[], Any], repeats: int) -> float:
     """Best wall time of `repeats` calls after one warm-up (results are waited for)."""
     import jax
 
-    jax.block_until_ready(fn())
+    jax.block_until_ready(_arrays(fn()))
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
-        jax.block_until_ready(fn())
+        jax.block_until_ready(_arrays(fn()))
         times.append(time.perf_counter() - t)
     return min(times)
 

@@ -568,6 +568,49 @@ def cpu_renderer(model: mujoco.MjModel, width: int = 128, height: int = 128,
     if n == 1:
         return CpuRenderer(model, width, height, samples)
     return ThreadedCpuRenderer(model, width, height, samples, threads=n)
+class FixedCamLight:
+    """Camera and light poses of a scene whose cameras and lights are all fixed to a body.
+
+    ``mj_camlight`` in closed form: a pose is the body's pose composed with the camera's
+    (light's) local one.  Warp's ``kinematics`` does not pose cameras and lights and MJX's
+    ``camlight`` is JAX-only, so without this the warp observation ran a full ``forward``
+    (contacts, constraints, solver) only to place five cameras.  Works on numpy or JAX
+    arrays with any leading batch axes (``xp``)."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        moving = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i)
+                  for i in range(model.ncam) if model.cam_mode[i] != mujoco.mjtCamLight.mjCAMLIGHT_FIXED]
+        moving += [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_LIGHT, i)
+                   for i in range(model.nlight)
+                   if model.light_mode[i] != mujoco.mjtCamLight.mjCAMLIGHT_FIXED]
+        if moving:
+            raise ValueError(f"cameras/lights not fixed to their body: {moving}")
+        self.cam_body = np.asarray(model.cam_bodyid, np.int32)
+        self.cam_pos = np.asarray(model.cam_pos, np.float32)
+        mats = np.zeros((model.ncam, 9))
+        for i in range(model.ncam):
+            mujoco.mju_quat2Mat(mats[i], model.cam_quat[i])
+        self.cam_mat = mats.reshape(-1, 3, 3).astype(np.float32)
+        self.light_body = np.asarray(model.light_bodyid, np.int32)
+        self.light_pos = np.asarray(model.light_pos, np.float32)
+        self.light_dir = np.asarray(model.light_dir, np.float32)
+
+    @staticmethod
+    def supports(model: mujoco.MjModel) -> bool:
+        fixed = mujoco.mjtCamLight.mjCAMLIGHT_FIXED
+        return bool(np.all(model.cam_mode == fixed) and np.all(model.light_mode == fixed))
+
+    def __call__(self, xpos: Any, xmat: Any, xp: Any = np) -> tuple[Any, Any, Any, Any]:
+        """Body poses (..., nbody, 3), (..., nbody, 3, 3) -> cam_xpos, cam_xmat, light_xpos,
+        light_xdir as MuJoCo's Data holds them."""
+        def place(body: np.ndarray, local: np.ndarray) -> Any:
+            return xpos[..., body, :] + (xmat[..., body, :, :] @ xp.asarray(local)[..., None])[..., 0]
+
+        cam_xmat = xmat[..., self.cam_body, :, :] @ xp.asarray(self.cam_mat)
+        light_xdir = (xmat[..., self.light_body, :, :]
+                      @ xp.asarray(self.light_dir)[..., None])[..., 0]
+        return (place(self.cam_body, self.cam_pos), cam_xmat,
+                place(self.light_body, self.light_pos), light_xdir)
 
 
 class WarpRenderer:
@@ -652,11 +695,14 @@ class WarpRenderer:
             return views
 
         self._buffers = jax.jit(_buffers)
+        self._views_fn = _views
         self._views = jax.jit(_views)
         self._template: Any = None
+        self._pose_jit: Any = None
+        self._camlight = FixedCamLight(model) if FixedCamLight.supports(model) else None
 
-    def state_data(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
-        """A posed warp ``mjx.Data`` batch (forward run) from host or device state arrays."""
+    def template(self) -> Any:
+        """A warp ``mjx.Data`` batch of ``nworld`` worlds, made once (its state is replaced)."""
         import jax
         import jax.numpy as jnp
         from mujoco import mjx
@@ -665,11 +711,38 @@ class WarpRenderer:
             make = lambda _: mjx.make_data(self._model, impl="warp",  # noqa: E731
                                            naconmax=64 * self.nworld, njmax=256)
             self._template = jax.jit(jax.vmap(make))(jnp.arange(self.nworld))
-            mx = self.mx
-            self._pose = jax.jit(lambda d, q, p, r: jax.vmap(lambda d: mjx.forward(mx, d))(
-                d.replace(qpos=q, mocap_pos=p, mocap_quat=r)))
+        return self._template
+
+    def pose(self, template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
+        """``template`` with this state, posed for rendering (traceable: use inside a jit).
+
+        Kinematics and the cameras' and lights' poses when they are all fixed to bodies
+        (every task scene), else a full ``forward``."""
+        import jax
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        mx = self.mx
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        return self._pose(self._template, f32(qpos), f32(mocap_pos), f32(mocap_quat))
+        d = template.replace(qpos=f32(qpos), mocap_pos=f32(mocap_pos), mocap_quat=f32(mocap_quat))
+        if self._camlight is None:
+            return jax.vmap(lambda d: mjx.forward(mx, d))(d)
+        d = jax.vmap(lambda d: mjx.kinematics(mx, d))(d)
+        cam_xpos, cam_xmat, light_xpos, light_xdir = self._camlight(d.xpos, d.xmat, jnp)
+        return d.tree_replace({"cam_xpos": cam_xpos, "cam_xmat": cam_xmat,
+                               "_impl.light_xpos": light_xpos, "_impl.light_xdir": light_xdir})
+
+    def state_data(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
+        """A posed warp ``mjx.Data`` batch from host or device state arrays."""
+        import jax
+
+        if self._pose_jit is None:
+            self._pose_jit = jax.jit(self.pose)
+        return self._pose_jit(self.template(), qpos, mocap_pos, mocap_quat)
+
+    def views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
+        """:meth:`render_views` without the checks (traceable: use inside a jit)."""
+        return self._views_fn(data, geom_rgba)
 
     def camera_id(self, camera: str) -> int:
         """Index of ``camera`` among the rendered cameras (what ``get_rgb`` expects)."""

@@ -6,6 +6,7 @@ the per-task cases are slow tests; `python -m pytest -m slow tests/test_key_acti
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import numpy as np
@@ -38,6 +39,28 @@ def _constructed_actions(ep: Episodes, env) -> list[KeyActions]:
             pos[2] = (0.2, 0.0, 2.5)
         steps.append(KeyActions(pos, quat, grip, valid))
     return steps
+
+
+@pytest.mark.parametrize("task", ["lamp_on", "phone_on_base"])
+def test_device_step_traces_with_the_documented_shapes(task):
+    """The device program (with and without grasp welds) traces, at both stop modes, to a
+    DeviceEnv of the input's shapes and dtypes: a cheap guard for the default suite (no
+    compile, no physics)."""
+    from agnostos_mjx.key_action import KeyActionStep, to_device
+
+    ep = Episodes(get_task(task), "jax")
+    env = ep.reset(_keys(2), np.zeros(2, np.int32))
+    dev = to_device(env)
+    expert = ep.expert_actions(env)
+    acts = KeyActions(*(jax.numpy.asarray(np.asarray(x)[:, 0]) for x in
+                        (expert.pos, expert.quat, expert.gripper, expert.valid)))
+    step = KeyActionStep(ep, 2)
+    plan = jax.eval_shape(ep._device_plan, dev.data[:, ep._arm_q], acts.pos, acts.quat)
+    for stop in (True, False):
+        out = jax.eval_shape(functools.partial(step._key_action, stop_at_success=stop),
+                             dev, acts, plan)
+        shapes = jax.tree.map(lambda x: (x.shape, x.dtype), out)
+        assert shapes == jax.tree.map(lambda x: (x.shape, x.dtype), dev)
 
 
 def _run(ep: Episodes, env, steps: list[KeyActions], record: bool):

@@ -5,6 +5,8 @@ Tiny batches at 48 px keep this fast; one task scene (close_jar) is reset once p
 
 from __future__ import annotations
 
+import copy
+
 import jax
 import mujoco
 import numpy as np
@@ -206,6 +208,38 @@ def test_spec_validation() -> None:
     assert ob.ObservationSpec(modalities=("point_cloud",)).needs_depth
 
 
+def test_fixed_camlight_equals_mujoco_camlight() -> None:
+    """The closed-form camera and light poses the warp observation uses (instead of a full
+    forward) equal mj_forward's, for a moved arm and a batch of worlds in JAX."""
+    import jax.numpy as jnp
+
+    from agnostos_mjx.render import FixedCamLight
+
+    model = build_scene(get_task("close_jar")).model
+    rng = np.random.default_rng(0)
+    datas = []
+    for _ in range(3):
+        d = mujoco.MjData(model)
+        d.qpos[:] = model.qpos0 + 0.3 * rng.standard_normal(model.nq)
+        mujoco.mj_forward(model, d)
+        datas.append(d)
+    camlight = FixedCamLight(model)
+    xpos = jnp.asarray(np.stack([d.xpos for d in datas]))
+    xmat = jnp.asarray(np.stack([d.xmat.reshape(-1, 3, 3) for d in datas]))
+    got = camlight(xpos, xmat, jnp)
+    want = [np.stack([getattr(d, f) for d in datas]) for f in
+            ("cam_xpos", "cam_xmat", "light_xpos", "light_xdir")]
+    want[1] = want[1].reshape(3, -1, 3, 3)
+    assert want[0].std(axis=0).max() > 0.01  # the wrist camera moved between worlds
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(np.asarray(g), w, atol=1e-5)
+    tracking = copy.copy(model)  # scenes are cached: never edit a shared model
+    tracking.cam_mode[0] = mujoco.mjtCamLight.mjCAMLIGHT_TRACK
+    assert not FixedCamLight.supports(tracking) and FixedCamLight.supports(model)
+    with pytest.raises(ValueError, match="not fixed"):
+        FixedCamLight(tracking)
+
+
 @pytest.mark.slow
 def test_warp_matches_cpu(scene) -> None:
     """MJX-Warp's observation agrees with the CPU renderer's on the same state (GPU: seconds;
@@ -256,3 +290,25 @@ def test_readme_plugin_runs(tmp_path) -> None:
     results = evaluate(cfg)
     assert len(results["episodes"]) == 2
     assert all(r["outcome"] != "policy_error" for r in results["episodes"])
+
+
+def test_object_text_report_counts(tmp_path) -> None:
+    """The segmented-vs-ground-truth text report counts differing indices, omitted objects
+    and differing query lines; it runs end to end on a task and rejects unknown tasks."""
+    import json
+
+    from agnostos_mjx.xicm import object_text_report as rep
+
+    truth = [{"a": [1, 2, 3], "b": [4, 5, 6]}, {"a": [1, 1, 1], "b": [2, 2, 2]}]
+    seg = [{"a": [1, 2, 3], "b": [4, 7, 6]}, {"a": [1, 1, 1]}]
+    got = rep.compare_texts(truth, seg)
+    assert got == {"worlds": 2, "objects": 4, "omitted_objects": 1, "indices": 9,
+                   "indices_differing": 1, "max_index_difference": 2,
+                   "mean_abs_difference_where_differing": 2.0, "queries_differing": 2}
+    assert rep.main(["--tasks", "lamp_on", "--seeds", "0", "--episodes", "2",
+                     "--out", str(tmp_path)]) == 0
+    row = json.loads((tmp_path / "object_text.json").read_text())["rows"][0]
+    assert row["task"] == "lamp_on" and row["worlds"] == 2
+    assert row["indices"] == 3 * (row["objects"] - row["omitted_objects"]) > 0
+    assert "| **all** |" in (tmp_path / "object_text.md").read_text()
+    assert rep.main(["--tasks", "no_such_task"]) == 2

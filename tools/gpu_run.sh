@@ -9,6 +9,8 @@
 #   bash tools/gpu_run.sh start BACKEND[:LABEL]...  the main job per BACKEND, one after the other,
 #                                             detached: it runs on between calls while the
 #                                             machine stays warm (start twice to overlap)
+#   bash tools/gpu_run.sh parallel N BACKEND:LABEL   the main job as N processes sharing the GPU
+#                                             (--num-processes N, then --merge), detached
 #   bash tools/gpu_run.sh collect SECONDS     wait up to SECONDS for detached runs, then bring
 #                                             back each run's folder (log, results, episodes)
 # Outputs go to $OUT (what comes back) and /tmp/agnostos (kept while the machine is warm).
@@ -67,6 +69,21 @@ case "$1" in
     (cd /tmp/agnostos/src && PYTHONPATH=/tmp/site:/tmp/agnostos/src \
       XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 setsid nohup bash -c "$job" > /dev/null 2>&1 < /dev/null &)
     echo "started ${*:2} (one after the other)" ;;
+  parallel)  # parallel N BACKEND:LABEL: the main job split over N processes sharing the GPU
+    n=$2; b=${3%%:*}; label=${3#*:}; R=/tmp/agnostos/default_$label
+    mkdir -p /tmp/agnostos/src $R && cp -r agnostos_mjx scenes pyproject.toml /tmp/agnostos/src/
+    frac=$(python3 -c "print(round(0.6 / $n, 3))")  # Warp allocates its CUDA graphs outside the pool
+    job="cd /tmp/agnostos/src; t0=\$SECONDS; "
+    for i in $(seq 0 $((n - 1))); do
+      job+="python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume --quiet \
+        --num-processes $n --process-id $i --gpu-mem-fraction $frac --out $R \
+        2>&1 | grep --line-buffered -v 'solver iterations\|warn_overflow\|linesearch\|^Module' \
+        > $R/proc$i.log & "
+    done
+    job+="wait; python3 -m agnostos_mjx.eval --out $R --merge --compare 'X-ICM 7B' > $R/log.txt 2>&1; \
+      echo \"exit \$? wall \$((SECONDS - t0)) s ($n processes)\" >> $R/log.txt"
+    (PYTHONPATH=/tmp/site:/tmp/agnostos/src setsid nohup bash -c "$job" > /dev/null 2>&1 < /dev/null &)
+    echo "started $n processes of the main job ($b) into $R" ;;
   collect)
     end=$((SECONDS + $2))
     while pgrep -f "agnostos_mjx[.]eval" > /dev/null && [ $SECONDS -lt $end ]; do sleep 5; done

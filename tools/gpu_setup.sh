@@ -9,7 +9,7 @@
 # warp-lang. Then: export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_run.sh does).
 # Native-only work (no warp backend) needs call 0 only.
 set -e
-for f in .gl/*.deb; do dpkg -x "$f" /; done
+for f in .gl/*.deb; do [ -e "$f" ] && dpkg -x "$f" /; done  # .gl is carried in call 0 only
 ldconfig
 if [ "$1" = 0 ] && [ -d .whl ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -76,8 +77,10 @@ class MjxBackend:
             # H200) and, measured with tools/warp_variants.py, returned stale
             # sensor data at batch 1024.  The staged mode copies into fixed
             # buffers: 500k env-steps/s at batch 1024 with correct data.
+            # AGNOSTOS_WARP_GRAPH_MODE overrides it for measurements (tools/gpu_session14.sh).
             from mujoco.mjx.warp import types as warp_types
 
+            graph_mode = os.environ.get("AGNOSTOS_WARP_GRAPH_MODE", graph_mode)
             options["graph_mode"] = getattr(warp_types.GraphMode, graph_mode)
         self.mx = mjx.put_model(model, impl=impl, **options)
         self.contacts_per_world = contacts_per_world
