@@ -568,6 +568,8 @@ def cpu_renderer(model: mujoco.MjModel, width: int = 128, height: int = 128,
     if n == 1:
         return CpuRenderer(model, width, height, samples)
     return ThreadedCpuRenderer(model, width, height, samples, threads=n)
+
+
 class FixedCamLight:
     """Camera and light poses of a scene whose cameras and lights are all fixed to a body.
 
