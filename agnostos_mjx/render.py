@@ -45,6 +45,7 @@ os.environ.setdefault(
     ),
 )
 
+import atexit
 import copy
 import importlib
 import queue
@@ -410,6 +411,10 @@ def _serve(tasks: queue.SimpleQueue, ready: Future, args: tuple) -> None:
                     future.set_exception(err)
     finally:
         renderer.close()
+        _WORKER_QUEUES.pop(threading.current_thread(), None)
+
+
+_EXIT_HOOK: list[bool] = []
 
 
 class _RenderWorker:
@@ -422,6 +427,10 @@ class _RenderWorker:
                                        name=name, daemon=True)
         self.thread.start()
         self.renderer: CpuRenderer = ready.result()  # re-raises a failed build
+        if not _EXIT_HOOK:
+            atexit.register(_stop_workers_at_exit)
+            _EXIT_HOOK.append(True)
+        _WORKER_QUEUES[self.thread] = self._tasks
 
     def submit(self, fn: Any) -> Future:
         future: Future = Future()
@@ -433,6 +442,21 @@ class _RenderWorker:
         self._tasks.put(None)
         if wait and self.thread is not threading.current_thread():
             self.thread.join()
+
+
+_WORKER_QUEUES: dict[threading.Thread, queue.SimpleQueue] = {}  # every worker not yet ended
+
+
+def _stop_workers_at_exit() -> None:
+    """Free every worker's GL context and end its thread, renderer closed or not.
+
+    Registered when the first worker has made its context, i.e. after mujoco registered its
+    EGL display's termination: exit hooks run last-registered first, so the contexts are
+    freed while the display exists (otherwise daemon threads freeing them race the
+    interpreter's shutdown and print tracebacks)."""
+    for thread, tasks in list(_WORKER_QUEUES.items()):
+        tasks.put(None)
+        thread.join(timeout=10)
 
 
 class ThreadedCpuRenderer:

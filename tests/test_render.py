@@ -131,10 +131,13 @@ def _batch(model: mujoco.MjModel, n: int = 5) -> tuple[np.ndarray, ...]:
     return qpos, mocap_pos, mocap_quat, rgba
 
 
-def _worker_threads() -> list:
+def _worker_threads(before: frozenset = frozenset()) -> list:
+    """Render worker threads alive now, except `before` (renderers cached by earlier tests
+    of the session keep theirs)."""
     import threading
 
-    return [t for t in threading.enumerate() if t.name.startswith("cpu-render-")]
+    return [t for t in threading.enumerate()
+            if t.name.startswith("cpu-render-") and t not in before]
 
 
 def test_threaded_renderer_equals_single(model: mujoco.MjModel,
@@ -142,8 +145,9 @@ def test_threaded_renderer_equals_single(model: mujoco.MjModel,
     qpos, pos, quat, rgba = _batch(model)
     flags = {"rgb": True, "depth": True, "segmentation": True}
     want = renderer.render_views(qpos, pos, quat, ("front", "top"), rgba, **flags)
+    before = frozenset(_worker_threads())
     with render.ThreadedCpuRenderer(model, SIZE, SIZE, threads=3) as threaded:
-        assert len(_worker_threads()) == 3
+        assert len(_worker_threads(before)) == 3
         for args in ((qpos, pos, quat, rgba), (qpos[:2], None, None, None)):
             got = threaded.render_views(*args[:3], ("front", "top"), args[3], **flags)
             ref = want if args[0] is qpos else renderer.render_views(
@@ -173,7 +177,7 @@ def test_threaded_renderer_equals_single(model: mujoco.MjModel,
         with pytest.raises(Boom, match="chunk failed"):
             threaded.render_views(qpos, pos, quat, ("front",))
         del threaded._workers[1].renderer.render_views
-    assert _worker_threads() == []  # close() joined the threads
+    assert _worker_threads(before) == []  # close() joined the threads
     with pytest.raises(RuntimeError, match="closed"):
         threaded.render_views(qpos, pos, quat, ("front",))
     threaded.close()  # idempotent
@@ -182,14 +186,15 @@ def test_threaded_renderer_equals_single(model: mujoco.MjModel,
 def test_render_threads_setting(model: mujoco.MjModel, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(render.RENDER_THREADS_ENV, "1")
     assert render.render_threads() == 1
+    before = frozenset(_worker_threads())
     r = render.cpu_renderer(model, SIZE, SIZE)
-    assert isinstance(r, render.CpuRenderer) and _worker_threads() == []  # no threads for 1
+    assert isinstance(r, render.CpuRenderer) and _worker_threads(before) == []  # no threads for 1
     r.close()
     with render.ThreadedCpuRenderer(model, SIZE, SIZE) as one:  # one thread: no workers either
-        assert one.threads == 1 and _worker_threads() == []
+        assert one.threads == 1 and _worker_threads(before) == []
     monkeypatch.setenv(render.RENDER_THREADS_ENV, "2")
     with render.cpu_renderer(model, SIZE, SIZE) as two:
-        assert isinstance(two, render.ThreadedCpuRenderer) and len(_worker_threads()) == 2
+        assert isinstance(two, render.ThreadedCpuRenderer) and len(_worker_threads(before)) == 2
     monkeypatch.delenv(render.RENDER_THREADS_ENV)
     assert 1 <= render.render_threads() <= render.MAX_RENDER_THREADS
     monkeypatch.setenv(render.RENDER_THREADS_ENV, "many")
