@@ -26,7 +26,9 @@ threshold), ``joint_positions`` and ``joint_velocities`` (7 arm joints),
 ``gripper_joint_positions`` (the two fingers, metres) and the ``instructions``.
 
 Rendering runs where the physics runs: MuJoCo's OpenGL renderer over all worlds on a CPU
-(no multisampling: one sample per pixel, as MJX-Warp and ~3x faster on llvmpipe), MJX-Warp's
+(no multisampling: one sample per pixel, as MJX-Warp and ~3x faster on llvmpipe; the worlds
+split into contiguous chunks over ``render.render_threads()`` threads, each with its own GL
+context: the usable cores up to 8, or ``AGNOSTOS_RENDER_THREADS``), MJX-Warp's
 batch ray-tracer on a GPU (JAX device arrays unless the spec asks for numpy).
 """
 
@@ -252,13 +254,15 @@ def _renderer_kind(episodes: Episodes, spec: ObservationSpec) -> str:
 
 def _renderer(episodes: Episodes, spec: ObservationSpec, kind: str, nworld: int) -> Any:
     """A renderer cached on the Episodes runner (GL contexts and Warp kernels are costly)."""
-    from agnostos_mjx.render import CpuRenderer, WarpRenderer
+    from agnostos_mjx.render import WarpRenderer, cpu_renderer, render_threads
 
     cache = episodes.__dict__.setdefault("_observation_renderers", {})
-    if kind == "cpu":
-        key: tuple = ("cpu", spec.height, spec.width)
+    if kind == "cpu":  # worlds split over render_threads() threads (AGNOSTOS_RENDER_THREADS)
+        threads = render_threads()
+        key: tuple = ("cpu", spec.height, spec.width, threads)
         if key not in cache:
-            cache[key] = CpuRenderer(episodes.scene.model, spec.width, spec.height, samples=0)
+            cache[key] = cpu_renderer(episodes.scene.model, spec.width, spec.height, samples=0,
+                                      threads=threads)
     else:
         key = ("warp", spec.height, spec.width, spec.cameras, nworld, spec.needs_depth,
                spec.wants("segmentation"))

@@ -117,3 +117,86 @@ def test_close_and_factory(model: mujoco.MjModel, renderer: render.CpuRenderer) 
     assert model.vis.global_.offwidth == 32  # buffer enlarged on the private copy only
     assert render.gl_backend() in ("egl", "osmesa", "glx", "glfw", "")
     assert hasattr(render, "WarpRenderer")  # defined without importing warp
+
+
+def _batch(model: mujoco.MjModel, n: int = 5) -> tuple[np.ndarray, ...]:
+    """n different worlds: cube and mocap box moved, colours changed per world."""
+    rng = np.random.default_rng(0)
+    qpos = np.tile(model.qpos0, (n, 1))
+    qpos[:, :3] += rng.uniform(-0.2, 0.2, (n, 3))
+    mocap_pos = np.tile([0.3, 0.0, 0.1], (n, 1, 1)) + rng.uniform(-0.1, 0.1, (n, 1, 3))
+    mocap_quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1, 1))
+    rgba = np.tile(model.geom_rgba, (n, 1, 1))
+    rgba[:, :, :3] = rng.uniform(0, 1, (n, model.ngeom, 3))
+    return qpos, mocap_pos, mocap_quat, rgba
+
+
+def _worker_threads(before: frozenset = frozenset()) -> list:
+    """Render worker threads alive now, except `before` (renderers cached by earlier tests
+    of the session keep theirs)."""
+    import threading
+
+    return [t for t in threading.enumerate()
+            if t.name.startswith("cpu-render-") and t not in before]
+
+
+def test_threaded_renderer_equals_single(model: mujoco.MjModel,
+                                         renderer: render.CpuRenderer) -> None:
+    qpos, pos, quat, rgba = _batch(model)
+    flags = {"rgb": True, "depth": True, "segmentation": True}
+    want = renderer.render_views(qpos, pos, quat, ("front", "top"), rgba, **flags)
+    before = frozenset(_worker_threads())
+    with render.ThreadedCpuRenderer(model, SIZE, SIZE, threads=3) as threaded:
+        assert len(_worker_threads(before)) == 3
+        for args in ((qpos, pos, quat, rgba), (qpos[:2], None, None, None)):
+            got = threaded.render_views(*args[:3], ("front", "top"), args[3], **flags)
+            ref = want if args[0] is qpos else renderer.render_views(
+                *args[:3], ("front", "top"), None, **flags)
+            for cam in ("front", "top"):
+                for field in ("pos", "mat", "rgb", "depth", "segmentation"):
+                    a, b = getattr(got[cam], field), getattr(ref[cam], field)
+                    assert a.dtype == b.dtype and a.shape == b.shape
+                    assert a.tobytes() == b.tobytes(), (cam, field)
+        assert threaded.render(qpos, pos, quat, "top").shape == (5, SIZE, SIZE, 3)
+        # Errors of the workers (and of the batch checks) reach the caller unchanged.
+        for bad in (("nope",), ("front", "nope")):
+            with pytest.raises(ValueError) as threaded_err:
+                threaded.render_views(qpos, pos, quat, bad)
+            with pytest.raises(ValueError) as single_err:
+                renderer.render_views(qpos, pos, quat, bad)
+            assert str(threaded_err.value) == str(single_err.value)
+        with pytest.raises(ValueError, match=r"qpos must be \[B, 7\], got \(5, 3\)"):
+            threaded.render_views(qpos[:, :3], None, None, ("front",))
+        class Boom(Exception):
+            pass
+
+        def boom(*args, **kwargs):
+            raise Boom("chunk failed")
+
+        threaded._workers[1].renderer.render_views = boom  # an error inside one worker thread
+        with pytest.raises(Boom, match="chunk failed"):
+            threaded.render_views(qpos, pos, quat, ("front",))
+        del threaded._workers[1].renderer.render_views
+    assert _worker_threads(before) == []  # close() joined the threads
+    with pytest.raises(RuntimeError, match="closed"):
+        threaded.render_views(qpos, pos, quat, ("front",))
+    threaded.close()  # idempotent
+
+
+def test_render_threads_setting(model: mujoco.MjModel, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(render.RENDER_THREADS_ENV, "1")
+    assert render.render_threads() == 1
+    before = frozenset(_worker_threads())
+    r = render.cpu_renderer(model, SIZE, SIZE)
+    assert isinstance(r, render.CpuRenderer) and _worker_threads(before) == []  # no threads for 1
+    r.close()
+    with render.ThreadedCpuRenderer(model, SIZE, SIZE) as one:  # one thread: no workers either
+        assert one.threads == 1 and _worker_threads(before) == []
+    monkeypatch.setenv(render.RENDER_THREADS_ENV, "2")
+    with render.cpu_renderer(model, SIZE, SIZE) as two:
+        assert isinstance(two, render.ThreadedCpuRenderer) and len(_worker_threads(before)) == 2
+    monkeypatch.delenv(render.RENDER_THREADS_ENV)
+    assert 1 <= render.render_threads() <= render.MAX_RENDER_THREADS
+    monkeypatch.setenv(render.RENDER_THREADS_ENV, "many")
+    with pytest.raises(ValueError, match=render.RENDER_THREADS_ENV):
+        render.render_threads()
