@@ -140,6 +140,7 @@ class EvalConfig:
     num_processes: int = 1
     coordinator: str | None = None
     merge: bool = False
+    local_processes: int = 1
 
 
 def _int_list(text: str) -> list[int]:
@@ -260,6 +261,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "jax.distributed.initialize with it (one JAX cluster; sharding "
                             "stays on each host's local devices); without it the processes "
                             "run independently")
+    scale.add_argument("--local-processes", type=_positive_int, default=1, metavar="N",
+                       help="run as N processes on this machine (each every N-th task, "
+                            "sharing its GPU; logs in --out/proc-I.log), then merge: with "
+                            "warp at batch 75 the GPU is mostly idle (H100 main job: 407 s "
+                            "as 8 processes; see agnostos_mjx/local_processes.py)")
     scale.add_argument("--merge", action="store_true",
                        help="only merge --out/proc-*/episodes.jsonl into --out's results "
                             "files (episodes.jsonl, results.json/.csv/.md/.png)")
@@ -327,7 +333,7 @@ def parse_config(argv: Sequence[str] | None = None) -> EvalConfig:
                       policy_url=a.policy_url, gpu_mem_fraction=a.gpu_mem_fraction,
                       devices=a.devices, process_id=a.process_id,
                       num_processes=a.num_processes, coordinator=a.coordinator,
-                      merge=a.merge)
+                      merge=a.merge, local_processes=a.local_processes)
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
@@ -1026,6 +1032,8 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     cfg = parse_config(argv)
     if cfg.merge:
         return merge_main(cfg)
+    if cfg.local_processes > 1:
+        return local_processes_main(cfg, argv)
     try:
         spec, _, note = resolve_policy(cfg)
     except Exception as e:  # e.g. an LLM URL without a model
@@ -1072,6 +1080,23 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
     return max(llm_summary(results.get("llm")), remote_summary(results.get("remote")))
+
+
+def local_processes_main(cfg: EvalConfig, argv: Sequence[str]) -> int:
+    """``--local-processes N``: the run as N processes on this machine, then merged."""
+    from agnostos_mjx import local_processes
+
+    setup_logging(cfg.quiet)
+    if cfg.out is None:
+        print("error: --local-processes needs --out DIR, the folder the processes share",
+              file=sys.stderr)
+        return 2
+    if cfg.num_processes > 1 or cfg.coordinator:
+        print("error: --local-processes starts its own processes; drop --num-processes, "
+              "--process-id and --coordinator", file=sys.stderr)
+        return 2
+    return local_processes.run(argv, cfg.local_processes, Path(cfg.out), cfg.quiet,
+                               cfg.gpu_mem_fraction)
 
 
 def merge_main(cfg: EvalConfig) -> int:

@@ -187,11 +187,42 @@ def test_two_processes_merge_into_the_records_of_one(cluster: bool, tmp_path: Pa
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
 
 
+def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
+    """--local-processes 2 starts both processes itself, logs each, and merges into the
+    records one process writes."""
+    shared, single = tmp_path / "shared", tmp_path / "single"
+    _finish(_eval("--out", str(shared), "--local-processes", "2"))
+    assert (shared / "proc-0.log").exists() and (shared / "proc-1.log").exists()
+    _finish(_eval("--out", str(single)))
+    assert _episodes(shared) == _episodes(single)
+    assert (shared / "results.md").read_text() == (single / "results.md").read_text()
+
+
+def test_local_processes_ctrl_c_stops_every_process(tmp_path: Path) -> None:
+    """Ctrl-C of --local-processes reaches each process once and ends the run with 130."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    parent = _eval("--out", str(out), "--local-processes", "2", "--episodes", "25",
+                   "--batch", "1")
+    deadline = time.monotonic() + 120
+    while not (out / "proc-1.log").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)
+    parent.send_signal(signal.SIGINT)
+    output, _ = parent.communicate(timeout=120)
+    assert parent.returncode == 130, output
+    assert "--resume" in output
+
+
 @pytest.mark.parametrize("args, expected", [
     (["--num-processes", "2"], "needs --out"),
     (["--num-processes", "2", "--process-id", "2", "--out", "{tmp}/x"], "expected 0..1"),
     (["--merge", "--out", "{tmp}"], "no proc-*/results.json"),
     (["--merge"], "needs --out"),
+    (["--local-processes", "2"], "needs --out"),
+    (["--local-processes", "2", "--num-processes", "2", "--out", "{tmp}/x"], "drop --num"),
 ])
 def test_scale_out_usage_errors_are_one_line(args: list[str], expected: str, tmp_path: Path,
                                              capsys: pytest.CaptureFixture) -> None:
