@@ -98,10 +98,16 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         for f in logs:
             f.close()
     failed = [(i, p.returncode) for i, p in enumerate(procs) if p.returncode != 0]
+    shown: set[str] = set()  # a usage error fails every process alike: say it once
     for i, code in failed:
-        tail = (out / f"proc-{i}.log").read_text(errors="replace").strip().splitlines()[-5:]
+        tail = "\n  ".join(
+            (out / f"proc-{i}.log").read_text(errors="replace").strip().splitlines()[-5:])
+        if tail in shown:
+            print(f"error: process {i} exited with {code} (the same)", file=sys.stderr)
+            continue
+        shown.add(tail)
         print(f"error: process {i} exited with {code}; last lines of {out}/proc-{i}.log:\n  "
-              + "\n  ".join(tail), file=sys.stderr)
+              + tail, file=sys.stderr)
     if failed:
         return 1
     log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)

@@ -198,6 +198,18 @@ def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
 
 
+def test_local_processes_report_a_failure_once(tmp_path: Path) -> None:
+    """A usage error fails every process alike: exit 1, the error shown once."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "agnostos_mjx.eval", "--policy", "oracle", "--tasks", "nope",
+         "--quiet", "--local-processes", "2", "--out", str(tmp_path / "run")],
+        cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True,
+        timeout=300)
+    assert proc.returncode == 1
+    assert proc.stderr.count("unknown task 'nope'") == 1, proc.stderr
+    assert "process 1 exited with 2 (the same)" in proc.stderr
+
+
 def test_local_processes_ctrl_c_stops_every_process(tmp_path: Path) -> None:
     """Ctrl-C of --local-processes reaches each process once and ends the run with 130."""
     import signal
