@@ -105,9 +105,8 @@ def seconds_per_call(fn, min_time: float) -> tuple[float, int]:
     return (time.perf_counter() - t0) / calls, calls
 
 
-def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float, float]:
-    """One batch of oracle episodes: (wall seconds, success fraction, reset seconds)."""
-    from agnostos_mjx.episode import Outcome
+def oracle_episodes(runner, batch: int, seed: int) -> tuple[Any, float, float]:
+    """One batch of oracle episodes: (final EnvState, wall seconds, reset seconds)."""
     from agnostos_mjx.eval import episode_keys
     from agnostos_mjx.policies.oracle import OraclePolicy
 
@@ -121,7 +120,15 @@ def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float, float]:
         if env.done.all():
             break
         env, _ = runner.step(env, policy.act(runner, env))
-    return time.perf_counter() - t0, float(np.mean(env.outcome == Outcome.SUCCESS)), reset
+    return env, time.perf_counter() - t0, reset
+
+
+def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float, float]:
+    """One batch of oracle episodes: (wall seconds, success fraction, reset seconds)."""
+    from agnostos_mjx.episode import Outcome
+
+    env, wall, reset = oracle_episodes(runner, batch, seed)
+    return wall, float(np.mean(env.outcome == Outcome.SUCCESS)), reset
 
 
 def bench_episodes(runner, batch: int) -> dict[str, float]:

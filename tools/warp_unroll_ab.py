@@ -18,19 +18,11 @@ import numpy as np
 
 
 def oracle_batch(runner, batch: int, seed: int):
-    from agnostos_mjx.eval import episode_keys
-    from agnostos_mjx.policies.oracle import OraclePolicy
+    """(wall seconds, outcomes, per-world physics steps) of one oracle batch."""
+    from agnostos_mjx.bench import oracle_episodes
 
-    t0 = time.perf_counter()
-    keys = episode_keys(np.full(batch, seed), np.arange(batch))
-    env = runner.reset(keys, np.arange(batch) % runner.task.num_variations)
-    policy = OraclePolicy()
-    policy.reset(runner, env, [""] * batch)
-    for _ in range(runner.task.max_key_actions):
-        if env.done.all():
-            break
-        env, _ = runner.step(env, policy.act(runner, env))
-    return time.perf_counter() - t0, np.asarray(env.outcome), np.asarray(env.sim_steps)
+    env, wall, _ = oracle_episodes(runner, batch, seed)
+    return wall, np.asarray(env.outcome), np.asarray(env.sim_steps)
 
 
 def main() -> None:
