@@ -125,7 +125,7 @@ def oracle_episodes(runner, batch: int, seed: int) -> tuple[Any, float, float]:
 
 def _oracle_batch(runner, batch: int, seed: int) -> tuple[float, float, float]:
     """One batch of oracle episodes: (wall seconds, success fraction, reset seconds)."""
-    from agnostos_mjx.episode import Outcome
+    from agnostos_mjx.runtime.outcome import Outcome
 
     env, wall, reset = oracle_episodes(runner, batch, seed)
     return wall, float(np.mean(env.outcome == Outcome.SUCCESS)), reset
@@ -185,7 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     # isort: split
     from agnostos_mjx.cli import atomic_write, versions
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.physics import BACKENDS, warp_available
 
     try:

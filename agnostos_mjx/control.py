@@ -476,16 +476,9 @@ def _along_path(path, duration, t):
     return take(i) * (1 - frac) + take(i + 1) * frac
 
 
-def arm_targets(path, duration, nstep: int, dt: float):
-    """Per-substep joint targets (B, nstep, 7) for the substeps 1..nstep."""
-    xp = array_module(path, duration)
-    return _along_path(path, duration, (xp.arange(1, nstep + 1) * dt)[None])
-
-
-def arm_target_at(path, duration, t):
-    """Joint targets (B, 7) at time t (scalar, s): one substep of `arm_targets`."""
-    xp = array_module(path, duration, t)
-    return _along_path(path, duration, xp.reshape(xp.asarray(t, path.dtype), (1, 1)))[:, 0]
+def arm_targets_at(path, duration, t):
+    """Joint targets (B, T, 7) at the times t (T,) since the move began (s)."""
+    return _along_path(path, duration, t[None])
 
 
 def bucket_steps(seconds, dt: float):
@@ -499,12 +492,6 @@ def bucket_steps(seconds, dt: float):
     return int(out) if xp is np and np.ndim(out) == 0 else out
 
 
-def gripper_targets(start, goal, nstep: int, dt: float):
-    """Finger position targets (B, nstep) for the gripper phase (linear, then hold)."""
-    xp = array_module(start, goal)
-    return gripper_target_at(start[:, None], goal[:, None], xp.arange(1, nstep + 1) * dt)
-
-
 def gripper_target_at(start, goal, t):
     """Finger position targets at time t (s) of the gripper phase: start, goal and t
     broadcast together."""
@@ -516,3 +503,28 @@ def gripper_target_at(start, goal, t):
 def finger_target(open_amount):
     xp = array_module(open_amount)
     return xp.clip(open_amount, 0.0, 1.0) * FINGER_OPEN
+
+
+def reachable(kin: PandaKinematics, q, pos, quat, valid):
+    """Whether each world's key actions (B, K) are inside the bounds and solvable by IK
+    near the expert's branch, warm-started along the sequence: a Python loop over numpy
+    (float64) on the host, one `lax.scan` under JAX (thousands of worlds reset at once)."""
+    xp = array_module(q, pos, quat, valid)
+
+    def body(carry, action):
+        q, ok = carry
+        p, r, v = action
+        q_k, ok_k, _, _ = solve_ik(kin, q, p, r, spread=False)
+        ok = ok & (~v | (ok_k & within_bounds(p)))
+        return (xp.where(v[:, None], q_k, q), ok), None
+
+    dtype = np.float64 if xp is np else np.float32
+    pos, quat = xp.asarray(pos, dtype), xp.asarray(quat, dtype)
+    xs = (xp.swapaxes(pos, 0, 1), xp.swapaxes(quat, 0, 1), xp.swapaxes(xp.asarray(valid), 0, 1))
+    carry = (xp.asarray(q, dtype), xp.ones(len(q), bool))
+    if xp is np:
+        for action in zip(*xs):
+            carry, _ = body(carry, action)
+    else:
+        carry, _ = jax.lax.scan(body, carry, xs)
+    return carry[1]

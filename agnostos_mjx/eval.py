@@ -681,7 +681,7 @@ def episode_records(task, policy, backend: str, part: Sequence[tuple[int, int]],
                     variations: np.ndarray, instructions: list[str], env, outcome: np.ndarray,
                     worlds: Iterable[int], wall_s: float, batch_size: int) -> list[dict]:
     """The records of the finished `worlds` of a batch (episodes.jsonl's lines)."""
-    from agnostos_mjx.episode import Outcome
+    from agnostos_mjx.runtime.outcome import Outcome
 
     records = []
     for i in worlds:
@@ -706,7 +706,7 @@ def task_steps(task, policy, pending: list[tuple[int, int]], cfg: EvalConfig, on
     """`run_task` as a generator that yields the futures the policy waits on (see
     PlanningPolicy.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
     `tick(episodes_done, partial, detail)` reports progress within the task."""
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.video import EpisodeVideos
 
     t0 = time.perf_counter()
@@ -736,7 +736,7 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
     """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
     `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
-    from agnostos_mjx.episode import Outcome
+    from agnostos_mjx.runtime.outcome import Outcome
     from agnostos_mjx.observation import act as policy_act
 
     n = len(part)
@@ -789,7 +789,7 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
             reasons = getattr(policy, "end_reasons", None)
             if reasons is not None:
                 ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
-                env.outcome = np.where(ended, reasons, env.outcome)
+                env = env.replace(outcome=np.where(ended, reasons, env.outcome))
             record(env, np.where(env.done, env.outcome, Outcome.RUNNING))
             report(rounds + 1)
     except Exception:
@@ -797,7 +797,7 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
             raise
         log.exception("%s: the policy raised; running episodes of this batch end as "
                       "policy_error", task.name)
-        env.outcome = np.where(env.done, env.outcome, Outcome.POLICY_ERROR)
+        env = env.replace(outcome=np.where(env.done, env.outcome, Outcome.POLICY_ERROR))
     record(env, np.where(env.done, env.outcome, Outcome.MAX_STEPS))
     if videos is not None:
         by_episode = {(r["seed"], r["episode"]): r for r in out}

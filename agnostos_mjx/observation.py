@@ -3,7 +3,7 @@
 A policy that consumes images declares what it needs with an :class:`ObservationSpec`
 (cameras, resolution, modalities); the evaluator then calls
 ``policy.act(episodes, env, observation=episodes.observe(env, spec))`` at every key-action
-step (see :func:`act`).  Policies that declare nothing (oracle, X-ICM with ground-truth
+step (runtime/observe.py renders it).  Policies that declare nothing (oracle, X-ICM with ground-truth
 objects, retrieval) are called as before and nothing is rendered for them.
 
 Per requested camera an observation holds (B worlds, H x W pixels):
@@ -43,9 +43,7 @@ import mujoco
 import numpy as np
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import EnvState, Episodes
     from agnostos_mjx.render import CameraImages
-    from agnostos_mjx.tasks.base import KeyActions
     from agnostos_mjx.world import SceneModel
 
 CAMERAS = ("front", "left_shoulder", "right_shoulder", "overhead", "wrist")
@@ -245,56 +243,11 @@ def scene_labels(scene: SceneModel) -> SceneLabels:
     return SceneLabels(tuple(names), {n: tuple(ids) for n, ids in objects.items()})
 
 
-# ---- observing -----------------------------------------------------------------------------
-def _renderer_kind(episodes: Episodes, spec: ObservationSpec) -> str:
-    if spec.renderer != "auto":
-        return spec.renderer
-    return "warp" if episodes.backend_name == "warp" else "cpu"
+CAMERA_ARRAYS = ("extrinsics", "rgb", "depth", "point_cloud", "segmentation")
 
 
-def _renderer(episodes: Episodes, spec: ObservationSpec, kind: str, nworld: int) -> Any:
-    """A renderer cached on the Episodes runner (GL contexts and Warp kernels are costly)."""
-    from agnostos_mjx.render import WarpRenderer, cpu_renderer, render_threads
-
-    cache = episodes.__dict__.setdefault("_observation_renderers", {})
-    if kind == "cpu":  # worlds split over render_threads() threads (AGNOSTOS_RENDER_THREADS)
-        threads = render_threads()
-        key: tuple = ("cpu", spec.height, spec.width, threads)
-        if key not in cache:
-            cache[key] = cpu_renderer(episodes.scene.model, spec.width, spec.height, samples=0,
-                                      threads=threads)
-    else:
-        key = ("warp", spec.height, spec.width, spec.cameras, nworld, spec.needs_depth,
-               spec.wants("segmentation"))
-        if key not in cache:
-            cache[key] = WarpRenderer(episodes.scene.model, nworld, spec.width, spec.height,
-                                      cameras=spec.cameras, depth=spec.needs_depth,
-                                      segmentation=spec.wants("segmentation"))
-    return cache[key]
-
-
-def render_views(episodes: Episodes, env: EnvState, spec: ObservationSpec
-                 ) -> dict[str, CameraImages]:
-    """The raw images of `spec` for every world of `env` (no point clouds yet)."""
-    p = env.physics
-    kind = _renderer_kind(episodes, spec)
-    renderer = _renderer(episodes, spec, kind, len(p.qpos))
-    if kind == "warp":
-        import jax.numpy as jnp
-
-        data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
-        return renderer.render_views(data, jnp.asarray(env.geom_rgba, jnp.float32))
-    return renderer.render_views(
-        np.asarray(p.qpos), np.asarray(p.mocap_pos), np.asarray(p.mocap_quat), spec.cameras,
-        env.geom_rgba, rgb=spec.wants("rgb"), depth=spec.needs_depth,
-        segmentation=spec.wants("segmentation"))
-
-
-_CAMERA_ARRAYS = ("extrinsics", "rgb", "depth", "point_cloud", "segmentation")
-
-
-def _camera_constants(model: mujoco.MjModel, spec: ObservationSpec
-                      ) -> dict[str, tuple[np.ndarray, float, float]]:
+def camera_constants(model: mujoco.MjModel, spec: ObservationSpec
+                     ) -> dict[str, tuple[np.ndarray, float, float]]:
     """Per camera of `spec`: intrinsics, near, far."""
     out = {}
     for name in spec.cameras:
@@ -302,35 +255,6 @@ def _camera_constants(model: mujoco.MjModel, spec: ObservationSpec
         near, far = RLBENCH_NEAR_FAR.get(name, (0.01, 4.5))
         out[name] = (intrinsics(float(model.cam_fovy[cam_id]), spec.height, spec.width), near, far)
     return out
-
-
-def _warp_cameras(episodes: Episodes, env: EnvState, spec: ObservationSpec
-                  ) -> dict[str, CameraObservation]:
-    """Every camera of `spec` on MJX-Warp as one device program: pose (kinematics and
-    camera poses), trace, then depth clipping, extrinsics and point clouds; device arrays."""
-    import jax
-    import jax.numpy as jnp
-
-    p = env.physics
-    renderer = _renderer(episodes, spec, "warp", len(p.qpos))
-    constants = _camera_constants(episodes.scene.model, spec)
-    programs = episodes.__dict__.setdefault("_observation_programs", {})
-    key = (spec, len(p.qpos))
-    if key not in programs:
-        def observe_all(template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any,
-                        rgba: Any) -> dict[str, dict[str, Any]]:
-            views = renderer.views(renderer.pose(template, qpos, mocap_pos, mocap_quat), rgba)
-            out = {}
-            for name, (k, near, far) in constants.items():
-                cam = camera_observation(views[name], k, near, far, spec, jnp)
-                out[name] = {f: getattr(cam, f) for f in _CAMERA_ARRAYS}
-            return out
-
-        programs[key] = jax.jit(observe_all)
-    arrays = programs[key](renderer.template(), p.qpos, p.mocap_pos, p.mocap_quat,
-                     jnp.asarray(env.geom_rgba, jnp.float32))
-    return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
-            for name, (k, near, far) in constants.items()}
 
 
 def camera_observation(images: CameraImages, intrinsic: np.ndarray, near: float, far: float,
@@ -346,42 +270,6 @@ def camera_observation(images: CameraImages, intrinsic: np.ndarray, near: float,
         segmentation=images.segmentation if spec.wants("segmentation") else None)
 
 
-def proprioception(episodes: Episodes, env: EnvState) -> dict[str, np.ndarray]:
-    """RLBench's low-dimensional fields of every world (see the module docs)."""
-    obs = env.obs
-    quat = np.asarray(obs["tip.quat"], np.float32)
-    addr = episodes.scene.qpos_address
-    fingers = [addr["finger_left"], addr["finger_right"]]
-    return {
-        "gripper_pose": np.concatenate([np.asarray(obs["tip.pos"], np.float32),
-                                        quat[:, [1, 2, 3, 0]]], axis=1),
-        "gripper_open": np.asarray(episodes.gripper_open(env), np.float32),
-        "joint_positions": np.asarray(obs["arm_q"], np.float32),
-        "joint_velocities": np.asarray(obs["arm_qd"], np.float32),
-        "gripper_joint_positions": np.asarray(env.physics.qpos, np.float32)[:, fingers],
-    }
-
-
-def observe(episodes: Episodes, env: EnvState, spec: ObservationSpec) -> RLBenchObservation:
-    """Render and assemble `spec`'s observation of every world of `env`."""
-    if _renderer_kind(episodes, spec) == "warp":
-        cameras = _warp_cameras(episodes, env, spec)
-        if spec.numpy:
-            cameras = {name: CameraObservation(**{f: (np.asarray(v) if hasattr(v, "shape") else v)
-                                                  for f, v in vars(cam).items()})
-                       for name, cam in cameras.items()}
-    else:
-        views = render_views(episodes, env, spec)
-        cameras = {name: camera_observation(views[name], k, near, far, spec)
-                   for name, (k, near, far) in _camera_constants(episodes.scene.model,
-                                                                  spec).items()}
-    task = episodes.task
-    return RLBenchObservation(
-        cameras=cameras, **proprioception(episodes, env),
-        instructions=tuple(task.descriptions(int(v))[0] for v in env.variation),
-        labels=scene_labels(episodes.scene))
-
-
 # ---- the evaluator's hook ------------------------------------------------------------------
 def observation_spec(policy: Any) -> ObservationSpec | None:
     """The spec a policy declares through an ``observation_spec`` attribute (or method)."""
@@ -389,12 +277,12 @@ def observation_spec(policy: Any) -> ObservationSpec | None:
     return spec() if callable(spec) else spec
 
 
-def act(policy: Any, episodes: Episodes, env: EnvState) -> KeyActions:
+def act(policy: Any, episodes: Any, env: Any) -> Any:
     """``policy.act``, given ``observation=`` when the policy declares an ObservationSpec."""
     spec = observation_spec(policy)
     if spec is None:
         return policy.act(episodes, env)
-    return policy.act(episodes, env, observation=observe(episodes, env, spec))
+    return policy.act(episodes, env, observation=episodes.observe(env, spec))
 
 
 # ---- X-ICM's object positions from segmented point clouds (xicm_reference.md §3.4) ------

@@ -132,7 +132,7 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
     """Rows for one task and batch: reset `batch` worlds, then time each renderer."""
     import jax
 
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.observation import MODALITIES, ObservationSpec, observe
     from agnostos_mjx.tasks import get_task
 

@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+from agnostos_mjx.tasks.base import KeyActions
+
 SCENE_BOUNDS: tuple[float, float, float, float, float, float] = (-0.3, -0.5, 0.6, 0.7, 0.5, 1.6)
 VOXEL_SIZE: int = 100
 ROTATION_RESOLUTION: int = 5
@@ -230,6 +232,16 @@ def validate_action_ints(ints: ArrayLike) -> np.ndarray:
     rot_ok = np.all((a[..., 3:6] >= 0) & (a[..., 3:6] <= _N_ROT_BINS - 1), axis=-1)
     grip_ok = (a[..., 6] == 0) | (a[..., 6] == 1)
     return pos_ok & rot_ok & grip_ok
+
+
+def xicm_actions(ints: ArrayLike) -> KeyActions:
+    """X-ICM's 7-integer key actions (B, 7) -> KeyActions; groups outside the valid ranges
+    become invalid actions (the episode then ends as no_action)."""
+    ints = np.asarray(ints)
+    valid = np.asarray(validate_action_ints(ints), bool)
+    safe = np.where(valid[:, None], ints, np.array([57, 49, 87, 0, 39, 0, 1]))
+    pos, quat, grip = map(np.asarray, decode_action(safe))
+    return KeyActions(pos, quat, grip, valid)
 
 
 # --------------------------------------------------------------------------------------------

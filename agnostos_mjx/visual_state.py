@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.conditions import Condition
+from agnostos_mjx.math3d import array_module
 from agnostos_mjx.observables import Layout, Observation
 
 
@@ -42,14 +43,18 @@ def state_flags(rules: Sequence[StateColor], obs0: Observation, obs: Observation
                       for r in rules])
 
 
-def paint(geom_rgba: np.ndarray, flags: np.ndarray, geom_ids: Sequence[np.ndarray],
-          rgbs: Sequence[np.ndarray]) -> np.ndarray:
-    """A copy of `geom_rgba` (B, ngeom, 4) with rule r's geoms set to rgbs[r] in the
-    worlds where flags[:, r] holds (B, R); other geoms and worlds unchanged."""
-    out = np.array(geom_rgba, copy=True)
+def paint(geom_rgba, flags, geom_ids: Sequence[np.ndarray], rgbs: Sequence[np.ndarray]):
+    """`geom_rgba` (B, ngeom, 4) with rule r's geoms set to rgbs[r] in the worlds where
+    flags[:, r] holds (B, R); other geoms and worlds unchanged.  numpy or JAX; the input is
+    not changed."""
+    xp = array_module(geom_rgba, flags)
+    out = xp.asarray(geom_rgba)
     for r, (ids, rgb) in enumerate(zip(geom_ids, rgbs, strict=True)):
-        worlds = np.nonzero(flags[:, r])[0]
-        out[np.ix_(worlds, ids, np.arange(3))] = rgb
+        where = np.zeros(out.shape[1:], bool)
+        where[ids, :3] = True
+        colour = np.zeros(out.shape[-1], out.dtype)
+        colour[:3] = rgb
+        out = xp.where(flags[:, r, None, None] & where, colour, out)
     return out
 
 
@@ -69,11 +74,17 @@ class StateColors:
 
         self._flags = jax.jit(jax.vmap(flags))
 
-    def update(self, geom_rgba: np.ndarray, obs0: Observation, obs: Observation,
-               variation: np.ndarray) -> np.ndarray:
-        """`geom_rgba` repainted for the conditions that hold at `obs` (the same array
-        when the task declares no state colours)."""
+    def __call__(self, geom_rgba, data0, data, attached, variation):
+        """`geom_rgba` repainted for the conditions that hold at `data` (the same array
+        when the task declares no state colours); numpy in, numpy out, or JAX in a trace."""
         if not self.geom_ids:
             return geom_rgba
-        flags = np.asarray(self._flags(obs0.data, obs.data, obs.attached, variation))
+        flags = self._flags(data0, data, attached, variation)
+        if array_module(geom_rgba, data) is np:
+            flags = np.asarray(flags)
         return paint(geom_rgba, flags, self.geom_ids, self.rgbs)
+
+    def update(self, geom_rgba: np.ndarray, obs0: Observation, obs: Observation,
+               variation: np.ndarray) -> np.ndarray:
+        """`self(...)` for observations."""
+        return self(geom_rgba, obs0.data, obs.data, obs.attached, variation)

@@ -32,7 +32,7 @@ def task_params(names):
 @functools.cache
 def episodes_for(name: str):
     """One native runner per task for the whole session (test modules share it)."""
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     return Episodes(get_task(name), "native")

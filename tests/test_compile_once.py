@@ -8,7 +8,7 @@ import contextlib
 import jax
 import numpy as np
 
-from agnostos_mjx.episode import Episodes
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
 
@@ -59,11 +59,10 @@ def test_ik_programs_are_shared_by_every_task():
     """The robot is the same in every scene, so the jitted planner and reachability check
     (most of a key action's compile time) are one program per run, not one per task."""
     from agnostos_mjx import control
-    from agnostos_mjx.episode import reachable_device
 
     kins = [Episodes(get_task(name), "native").kin for name in ("lamp_on", "stack_blocks")]
     assert kins[0] is not kins[1] and kins[0].fingerprint == kins[1].fingerprint
-    for fn in (control.plan_arm, reachable_device):
+    for fn in (control.plan_arm, control.reachable):
         assert control.jit_for_robot(fn, kins[0]) is control.jit_for_robot(fn, kins[1])
     assert control.jit_for_robot(control.plan_arm, kins[0]) is not control.jit_for_robot(
-        reachable_device, kins[0])
+        control.reachable, kins[0])

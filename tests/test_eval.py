@@ -105,12 +105,12 @@ def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture)
 
 def test_resume_does_not_rerun(run_dir: Path, monkeypatch: pytest.MonkeyPatch,
                                capsys: pytest.CaptureFixture) -> None:
-    import agnostos_mjx.episode
+    import agnostos_mjx.runtime.env
 
     def boom(*args, **kwargs):
         raise AssertionError("resume re-ran recorded episodes")
 
-    monkeypatch.setattr(agnostos_mjx.episode, "Episodes", boom)
+    monkeypatch.setattr(agnostos_mjx.runtime.env, "Episodes", boom)
     before = (run_dir / "episodes.jsonl").read_text()
     args = ["--policy", "oracle", "--tasks", "lamp_on", "--seeds", "0", "--episodes", "2",
             "--batch", "2",

@@ -189,7 +189,7 @@ def test_dense_frames(tmp_path) -> None:
     import jax
 
     from agnostos_mjx.data.generate import demo_keys
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     task = "open_drawer"

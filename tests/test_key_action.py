@@ -12,7 +12,8 @@ import jax
 import numpy as np
 import pytest
 
-from agnostos_mjx.episode import SETTLE_STEPS, Episodes, Outcome
+from agnostos_mjx.runtime.env import Episodes, SETTLE_STEPS
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
 

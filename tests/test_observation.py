@@ -23,7 +23,7 @@ ALL = ob.ObservationSpec(cameras=ob.CAMERAS, height=SIZE, width=SIZE, modalities
 
 @pytest.fixture(scope="module")
 def scene():
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
 
     runner = Episodes(get_task("close_jar"), "native")
     env = runner.reset(jax.random.split(jax.random.PRNGKey(7), 2), np.array([0, 1]))

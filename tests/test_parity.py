@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import control
-from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.physics import make_backend
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.world import FINGER_OPEN
@@ -51,7 +52,7 @@ def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
     path, duration, status = control.plan_arm(
         ep.kin, q0, actions.pos[:, 0].astype(np.float64), actions.quat[:, 0].astype(np.float64))
     assert status[0] == control.Status.OK
-    arm = control.arm_targets(path, duration, NSTEP, ep.dt)
+    arm = control.arm_targets_at(path, duration, (np.arange(NSTEP) + 1) * ep.dt)
     ctrl = np.concatenate([arm, np.full((1, NSTEP, 1), FINGER_OPEN)], -1)
 
     # Three copies of the world: the full horizon, a shorter move of its own, frozen.
@@ -170,7 +171,6 @@ def test_auto_backend_uses_warp_only_for_large_batches(monkeypatch):
 def test_device_reachability_matches_the_host_check():
     """The jitted reachability scan (MJX backends' reset on an accelerator) accepts and
     rejects the same scenes as the numpy check, including a key action out of reach."""
-    from agnostos_mjx.episode import reachable_device, reachable_host
 
     ep = native_episodes()
     keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(0), e))(np.arange(6))
@@ -179,8 +179,8 @@ def test_device_reachability_matches_the_host_check():
     pos = np.array(actions.pos)
     pos[3, 1] = [0.7, 0.5, 1.7]  # a corner of the bounds the arm cannot reach
     q = np.asarray(env.obs["arm_q"], np.float64)
-    host = reachable_host(ep.kin, q, pos, actions.quat, actions.valid)
-    device = jax.jit(functools.partial(reachable_device, ep.kin))(q, pos, actions.quat,
+    host = control.reachable(ep.kin, q, pos, actions.quat, actions.valid)
+    device = jax.jit(functools.partial(control.reachable, ep.kin))(q, pos, actions.quat,
                                                                   actions.valid)
     np.testing.assert_array_equal(np.asarray(device), host)
     assert host.sum() == 5 and not host[3]

@@ -12,7 +12,8 @@ import pytest
 from agnostos_mjx.tasks import get_task
 
 # isort: split
-from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.eval import main
 from agnostos_mjx.policies import Policy, make_policy, no_actions
 from agnostos_mjx.policies.oracle import OraclePolicy

@@ -21,7 +21,8 @@ from agnostos_mjx.control import (
     plan_arm,
     solve_ik,
 )
-from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.math3d import quat_conj, quat_mul
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
@@ -63,7 +64,8 @@ def mujoco_tip(scene, q):
 
 def test_module_imports_standalone():
     """Each runtime module imports on its own in a fresh interpreter."""
-    for module in ("agnostos_mjx.world", "agnostos_mjx.control", "agnostos_mjx.episode"):
+    for module in ("agnostos_mjx.world", "agnostos_mjx.control", "agnostos_mjx.runtime.env",
+                   "agnostos_mjx.runtime.key_action"):
         result = subprocess.run([sys.executable, "-c", f"import {module}"],
                                 capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, f"import {module}:\n{result.stderr[-800:]}"

@@ -63,7 +63,7 @@ for part, value in features[1].items():
 MJX = """
 import jax, numpy as np
 from agnostos_mjx import sharding
-from agnostos_mjx.episode import Episodes
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.physics.mjx_backend import MjxBackend
 from agnostos_mjx.tasks import get_task
 
@@ -89,7 +89,7 @@ for a, b in zip(jax.tree.leaves(out[1]), jax.tree.leaves(out[4])):
 KEY_ACTION = """
 import jax, numpy as np
 from agnostos_mjx import sharding
-from agnostos_mjx.episode import Episodes
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 
 keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(0), e))(np.arange(3))

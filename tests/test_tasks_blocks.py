@@ -26,7 +26,7 @@ def task_or_skip(name: str):
 @functools.cache
 def reset_obs(name: str) -> Observation:
     """A layout-complete observation of one sampled scene (variation 0)."""
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
 
     ep = Episodes(get_task(name), "native")
     env = ep.reset(jax.random.PRNGKey(3)[None], np.zeros(1, int))

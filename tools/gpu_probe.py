@@ -9,7 +9,8 @@ import time
 import jax
 import numpy as np
 
-from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task
 
 out = {"devices": [str(d) for d in jax.devices()]}

@@ -53,7 +53,7 @@ column shows the first-frame latent and the right column the predicted last-fram
 of the four latent channels as RGB): where they differ is where the model expects the scene to
 change. About 2 s per query on a CPU core, much less on a GPU."""),
     nbf.v4.new_code_cell("""from agnostos_mjx.dynamics.features import extract, similarity
-from agnostos_mjx.episode import Episodes
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.eval import episode_keys
 from agnostos_mjx.tasks import parse_tasks
 

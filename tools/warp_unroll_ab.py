@@ -26,7 +26,8 @@ def oracle_batch(runner, batch: int, seed: int):
 
 
 def main() -> None:
-    from agnostos_mjx.episode import Episodes, Outcome
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.outcome import Outcome
     from agnostos_mjx.tasks import get_task
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

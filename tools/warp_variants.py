@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from agnostos_mjx.episode import Episodes
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.physics.mjx_backend import MjxBackend
 from agnostos_mjx.tasks import get_task
 

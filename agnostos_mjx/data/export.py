@@ -438,7 +438,8 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     """Export one task's missing demos; returns counts.  `threads`: the native physics'
     threads (default: all cores)."""
     from agnostos_mjx.data.generate import demo_keys
-    from agnostos_mjx.episode import Episodes, Outcome
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.outcome import Outcome
     from agnostos_mjx.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.tasks import get_task
 

@@ -256,7 +256,7 @@ class ChunkResult:
 def run_chunk(cfg: GenerateConfig, chunk: Chunk, episodes) -> ChunkResult:
     """Run the expert on a chunk's demos in batches until each succeeds or runs out
     of attempts; nothing is written (the caller merges and stores)."""
-    from agnostos_mjx.episode import Outcome
+    from agnostos_mjx.runtime.outcome import Outcome
 
     task = episodes.task
     stride = _stride(cfg, episodes.dt)
@@ -396,7 +396,7 @@ def _worker_init(threads: int) -> None:
 
 
 def _worker_run(cfg: GenerateConfig, chunk: Chunk) -> ChunkResult:
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     if chunk.task not in _WORKER_EPISODES:
@@ -420,7 +420,7 @@ def resolve_workers(cfg: GenerateConfig) -> int:
 
 def generate(cfg: GenerateConfig) -> dict:
     """Generate every requested task; returns a report (also written to report.json)."""
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.physics import resolve_backend
     from agnostos_mjx.tasks import get_task
 

@@ -43,7 +43,8 @@ import numpy as np
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
-    from agnostos_mjx.episode import EnvState, Episodes
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
 
 
 @runtime_checkable

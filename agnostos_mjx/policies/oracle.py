@@ -12,7 +12,8 @@ import numpy as np
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import EnvState, Episodes
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
 
 
 class OraclePolicy:

@@ -22,7 +22,8 @@ from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.selection import make_selector, resolve_selection
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import EnvState, Episodes
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
 
 
 def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.ndarray

@@ -35,7 +35,8 @@ from agnostos_mjx.xicm.prompt import messages, parse_actions
 from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import EnvState, Episodes
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
 
 log = logging.getLogger("agnostos_mjx.xicm")
 
@@ -141,7 +142,7 @@ class XICMPolicy(PlanningPolicy):
         return run_blocking(self.plan_steps(episodes, env, worlds))
 
     def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray):
-        from agnostos_mjx.episode import Outcome
+        from agnostos_mjx.runtime.outcome import Outcome
 
         variations = env.variation[worlds]
         obs = type(env.obs)(env.obs.data[worlds], env.obs.layout, env.obs.attached[worlds])

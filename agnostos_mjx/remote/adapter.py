@@ -34,7 +34,8 @@ import numpy as np
 from agnostos_mjx.observation import CAMERAS, ObservationSpec
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import EnvState, Episodes
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
     from agnostos_mjx.observation import RLBenchObservation
 
 CAMERA_FIELDS = {"rgb": "rgb", "depth": "depth", "point_cloud": "point_cloud",

@@ -34,7 +34,8 @@ from agnostos_mjx.remote.adapter import sim_state as world_sim_state
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
-    from agnostos_mjx.episode import EnvState, Episodes
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
     from agnostos_mjx.observation import RLBenchObservation
 
 DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
@@ -221,7 +222,7 @@ class RemotePolicy:
     async def _one(self, conns: dict[int, ClientConnection], world: int, data: bytes
                    ) -> tuple[int, Any]:
         """(0, answer bytes) or (an Outcome code, why) for one world's request."""
-        from agnostos_mjx.episode import Outcome
+        from agnostos_mjx.runtime.outcome import Outcome
 
         t0 = time.perf_counter()
         self.stats["requests"] += 1
@@ -261,13 +262,13 @@ class RemotePolicy:
 
     @staticmethod
     def _bad_output(error: Exception) -> tuple[int, str]:
-        from agnostos_mjx.episode import Outcome
+        from agnostos_mjx.runtime.outcome import Outcome
 
         kind = "" if isinstance(error, BadAnswer) else f"{type(error).__name__}: "
         return Outcome.BAD_REMOTE_OUTPUT, f"{kind}{error}"[:300]
 
     def _fail(self, world: int, code: int, why: str) -> None:
-        from agnostos_mjx.episode import Outcome
+        from agnostos_mjx.runtime.outcome import Outcome
 
         self.end_reasons[world] = code
         self._errors[world] = why

@@ -47,7 +47,7 @@ Faults = Callable[[dict], str | None]
 @functools.cache
 def runner_for(task_name: str):
     """One Episodes runner per task (scene, expert, renderer), built on first use."""
-    from agnostos_mjx.episode import Episodes
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     return Episodes(get_task(task_name), "native")
@@ -55,7 +55,7 @@ def runner_for(task_name: str):
 
 def mirror_env(runner, state: dict):
     """A one-world EnvState from a request's ``sim_state`` (see adapter.sim_state)."""
-    from agnostos_mjx.episode import EnvState
+    from agnostos_mjx.runtime.state import EnvState
     from agnostos_mjx.observables import Observation
     from agnostos_mjx.physics import PhysicsState
 

@@ -1,0 +1,285 @@
+"""Batched episodes of one task on one physics backend: reset B worlds, execute key actions
+for all of them, observe.  Task-agnostic: everything task-specific comes through the
+task's sampler, conditions, expert and observables; the key action itself is
+runtime/key_action.py over one of runtime/phase.py's boundaries.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from agnostos_mjx import control, sharding
+from agnostos_mjx.control import PandaKinematics
+from agnostos_mjx.math3d import quat_conj, quat_rotate
+from agnostos_mjx.observables import Observation
+from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
+from agnostos_mjx.runtime.key_action import StepSpec, key_action
+from agnostos_mjx.runtime.observe import Observer
+from agnostos_mjx.runtime.phase import DevicePhases, HostPhases, steps_per_iteration
+from agnostos_mjx.runtime.state import EnvState, StepResult
+from agnostos_mjx.tasks.base import KeyActions, Task
+from agnostos_mjx.visual_state import StateColors
+from agnostos_mjx.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
+
+log = logging.getLogger(__name__)
+SETTLE_STEPS = 10  # RLBench runs 10 physics steps after placing the scene
+# Attach volume between the fingers in the tip frame (RLBench's attach proximity
+# sensor: 0.02 x 0.10 m face, 0.045 m deep along the approach axis).
+ATTACH_CENTER = np.array([0.0, 0.0, -0.018])
+ATTACH_HALF = np.array([0.01, 0.05, 0.0275])
+
+
+class Episodes:
+    """Runs batches of episodes of one task on one backend."""
+
+    # Recorded phases carry each step's qpos (native backend only), to render in-between
+    # frames of demonstrations.
+    record_qpos: bool = False
+
+    def __init__(self, task: Task, backend: str = "auto", threads: int | None = None):
+        self.task = task
+        self.scene: SceneModel = build_scene(task)
+        self.backend_name = resolve_backend(backend)
+        self.backend = make_backend(self.backend_name, self.scene.model, threads)
+        self.kin = PandaKinematics.from_model(self.scene.model)
+        self.dt = float(self.scene.model.opt.timestep)
+        self.nu = self.scene.model.nu
+        self.state_colors = StateColors(task, self.scene.model, self.scene.layout)
+        self.observer = Observer(task, self.scene, self.backend_name)
+        self.spec = StepSpec(
+            arm_q=self.scene.layout.slice("arm_q"), dt=self.dt,
+            max_key_actions=task.max_key_actions, condition_step=self._condition_step,
+            attach=jax.jit(jax.vmap(self._attach_test)) if task.graspables else None,
+            hand_body=self.scene.hand_body, graspable_bodies=self.scene.graspable_bodies,
+            weld_ids=self.scene.weld_ids, repaint=self.state_colors)
+        self._jit_sample = jax.jit(jax.vmap(self._sample_one))
+        self._jit_init_cond = jax.jit(jax.vmap(self._init_conditions))
+        self._jit_expert = jax.jit(jax.vmap(task.expert))
+        # Planning runs where the physics runs: jitted on an accelerator next to MJX, plain
+        # numpy next to native MuJoCo (see control.py).  The device program's planner is one
+        # program for every task of a run (control.jit_for_robot).
+        self.on_mjx = self.backend_name != "native"
+        on_device = self.on_mjx and jax.default_backend() != "cpu"
+        self._device_plan = control.jit_for_robot(control.plan_arm, self.kin)
+        self._plan = self._device_plan if on_device else (
+            lambda q, p, r: control.plan_arm(self.kin, q, p, r))
+        self._reachable = control.jit_for_robot(control.reachable, self.kin) if on_device else (
+            lambda *args: control.reachable(self.kin, *args))
+        self._device_programs: dict = {}  # batch size -> jitted key action (compiled once each)
+        self._jit_rows: int | None = None  # batch the jitted reset helpers run at
+
+    # ---- pure pieces (vmapped above) -------------------------------------------------
+    def _sample_one(self, key, variation):
+        return apply_placement(self.scene, self.task.sample(key, variation))
+
+    def _obs(self, data, attached) -> Observation:
+        return Observation(data, self.scene.layout, attached)
+
+    def _init_conditions(self, data, attached, variation):
+        obs = self._obs(data, attached)
+        return (self.task.success(variation).init(obs), self.task.failure(variation).init(obs))
+
+    def _condition_step(self, carry, data, attached, variation):
+        """One physics step of one world's success and failure trees: (carry, met, failed)."""
+        obs = self._obs(data, attached)
+        sc, s = self.task.success(variation).step(carry[0], obs)
+        fc, f = self.task.failure(variation).step(carry[1], obs)
+        return (sc, fc), jnp.asarray(s, bool), jnp.asarray(f, bool)
+
+    def _attach_test(self, data, attached):
+        """Which graspables lie in the attach volume (RLBench's grasp on close)."""
+        obs = self._obs(data, attached)
+        tip_p, tip_q = obs["tip.pos"], obs["tip.quat"]
+        hits = []
+        for frame, radius in zip(self.task.grasp_frames, self.task.graspable_radius):
+            local = quat_rotate(quat_conj(tip_q), obs.pos(frame) - tip_p) - ATTACH_CENTER
+            gap = jnp.linalg.norm(jnp.maximum(jnp.abs(local) - ATTACH_HALF, 0.0))
+            hits.append(gap <= radius)
+        return jnp.stack(hits) if hits else jnp.zeros((0,), bool)
+
+    # ---- reset ------------------------------------------------------------------------
+    def reset(self, keys: jax.Array, variations, placement_tries: int = 20,
+              stop_at_success: bool = True) -> EnvState:
+        """Sample B initial scenes and settle them (RLBench's 10 steps).
+
+        As RLBench does, a scene whose expert waypoints the arm cannot reach is
+        re-sampled (from keys folded with the attempt number, so results stay
+        deterministic per key).  RLBench retries 5 times; our workspace extent
+        is inferred and reaches further than the arm for some layouts, so we
+        allow more tries."""
+        variations = np.asarray(variations, np.int32)
+        if np.any((variations < 0) | (variations >= self.task.num_variations)):
+            raise ValueError(
+                f"{self.task.name} has variations 0..{self.task.num_variations - 1}, "
+                f"got {sorted(set(variations.tolist()))}"
+            )
+        keys = jnp.asarray(keys)
+        b = len(variations)
+        self._jit_rows = b
+        sampled = list(map(np.asarray, self._jit_sample(keys, variations)))
+        state = self._settle(sampled, variations)
+        ok = np.array(self.expert_reachable(state), copy=True)
+        for attempt in range(1, placement_tries):
+            if ok.all():
+                break
+            # Only the rejected scenes are settled and checked again (in a padded batch,
+            # so jitted shapes stay few); every world is settled once more at the end.
+            retry = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, attempt)
+            fresh = list(map(np.asarray, self._jit_sample(retry, variations)))
+            bad = ~ok
+            sampled = [np.where(bad.reshape(-1, *([1] * (a.ndim - 1))), f, a)
+                       for a, f in zip(sampled, fresh)]
+            idx = np.nonzero(bad)[0]
+            rows = self._padded_rows(idx, b)
+            part = self._settle([a[rows] for a in sampled], variations[rows])
+            ok[idx] = self.expert_reachable(part)[: len(idx)]
+            if ok.all() or attempt == placement_tries - 1:
+                state = self._settle(sampled, variations)
+        if not ok.all():
+            log.warning("%s: %d of %d scenes kept although the expert cannot reach them "
+                        "after %d placements", self.task.name, (~ok).sum(), b, placement_tries)
+        return state.replace(stop_at_success=stop_at_success)
+
+    def _padded_rows(self, idx: np.ndarray, batch: int) -> np.ndarray:
+        """Rows to settle again: `idx` itself on native MuJoCo (any batch size runs
+        there without compiling), repeated up to the full batch on MJX."""
+        return idx if self.backend_name == "native" else np.resize(idx, batch)
+
+    def _settle(self, sampled, variations) -> EnvState:
+        qpos, mocap_pos, mocap_quat, rgba = sampled
+        b = len(variations)
+        m = self.scene.model
+        ctrl = np.zeros((b, self.nu))
+        ctrl[:, :7] = qpos[:, self.scene.arm_qpos]
+        ctrl[:, 7] = FINGER_OPEN
+        physics = PhysicsState(
+            qpos=qpos.astype(np.float64), qvel=np.zeros((b, m.nv)), act=np.zeros((b, m.na)),
+            ctrl=ctrl, mocap_pos=mocap_pos.astype(np.float64),
+            mocap_quat=mocap_quat.astype(np.float64),
+            eq_active=np.tile(m.eq_active0.astype(bool), (b, 1)),
+            eq_data=np.tile(m.eq_data, (b, 1, 1)), time=np.zeros(b),
+        )
+        physics, sens = self.backend.run(physics, np.repeat(ctrl[:, None], SETTLE_STEPS, axis=1))
+        attached = np.zeros((b, len(self.task.graspables)), bool)
+        data = np.asarray(sens[:, -1])
+        carry = self._padded(self._jit_init_cond, data, attached, variations)
+        return EnvState(
+            physics=physics.numpy(), data=data, attached=attached, carry=carry,
+            variation=variations, gripper=np.full(b, FINGER_OPEN),
+            outcome=np.zeros(b, np.int32), key_actions=np.zeros(b, np.int32),
+            sim_steps=np.zeros(b, np.int32), geom_rgba=rgba, initial_data=data,
+            layout=self.scene.layout)
+
+    # ---- the expert ---------------------------------------------------------------------
+    def run_expert(self, state: EnvState, record: list[StepResult] | None = None) -> EnvState:
+        """Execute the scripted expert until every world is done or out of actions;
+        `record`, if given, collects the per-step sensordata of every phase."""
+        actions = self.expert_actions(state)
+        for k in range(actions.pos.shape[1]):
+            step = jax.tree.map(lambda x, k=k: x[:, k], actions)
+            if not step.valid.any() or state.done.all():
+                break
+            state, results = self.step(state, step, record=record is not None)
+            if record is not None:
+                record.extend(results)
+        return state
+
+    def expert_reachable(self, state: EnvState) -> np.ndarray:
+        """Whether every expert key action of each world is inside the action
+        bounds and solvable by IK (warm-started along the sequence)."""
+        actions = self.expert_actions(state)
+        q = np.asarray(state.data[:, self.spec.arm_q], np.float64)
+        return np.asarray(self._reachable(q, actions.pos, actions.quat, actions.valid))
+
+    def expert_actions(self, state: EnvState) -> KeyActions:
+        """The task's scripted expert, computed from the observation at reset."""
+        return self._padded(self._jit_expert, state.initial_obs, state.variation)
+
+    def _padded(self, fn, *args):
+        """fn(*args) for a batch of any size, run at the reset's batch size (rows
+        repeated, results cut back), so re-checking a few rejected scenes reuses the
+        programs compiled for the whole batch instead of compiling one per size."""
+        n = len(jax.tree.leaves(args)[0])
+        size = self._jit_rows or n
+        if n >= size:
+            return jax.tree.map(np.asarray, fn(*args))
+        idx = np.resize(np.arange(n), size)
+        out = fn(*jax.tree.map(lambda x: np.asarray(x)[idx], args))
+        return jax.tree.map(lambda x: np.asarray(x)[:n], out)
+
+    # ---- one key action -----------------------------------------------------------------
+    def step(self, state: EnvState, actions: KeyActions, record: bool = False
+             ) -> tuple[EnvState, tuple[StepResult, ...]]:
+        """Execute one key action (arm, then gripper) in every running world.
+
+        `actions` holds one action per world (pos (B,3), quat (B,4), gripper
+        (B,), valid (B,)); a world whose action is not valid ends with
+        Outcome.NO_ACTION.  On the MJX backends this is one device program;
+        `record=True` (the per-step sensor data of every phase, for demonstrations)
+        and native MuJoCo run the same key action on the host."""
+        if self.on_mjx and not record:
+            return self._step_on_device(state, actions), ()
+        phases = HostPhases(self.backend, self.scene.model, self._condition_step,
+                            self.record_qpos)
+        q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
+        plan = tuple(map(np.asarray, self._plan(
+            q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype))))
+        actions = jax.tree.map(np.asarray, actions)
+        return key_action(self.spec, phases, state, actions, plan)
+
+    def _step_on_device(self, state: EnvState, actions: KeyActions) -> EnvState:
+        """`step` as one device program; the physics state and condition carries stay on
+        the device, the host receives the per-world bookkeeping and latest sensor row."""
+        from agnostos_mjx.physics.mjx_backend import gc_paused
+
+        dev = state.to_device()
+        acts = KeyActions(jnp.asarray(actions.pos, jnp.float32),
+                          jnp.asarray(actions.quat, jnp.float32),
+                          jnp.asarray(actions.gripper, jnp.float32),
+                          jnp.asarray(actions.valid, bool))
+        n = state.batch
+        mesh = getattr(self.backend, "mesh", None)
+        if mesh is not None:  # worlds split over the local devices (sharding.py)
+            (dev, acts), n = sharding.shard((dev, acts), mesh)
+        program = self.device_program(dev.batch)
+        # The plan is its own program, shared by every task (control.jit_for_robot): the
+        # IK is most of the compile time, and the robot is the same in every scene.
+        plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+            new = jax.block_until_ready(program(dev, acts, plan))
+        return sharding.unpad(new, n).to_host()
+
+    def device_program(self, batch: int):
+        """The jitted key action of a batch of `batch` worlds: (state, actions, plan) ->
+        state, compiled once per batch size (and per stop_at_success)."""
+        if batch not in self._device_programs:
+            phases = DevicePhases(self.backend.device_physics(batch), self._condition_step,
+                                  steps_per_iteration(self.backend_name))
+            self._device_programs[batch] = jax.jit(
+                lambda s, a, p: key_action(self.spec, phases, s, a, p)[0])
+        return self._device_programs[batch]
+
+    # ---- observation ------------------------------------------------------------------
+    def render(self, state: EnvState, camera: str = "front", width: int = 128,
+               height: int = 128) -> np.ndarray:
+        """RGB frames (B, H, W, 3) of one camera for every world, with each world's
+        colours (CPU renderer)."""
+        return self.observer.render(state, camera, width, height)
+
+    def gripper_open(self, state: EnvState) -> np.ndarray:
+        """RLBench's gripper_open flag from the finger opening."""
+        return self.observer.gripper_open(state)
+
+    def observe(self, state: EnvState, spec):
+        """RLBench-style observation (cameras per `spec`, an observation.ObservationSpec,
+        plus proprioception) of every world; see agnostos_mjx/observation.py."""
+        return self.observer.observe(state, spec)
+
+    def close(self) -> None:
+        """Free the renderers (GL contexts, device buffers) this runner created."""
+        self.observer.close()

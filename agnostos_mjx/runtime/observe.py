@@ -1,0 +1,164 @@
+"""What policies see of a batch: RLBench observations (observation.py's types) rendered
+for the worlds of an EnvState.  The `Observer` owns the renderers of one runner (GL
+contexts and Warp kernels are costly, so they are made once and reused), with one route
+per renderer: MuJoCo's OpenGL renderer on the CPU, MJX-Warp's batch ray tracer on a GPU.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from agnostos_mjx.observation import (
+    CAMERA_ARRAYS,
+    CameraObservation,
+    ObservationSpec,
+    RLBenchObservation,
+    camera_constants,
+    camera_observation,
+    scene_labels,
+)
+from agnostos_mjx.runtime.state import EnvState
+from agnostos_mjx.tasks.base import Task
+from agnostos_mjx.world import FINGER_OPEN, SceneModel
+
+GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
+
+
+class Observer:
+    """Renders and assembles observations of one task's worlds; owns its renderers."""
+
+    def __init__(self, task: Task, scene: SceneModel, backend_name: str):
+        self.task = task
+        self.scene = scene
+        self.backend_name = backend_name
+        self._renderers: dict[tuple, Any] = {}
+        self._programs: dict[tuple, Any] = {}  # (spec, batch) -> jitted warp observation
+
+    # ---- the routes -------------------------------------------------------------------
+    def renderer_kind(self, spec: ObservationSpec) -> str:
+        if spec.renderer != "auto":
+            return spec.renderer
+        return "warp" if self.backend_name == "warp" else "cpu"
+
+    def renderer(self, spec: ObservationSpec, kind: str, nworld: int) -> Any:
+        """The cached renderer of `spec` on `kind` ("cpu" or "warp") for `nworld` worlds."""
+        from agnostos_mjx.render import WarpRenderer, cpu_renderer, render_threads
+
+        model = self.scene.model
+        if kind == "cpu":  # worlds split over render_threads() threads (AGNOSTOS_RENDER_THREADS)
+            threads = render_threads()
+            key: tuple = ("cpu", spec.height, spec.width, threads)
+            if key not in self._renderers:
+                self._renderers[key] = cpu_renderer(model, spec.width, spec.height, samples=0,
+                                                    threads=threads)
+        else:
+            key = ("warp", spec.height, spec.width, spec.cameras, nworld, spec.needs_depth,
+                   spec.wants("segmentation"))
+            if key not in self._renderers:
+                self._renderers[key] = WarpRenderer(
+                    model, nworld, spec.width, spec.height, cameras=spec.cameras,
+                    depth=spec.needs_depth, segmentation=spec.wants("segmentation"))
+        return self._renderers[key]
+
+    def render_views(self, state: EnvState, spec: ObservationSpec) -> dict[str, Any]:
+        """The raw images of `spec` for every world of `state` (no point clouds yet)."""
+        p = state.physics
+        kind = self.renderer_kind(spec)
+        renderer = self.renderer(spec, kind, len(p.qpos))
+        if kind == "warp":
+            data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
+            return renderer.render_views(data, jnp.asarray(state.geom_rgba, jnp.float32))
+        return renderer.render_views(
+            np.asarray(p.qpos), np.asarray(p.mocap_pos), np.asarray(p.mocap_quat), spec.cameras,
+            state.geom_rgba, rgb=spec.wants("rgb"), depth=spec.needs_depth,
+            segmentation=spec.wants("segmentation"))
+
+    def _warp_cameras(self, state: EnvState, spec: ObservationSpec
+                      ) -> dict[str, CameraObservation]:
+        """Every camera of `spec` on MJX-Warp as one device program: pose (kinematics and
+        camera poses), trace, then depth clipping, extrinsics and point clouds."""
+        p = state.physics
+        renderer = self.renderer(spec, "warp", len(p.qpos))
+        constants = camera_constants(self.scene.model, spec)
+        key = (spec, len(p.qpos))
+        if key not in self._programs:
+            def observe_all(template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any,
+                            rgba: Any) -> dict[str, dict[str, Any]]:
+                views = renderer.views(renderer.pose(template, qpos, mocap_pos, mocap_quat), rgba)
+                out = {}
+                for name, (k, near, far) in constants.items():
+                    cam = camera_observation(views[name], k, near, far, spec, jnp)
+                    out[name] = {f: getattr(cam, f) for f in CAMERA_ARRAYS}
+                return out
+
+            self._programs[key] = jax.jit(observe_all)
+        arrays = self._programs[key](renderer.template(), p.qpos, p.mocap_pos, p.mocap_quat,
+                                     jnp.asarray(state.geom_rgba, jnp.float32))
+        return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
+                for name, (k, near, far) in constants.items()}
+
+    # ---- observations -----------------------------------------------------------------
+    def gripper_open(self, state: EnvState) -> np.ndarray:
+        """RLBench's gripper_open flag from the finger opening."""
+        return (np.asarray(state.obs["finger_q"])[:, 0] / FINGER_OPEN) > GRIPPER_OPEN_THRESHOLD
+
+    def proprioception(self, state: EnvState) -> dict[str, np.ndarray]:
+        """RLBench's low-dimensional fields of every world (see observation.py)."""
+        obs = state.obs
+        quat = np.asarray(obs["tip.quat"], np.float32)
+        addr = self.scene.qpos_address
+        fingers = [addr["finger_left"], addr["finger_right"]]
+        return {
+            "gripper_pose": np.concatenate([np.asarray(obs["tip.pos"], np.float32),
+                                            quat[:, [1, 2, 3, 0]]], axis=1),
+            "gripper_open": np.asarray(self.gripper_open(state), np.float32),
+            "joint_positions": np.asarray(obs["arm_q"], np.float32),
+            "joint_velocities": np.asarray(obs["arm_qd"], np.float32),
+            "gripper_joint_positions": np.asarray(state.physics.qpos, np.float32)[:, fingers],
+        }
+
+    def observe(self, state: EnvState, spec: ObservationSpec) -> RLBenchObservation:
+        """Render and assemble `spec`'s observation of every world of `state`."""
+        if self.renderer_kind(spec) == "warp":
+            cameras = self._warp_cameras(state, spec)
+            if spec.numpy:
+                cameras = {name: CameraObservation(**{
+                    f: (np.asarray(v) if hasattr(v, "shape") else v) for f, v in vars(cam).items()})
+                    for name, cam in cameras.items()}
+        else:
+            views = self.render_views(state, spec)
+            cameras = {name: camera_observation(views[name], k, near, far, spec)
+                       for name, (k, near, far) in camera_constants(self.scene.model,
+                                                                     spec).items()}
+        return RLBenchObservation(
+            cameras=cameras, **self.proprioception(state),
+            instructions=tuple(self.task.descriptions(int(v))[0] for v in state.variation),
+            labels=scene_labels(self.scene))
+
+    def render(self, state: EnvState, camera: str = "front", width: int = 128,
+               height: int = 128) -> np.ndarray:
+        """RGB frames (B, H, W, 3) of one camera for every world, with each world's colours
+        (the CPU renderer, multisampled as RLBench's images)."""
+        from agnostos_mjx.render import CpuRenderer
+
+        key = ("frames", width, height)
+        if key not in self._renderers:
+            for old in [k for k in self._renderers if k[0] == "frames"]:
+                self._renderers.pop(old).close()
+            self._renderers[key] = CpuRenderer(self.scene.model, width, height)
+        p = state.physics
+        return self._renderers[key].render(np.asarray(p.qpos), np.asarray(p.mocap_pos),
+                                           np.asarray(p.mocap_quat), camera, state.geom_rgba)
+
+    def close(self) -> None:
+        """Free every renderer made so far (GL contexts, Warp buffers)."""
+        for renderer in self._renderers.values():
+            close = getattr(renderer, "close", None)
+            if close is not None:
+                close()
+        self._renderers.clear()
+        self._programs.clear()

@@ -1,0 +1,164 @@
+"""The two kinds of physics boundary under the key action (runtime/key_action.py).
+
+`HostPhases`: any backend's `run(state, ctrl, steps)` (native MuJoCo's rollout threads, or
+MJX for recorded demonstrations): the phase's controls are computed for all its steps at
+once, the physics runs, then the conditions are scanned over the recorded sensor rows.
+
+`DevicePhases`: inside one jitted program next to MJX: a `lax.while_loop` over physics
+steps, controls read at each step from the plan, conditions checked after every step, a
+world frozen at its own end (last step, failure, or success when episodes stop there),
+and the loop stops when no world is left moving.  A world that finished mid-phase keeps
+its state at that step here, where the host path steps it to the phase's end; the episode
+is over either way and its final observation is the same.
+
+Both report the first success and failure step of each world in the same way (a failure
+counts only before any success), so the key action above them is one piece of code.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from agnostos_mjx.physics.base import Backend, PhysicsState
+from agnostos_mjx.physics.mjx_backend import DevicePhysics, freeze, keep_rows
+from agnostos_mjx.runtime.outcome import phase_end
+from agnostos_mjx.runtime.state import EnvState, StepResult
+from agnostos_mjx.world import posed_data
+
+
+def scan_conditions(condition_step: Callable) -> Callable:
+    """One world's condition trees scanned over a phase's rows: (carry, data (T, S),
+    attached (T, G), valid (T,), variation) -> (carry, first success step or -1, first
+    failure step or -1); rows past the world's end (valid False) change nothing."""
+
+    def run(carry, data, attached, valid, variation):
+        def body(c, inputs):
+            d, a, v = inputs
+            new, s, f = condition_step(c, d, a, variation)
+            keep = lambda n, o: jnp.where(v, n, o)  # noqa: E731
+            return jax.tree.map(keep, new, c), (s & v, f & v)
+
+        carry, (s, f) = jax.lax.scan(body, carry, (data, attached, valid))
+        first = lambda m: jnp.where(jnp.any(m), jnp.argmax(m), -1)  # noqa: E731
+        return carry, first(s), first(f)
+
+    return run
+
+
+class HostPhases:
+    """Phases through a backend's `run`, on the host (numpy)."""
+
+    xp = np
+
+    def __init__(self, backend: Backend, model: mujoco.MjModel, condition_step: Callable,
+                 record_qpos: bool = False):
+        self.backend = backend
+        self.model = model
+        self.record_qpos = record_qpos
+        self._conditions = jax.jit(jax.vmap(scan_conditions(condition_step)))
+
+    def run_phase(self, state: EnvState, steps: np.ndarray, ctrl_at: Callable
+                  ) -> tuple[EnvState, np.ndarray, np.ndarray, StepResult | None]:
+        active = steps > 0
+        none = np.full(len(steps), -1)
+        if not active.any():
+            return state, none, none, None
+        t = int(steps.max())
+        ctrl = ctrl_at(np.arange(t))
+        if self.record_qpos:
+            physics, sens, qpos = self.backend.run_with_qpos(state.physics, ctrl, steps)
+        else:
+            (physics, sens), qpos = self.backend.run(state.physics, ctrl, steps), None
+        sens = np.array(sens, copy=True)
+        sens[~active] = np.asarray(state.data)[~active][:, None]
+        attached = np.repeat(state.attached[:, None], t, axis=1)
+        valid = np.arange(t)[None] < steps[:, None]
+        carry, s_idx, f_idx = map(
+            lambda x: jax.tree.map(np.asarray, x),
+            self._conditions(state.carry, sens, attached, valid, state.variation))
+        # A failure ends the episode unless success came first (or at the same step); a
+        # success after a failure does not count.
+        failed = active & (f_idx >= 0) & ~((s_idx >= 0) & (s_idx <= f_idx))
+        success_at = np.where(active & (s_idx >= 0) & ~failed, s_idx, -1)
+        failure_at = np.where(failed, f_idx, -1)
+        end = phase_end(steps, success_at, failure_at, state.stop_at_success, np)
+        last = sens[np.arange(len(end)), np.maximum(end, 0)]
+        data = np.where(active[:, None], last, np.asarray(state.data))
+        record = StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]), qpos)
+        new = state.replace(physics=physics.numpy(), data=data, carry=carry)
+        return new, success_at, failure_at, record
+
+    def poses(self, physics: PhysicsState, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        b, nbody = len(worlds), self.model.nbody
+        xpos, xquat = np.zeros((b, nbody, 3)), np.zeros((b, nbody, 4))
+        for w in np.nonzero(worlds)[0]:
+            data = posed_data(self.model, physics, w)
+            xpos[w], xquat[w] = data.xpos, data.xquat
+        return xpos, xquat
+
+
+def steps_per_iteration(backend_name: str) -> int:
+    """Physics steps per iteration of a device phase's while loop.
+
+    Each iteration ends with the host reading the loop's condition from the device, so the
+    host cannot queue the next step before the device has finished this one: on MJX-Warp,
+    whose step is a Python FFI callback (~1 ms of host time for ~1 ms of GPU time at batch
+    75), host and device then take turns instead of overlapping.  Unrolling a few steps
+    lets them overlap; on MJX-jax a step is a large program, and unrolling would multiply
+    its compile time.  ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
+    override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
+    if override:
+        return max(1, int(override))
+    return 4 if backend_name == "warp" else 1
+
+
+class DevicePhases:
+    """Phases as `lax.while_loop`s of MJX steps, traced into the key action's program."""
+
+    xp = jnp
+
+    def __init__(self, dev: DevicePhysics, condition_step: Callable, steps_per_iteration: int):
+        self.dev = dev
+        self.steps_per_iteration = steps_per_iteration
+        self._check = jax.vmap(condition_step)
+
+    def run_phase(self, state: EnvState, steps: jax.Array, ctrl_at: Callable
+                  ) -> tuple[EnvState, jax.Array, jax.Array, None]:
+        stop = state.stop_at_success
+        m, d = self.dev.load(state.physics)
+        none = jnp.full(steps.shape[0], -1, jnp.int32)
+
+        def one_step(c: tuple) -> tuple:
+            t, d, data, carry, s_at, f_at, live = c
+            new = self.dev.step(m, d, ctrl_at(t[None])[:, 0])
+            new_carry, s, f = self._check(carry, new.sensordata, state.attached, state.variation)
+            carry = jax.tree.map(lambda n, o: keep_rows(live, n, o), new_carry, carry)
+            s_at = jnp.where(live & s & (s_at < 0), t, s_at)
+            f_at = jnp.where(live & f & (f_at < 0) & (s_at < 0), t, f_at)
+            d = freeze(live, new, d)
+            data = keep_rows(live, new.sensordata, data)
+            ended = (t + 1 >= steps) | (f_at >= 0) | ((s_at >= 0) & stop)
+            return t + 1, d, data, carry, s_at, f_at, live & ~ended
+
+        def body(c: tuple) -> tuple:
+            # Several masked steps per iteration: a step of a world past its end is undone
+            # by `freeze`, so this changes no result, only how often the loop's condition
+            # makes the host wait for the device (see steps_per_iteration).
+            for _ in range(self.steps_per_iteration):
+                c = one_step(c)
+            return c
+
+        init = (jnp.int32(0), d, state.data, state.carry, none, none, steps > 0)
+        _, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, init)
+        new = state.replace(physics=self.dev.save(state.physics, d), data=data, carry=carry)
+        return new, s_at, f_at, None
+
+    def poses(self, physics: PhysicsState, worlds: Any) -> tuple[jax.Array, jax.Array]:
+        return self.dev.poses(*self.dev.load(physics))
