@@ -185,8 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     # isort: split
     from agnostos_mjx.cli import atomic_write, versions
-    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.physics import BACKENDS, warp_available
+    from agnostos_mjx.runtime.env import Episodes
 
     try:
         tasks = parse_tasks(args.tasks)

@@ -736,8 +736,8 @@ def batch_steps(task, policy, runner, part: list[tuple[int, int]], size: int, cf
     """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
     `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
-    from agnostos_mjx.runtime.outcome import Outcome
     from agnostos_mjx.observation import act as policy_act
+    from agnostos_mjx.runtime.outcome import Outcome
 
     n = len(part)
     run_part = part + [part[-1]] * (size - n)

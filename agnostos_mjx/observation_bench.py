@@ -132,8 +132,8 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
     """Rows for one task and batch: reset `batch` worlds, then time each renderer."""
     import jax
 
+    from agnostos_mjx.observation import MODALITIES, ObservationSpec
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.observation import MODALITIES, ObservationSpec, observe
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)
@@ -145,7 +145,7 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
         spec = ObservationSpec(cameras=cameras, height=size, width=size, modalities=MODALITIES,
                                renderer=kind, numpy=kind == "cpu")
         if kind == "cpu" and render_threads:
-            fns = [functools.partial(_with_threads, n, lambda spec=spec: observe(runner, env, spec))
+            fns = [functools.partial(_with_threads, n, lambda spec=spec: runner.observe(env, spec))
                    for n in render_threads]
             for n, times in zip(render_threads, _alternate(fns, repeats), strict=True):
                 rows.append(_row(task_name, batch, kind, len(cameras), min(times)))
@@ -153,12 +153,10 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
                                 all_seconds=[round(t, 4) for t in times])
                 log.info("%s", rows[-1])
             continue
-        seconds = _best(lambda spec=spec: observe(runner, env, spec), repeats)
+        seconds = _best(lambda spec=spec: runner.observe(env, spec), repeats)
         rows.append(_row(task_name, batch, kind, len(cameras), seconds))
         if kind == "warp":
-            from agnostos_mjx.observation import _renderer
-
-            renderer = _renderer(runner, spec, "warp", batch)
+            renderer = runner.observer.renderer(spec, "warp", batch)
             p = env.physics
             data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
             rgba = jax.numpy.asarray(env.geom_rgba, jax.numpy.float32)

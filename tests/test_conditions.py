@@ -17,9 +17,9 @@ from agnostos_mjx.conditions import (
     NothingGrasped,
     all_of,
 )
-from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.math3d import yaw_quat
 from agnostos_mjx.observables import Layout, Observation
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task, list_tasks
 from tests.conftest import episodes_for, task_params
 

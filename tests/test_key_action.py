@@ -1,18 +1,15 @@
-"""The jitted key-action step (key_action.py) against the host path (episode.py's
-recording path) on MJX-jax at tiny batch: same outcomes, poses within tolerance, and a
+"""The key action's device program (runtime/phase.py's DevicePhases) against its host
+path (HostPhases, the recording path) on MJX-jax at tiny batch: same outcomes, poses within tolerance, and a
 world frozen past its own end (issue 13).  MJX compiles on CPU take minutes per task, so
 the per-task cases are slow tests; `python -m pytest -m slow tests/test_key_action.py`."""
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-
 import jax
 import numpy as np
 import pytest
 
-from agnostos_mjx.runtime.env import Episodes, SETTLE_STEPS
+from agnostos_mjx.runtime.env import SETTLE_STEPS, Episodes
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
@@ -44,28 +41,25 @@ def _constructed_actions(ep: Episodes, env) -> list[KeyActions]:
 
 @pytest.mark.parametrize("task", ["lamp_on", "phone_on_base"])
 def test_device_step_traces_with_the_documented_shapes(task):
-    """The device program (with and without grasp welds) traces, at both stop modes, to a
-    DeviceEnv of the input's shapes and dtypes: a cheap guard for the default suite (no
+    """The device program (with and without grasp welds) traces, at both stop modes, to an
+    EnvState of the input's shapes and dtypes: a cheap guard for the default suite (no
     compile, no physics)."""
-    from agnostos_mjx.key_action import KeyActionStep, to_device
-
     ep = Episodes(get_task(task), "jax")
     env = ep.reset(_keys(2), np.zeros(2, np.int32))
-    dev = to_device(env)
     expert = ep.expert_actions(env)
     acts = KeyActions(*(jax.numpy.asarray(np.asarray(x)[:, 0]) for x in
                         (expert.pos, expert.quat, expert.gripper, expert.valid)))
-    step = KeyActionStep(ep, 2)
-    plan = jax.eval_shape(ep._device_plan, dev.data[:, ep._arm_q], acts.pos, acts.quat)
+    program = ep.device_program(2)
     for stop in (True, False):
-        out = jax.eval_shape(functools.partial(step._key_action, stop_at_success=stop),
-                             dev, acts, plan)
+        dev = env.replace(stop_at_success=stop).to_device()
+        plan = jax.eval_shape(ep._device_plan, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
+        out = jax.eval_shape(program, dev, acts, plan)
         shapes = jax.tree.map(lambda x: (x.shape, x.dtype), out)
         assert shapes == jax.tree.map(lambda x: (x.shape, x.dtype), dev)
+        assert out.stop_at_success is stop
 
 
 def _run(ep: Episodes, env, steps: list[KeyActions], record: bool):
-    env = dataclasses.replace(env)
     history = []
     for action in steps:
         env, _ = ep.step(env, action, record=record)
@@ -103,3 +97,37 @@ def test_device_step_matches_host_path(task):
         np.testing.assert_array_equal(later.qpos[1], history[0].qpos[1])
     np.testing.assert_array_equal(history[-1].qpos[2], env.physics.qpos[2].astype(np.float32))
     np.testing.assert_allclose(history[-1].time, (SETTLE_STEPS + dev.sim_steps) * ep.dt, atol=1e-4)
+
+
+@pytest.mark.parametrize("task", ["lamp_on", "phone_on_base", "open_drawer"])
+def test_device_program_matches_host_path_on_native_physics(task):
+    """The key action's two boundaries (default suite): the device program (DevicePhases:
+    while loop, in-loop conditions, frozen worlds, welds from traced kinematics) stepping
+    MuJoCo's C physics through host callbacks, against the host path (HostPhases) on the
+    same physics.  Same outcomes, key actions and grasps; poses within 1 cm.  MJX-jax's own
+    physics is compared in the slow test above (its compile takes CPU-minutes per task)."""
+    from agnostos_mjx.physics.callback import callback_physics
+
+    ep = Episodes(get_task(task), "native")
+    b = 3
+    env = ep.reset(_keys(b), np.zeros(b, np.int32))
+    steps = _constructed_actions(ep, env)
+    host, _ = _run(ep, env, steps, record=False)
+    physics = callback_physics(ep.scene.model, b)
+    dev = env
+    for action in steps:
+        dev = ep.step_on_device(dev, action, physics=physics)
+
+    assert Outcome(int(host.outcome[0])) == Outcome.SUCCESS, "the expert world succeeds"
+    assert Outcome(int(host.outcome[1])) == Outcome.NO_ACTION
+    assert Outcome(int(host.outcome[2])) == Outcome.OUT_OF_WORKSPACE
+    np.testing.assert_array_equal(dev.outcome, host.outcome)
+    np.testing.assert_array_equal(dev.key_actions, host.key_actions)
+    np.testing.assert_array_equal(dev.attached, host.attached)
+    assert np.abs(dev.sim_steps - host.sim_steps).max() <= STEP_TOL
+    layout = ep.scene.layout
+    for name in ("tip", *ep.task.observed_frames):
+        key = f"{name}.pos"
+        if key in layout.names:
+            err = np.abs(np.asarray(dev.obs[key]) - np.asarray(host.obs[key])).max()
+            assert err < POS_TOL, f"{task}: {key} differs by {err:.4f} m"

@@ -12,11 +12,11 @@ import pytest
 from agnostos_mjx.tasks import get_task
 
 # isort: split
-from agnostos_mjx.runtime.env import Episodes
-from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.eval import main
 from agnostos_mjx.policies import Policy, make_policy, no_actions
 from agnostos_mjx.policies.oracle import OraclePolicy
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks.base import KeyActions
 
 

@@ -21,9 +21,9 @@ from agnostos_mjx.control import (
     plan_arm,
     solve_ik,
 )
+from agnostos_mjx.math3d import quat_conj, quat_mul
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
-from agnostos_mjx.math3d import quat_conj, quat_mul
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
 from agnostos_mjx.world import ARM_JOINTS, HOME_QPOS, build_scene

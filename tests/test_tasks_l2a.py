@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.observables import Observation
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 
 

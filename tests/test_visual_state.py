@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.conditions import JointMoved
+from agnostos_mjx.eval import episode_keys
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.state import EnvState
-from agnostos_mjx.eval import episode_keys
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.push_buttons import PushButtons
 from agnostos_mjx.visual_state import StateColor, paint
@@ -76,7 +76,7 @@ def test_lamp_on_bulb_lights_in_rendered_frames(lamp_on) -> None:
     episodes, env, bulb, before_rgba, before = lamp_on
     after = episodes.render(env, "front", SIZE, SIZE)
     # Same final state with the bulb's colour from reset: the difference is the bulb only.
-    unlit = episodes._renderer.render(env.physics.qpos, env.physics.mocap_pos,
+    unlit = episodes.observer._renderers[("frames", SIZE, SIZE)].render(env.physics.qpos, env.physics.mocap_pos,
                                       env.physics.mocap_quat, "front", before_rgba)
     for w in range(len(after)):
         r, c = _pixel(episodes, env, w, "bulb")

@@ -90,7 +90,7 @@ import signal
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -356,7 +356,6 @@ def episode_observations(episodes, env, spec, every: int | None = None
     import jax
 
     from agnostos_mjx.observables import Observation
-    from agnostos_mjx.observation import observe
 
     n = len(env.variation)
     frames: list[list[dict]] = [[] for _ in range(n)]
@@ -367,7 +366,7 @@ def episode_observations(episodes, env, spec, every: int | None = None
     def snap(view, worlds, key: bool, rows=None):
         """Observe `view` and append its row rows[i] (default: worlds[i]) to world
         worlds[i]'s frames."""
-        obs = observe(episodes, view, spec)
+        obs = episodes.observe(view, spec)
         state = task_low_dim_state(task, view.obs)
         for i, w in enumerate(worlds):
             row = int(w) if rows is None else int(rows[i])
@@ -377,7 +376,7 @@ def episode_observations(episodes, env, spec, every: int | None = None
 
     def dense(env, results, rgba, running):
         """The in-between frames of one key action from its phases' StepResults."""
-        colours = episodes._state_colors
+        colours = episodes.state_colors
         offset = np.zeros(n, np.int64)  # steps of this action before the phase
         total = sum(r.valid.sum(1) for r in results)
         for r in results:
@@ -388,12 +387,13 @@ def episode_observations(episodes, env, spec, every: int | None = None
                 rows = np.nonzero(want[:, t])[0]
                 obs_t = Observation(r.sensordata[:, t], layout, r.attached[:, t])
                 painted = colours.update(rgba, env.initial_obs, obs_t, env.variation)
-                view = replace(
-                    env, physics=env.physics.rows(rows).replace(qpos=r.qpos[rows, t]),
-                    obs=Observation(r.sensordata[rows, t], layout, r.attached[rows, t]),
-                    geom_rgba=np.asarray(painted)[rows], variation=env.variation[rows])
+                view = env.replace(
+                    physics=env.physics.rows(rows).replace(qpos=r.qpos[rows, t]),
+                    data=r.sensordata[rows, t], attached=r.attached[rows, t],
+                    geom_rgba=np.asarray(painted)[rows], variation=env.variation[rows],
+                    initial_data=env.initial_data[rows])
                 snap(view, rows, key=False, rows=range(len(rows)))
-            # The colours after the phase, as Episodes._run_phase paints them.
+            # The colours after the phase, as the key action paints them.
             last = np.maximum(steps - 1, 0)
             obs_end = Observation(r.sensordata[np.arange(n), last], layout,
                                   r.attached[np.arange(n), last])
@@ -438,9 +438,9 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     """Export one task's missing demos; returns counts.  `threads`: the native physics'
     threads (default: all cores)."""
     from agnostos_mjx.data.generate import demo_keys
+    from agnostos_mjx.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.outcome import Outcome
-    from agnostos_mjx.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)

@@ -420,8 +420,8 @@ def resolve_workers(cfg: GenerateConfig) -> int:
 
 def generate(cfg: GenerateConfig) -> dict:
     """Generate every requested task; returns a report (also written to report.json)."""
-    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.physics import resolve_backend
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     cfg = replace(cfg, backend=resolve_backend(cfg.backend, cfg.batch))

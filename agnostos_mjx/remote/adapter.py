@@ -34,9 +34,9 @@ import numpy as np
 from agnostos_mjx.observation import CAMERAS, ObservationSpec
 
 if TYPE_CHECKING:
+    from agnostos_mjx.observation import RLBenchObservation
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
-    from agnostos_mjx.observation import RLBenchObservation
 
 CAMERA_FIELDS = {"rgb": "rgb", "depth": "depth", "point_cloud": "point_cloud",
                  "mask": "segmentation"}

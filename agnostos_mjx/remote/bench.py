@@ -63,8 +63,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--batch", type=int, default=75)
     p.add_argument("--quick", action="store_true", help="lamp_on only")
     a = p.parse_args(argv)
-    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.policies import make_policy
+    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     tasks = ["lamp_on"] if a.quick else a.tasks.split(",")

@@ -34,9 +34,9 @@ from agnostos_mjx.remote.adapter import sim_state as world_sim_state
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
+    from agnostos_mjx.observation import RLBenchObservation
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
-    from agnostos_mjx.observation import RLBenchObservation
 
 DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
 
@@ -199,14 +199,12 @@ class RemotePolicy:
     def _requests(self, episodes: Episodes, env: EnvState, worlds: np.ndarray,
                   observation: RLBenchObservation | None) -> list[tuple[int, bytes]]:
         """Encoded requests of `worlds` (rendering what the adapter needs, once)."""
-        from agnostos_mjx.observation import observe, proprioception
-
         if not len(worlds):
             return []
         spec = self.adapter.spec()
         if spec is not None and observation is None:
-            observation = observe(episodes, env, spec)
-        sources: dict[str, Any] = lowdim(proprioception(episodes, env))
+            observation = episodes.observe(env, spec)
+        sources: dict[str, Any] = lowdim(episodes.observer.proprioception(env))
         sources["instruction"] = self.instructions
         if self.adapter.wants_sim_state:
             sources["sim_state"] = {int(w): world_sim_state(episodes, env, int(w),

@@ -55,9 +55,9 @@ def runner_for(task_name: str):
 
 def mirror_env(runner, state: dict):
     """A one-world EnvState from a request's ``sim_state`` (see adapter.sim_state)."""
-    from agnostos_mjx.runtime.state import EnvState
     from agnostos_mjx.observables import Observation
     from agnostos_mjx.physics import PhysicsState
+    from agnostos_mjx.runtime.state import EnvState
 
     m, layout = runner.scene.model, runner.scene.layout
     one = lambda x, dtype=np.float64: np.array(x, dtype)[None]  # noqa: E731

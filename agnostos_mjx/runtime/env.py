@@ -223,7 +223,7 @@ class Episodes:
         `record=True` (the per-step sensor data of every phase, for demonstrations)
         and native MuJoCo run the same key action on the host."""
         if self.on_mjx and not record:
-            return self._step_on_device(state, actions), ()
+            return self.step_on_device(state, actions), ()
         phases = HostPhases(self.backend, self.scene.model, self._condition_step,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
@@ -232,9 +232,10 @@ class Episodes:
         actions = jax.tree.map(np.asarray, actions)
         return key_action(self.spec, phases, state, actions, plan)
 
-    def _step_on_device(self, state: EnvState, actions: KeyActions) -> EnvState:
+    def step_on_device(self, state: EnvState, actions: KeyActions, physics=None) -> EnvState:
         """`step` as one device program; the physics state and condition carries stay on
-        the device, the host receives the per-world bookkeeping and latest sensor row."""
+        the device, the host receives the per-world bookkeeping and latest sensor row.
+        `physics`: see `device_program`."""
         from agnostos_mjx.physics.mjx_backend import gc_paused
 
         dev = state.to_device()
@@ -246,7 +247,7 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:  # worlds split over the local devices (sharding.py)
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        program = self.device_program(dev.batch)
+        program = self.device_program(dev.batch, physics)
         # The plan is its own program, shared by every task (control.jit_for_robot): the
         # IK is most of the compile time, and the robot is the same in every scene.
         plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
@@ -254,15 +255,17 @@ class Episodes:
             new = jax.block_until_ready(program(dev, acts, plan))
         return sharding.unpad(new, n).to_host()
 
-    def device_program(self, batch: int):
+    def device_program(self, batch: int, physics=None):
         """The jitted key action of a batch of `batch` worlds: (state, actions, plan) ->
-        state, compiled once per batch size (and per stop_at_success)."""
-        if batch not in self._device_programs:
-            phases = DevicePhases(self.backend.device_physics(batch), self._condition_step,
-                                  steps_per_iteration(self.backend_name))
-            self._device_programs[batch] = jax.jit(
+        state, compiled once per batch size (and per stop_at_success).  `physics`: the
+        DevicePhysics to step (default: this runner's MJX backend's)."""
+        key = (batch, physics)
+        if key not in self._device_programs:
+            dev = physics or self.backend.device_physics(batch)
+            phases = DevicePhases(dev, self._condition_step, steps_per_iteration(self.backend_name))
+            self._device_programs[key] = jax.jit(
                 lambda s, a, p: key_action(self.spec, phases, s, a, p)[0])
-        return self._device_programs[batch]
+        return self._device_programs[key]
 
     # ---- observation ------------------------------------------------------------------
     def render(self, state: EnvState, camera: str = "front", width: int = 128,
