@@ -20,7 +20,12 @@ from agnostos_mjx.observables import Observation
 from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
 from agnostos_mjx.runtime.key_action import StepSpec, key_action
 from agnostos_mjx.runtime.observe import Observer
-from agnostos_mjx.runtime.phase import DevicePhases, HostPhases, steps_per_iteration
+from agnostos_mjx.runtime.phase import (
+    DevicePhases,
+    HostPhases,
+    scan_conditions,
+    steps_per_iteration,
+)
 from agnostos_mjx.runtime.state import EnvState, StepResult
 from agnostos_mjx.tasks.base import KeyActions, Task
 from agnostos_mjx.visual_state import StateColors
@@ -60,6 +65,7 @@ class Episodes:
         self._jit_sample = jax.jit(jax.vmap(self._sample_one))
         self._jit_init_cond = jax.jit(jax.vmap(self._init_conditions))
         self._jit_expert = jax.jit(jax.vmap(task.expert))
+        self._jit_conditions = jax.jit(jax.vmap(scan_conditions(self._condition_step)))
         # Planning runs where the physics runs: jitted on an accelerator next to MJX, plain
         # numpy next to native MuJoCo (see control.py).  The device program's planner is one
         # program for every task of a run (control.jit_for_robot).
@@ -224,7 +230,7 @@ class Episodes:
         and native MuJoCo run the same key action on the host."""
         if self.on_mjx and not record:
             return self.step_on_device(state, actions), ()
-        phases = HostPhases(self.backend, self.scene.model, self._condition_step,
+        phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
         plan = tuple(map(np.asarray, self._plan(

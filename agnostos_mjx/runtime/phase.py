@@ -57,12 +57,14 @@ class HostPhases:
 
     xp = np
 
-    def __init__(self, backend: Backend, model: mujoco.MjModel, condition_step: Callable,
+    def __init__(self, backend: Backend, model: mujoco.MjModel, conditions: Callable,
                  record_qpos: bool = False):
+        """`conditions`: `jax.jit(jax.vmap(scan_conditions(condition_step)))`, made once per
+        runner (a new jit per key action would compile anew each time)."""
         self.backend = backend
         self.model = model
         self.record_qpos = record_qpos
-        self._conditions = jax.jit(jax.vmap(scan_conditions(condition_step)))
+        self._conditions = conditions
 
     def run_phase(self, state: EnvState, steps: np.ndarray, ctrl_at: Callable
                   ) -> tuple[EnvState, np.ndarray, np.ndarray, StepResult | None]:
