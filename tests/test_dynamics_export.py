@@ -24,7 +24,7 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs, synthetic
 from agnostos_mjx.dynamics.diffusion import DynamicsModel
-from agnostos_mjx.dynamics.export import (
+from agnostos_mjx.dynamics.export_format import (
     META_FILE,
     PARAMS_FILE,
     parameter_count,

@@ -11,19 +11,21 @@ import pytest
 
 from agnostos_mjx.data import export as ex
 from agnostos_mjx.data import rlbench_demo
+from agnostos_mjx.data import rlbench_format as fmt
+from agnostos_mjx.data.expert_frames import frame_every
 
 
 def test_encodings_round_trip() -> None:
     depth = np.linspace(0.01, 4.5, 100).reshape(10, 10)
-    rgb = ex.encode_depth(depth, 0.01, 4.5)
-    np.testing.assert_allclose(ex.decode_depth(rgb, 0.01, 4.5), depth, atol=1e-6)
+    rgb = fmt.encode_depth(depth, 0.01, 4.5)
+    np.testing.assert_allclose(fmt.decode_depth(rgb, 0.01, 4.5), depth, atol=1e-6)
     # RLBench's image_to_float_array(img, DEPTH_SCALE): R is the high byte for depth ...
-    unit = np.sum(rgb.astype(np.int64) * [65536, 256, 1], axis=2) / ex.DEPTH_SCALE
+    unit = np.sum(rgb.astype(np.int64) * [65536, 256, 1], axis=2) / fmt.DEPTH_SCALE
     np.testing.assert_allclose(0.01 + unit * (4.5 - 0.01), depth, atol=1e-6)
     ids = np.arange(-1, 99).reshape(10, 10)
-    assert np.array_equal(ex.rgb_to_int(ex.int_to_rgb(ids + 1)) - 1, ids)
+    assert np.array_equal(fmt.rgb_to_int(fmt.int_to_rgb(ids + 1)) - 1, ids)
     # ... and the low byte for masks (rgb_handles_to_mask: R + 256 G + 65536 B).
-    mask = ex.int_to_rgb(np.array([[70000]])).astype(np.int64)
+    mask = fmt.int_to_rgb(np.array([[70000]])).astype(np.int64)
     assert mask[0, 0, 0] + 256 * mask[0, 0, 1] + 65536 * mask[0, 0, 2] == 70000
 
 
@@ -65,7 +67,7 @@ def check_rlbench_fields(obs, cameras=("front", "wrist")) -> None:
 
 
 def test_low_dim_pickle_names_rlbench_classes() -> None:
-    demo = rlbench_demo.Demo([ex.rlbench_observation(_frame(), ["wrist", "front"])] * 2, None, 3)
+    demo = rlbench_demo.Demo([fmt.rlbench_observation(_frame(), ["wrist", "front"])] * 2, None, 3)
     data = rlbench_demo.dumps(demo)
     strings = {arg for op, arg, _ in pickletools.genops(data) if isinstance(arg, str)}
     assert {"rlbench.demo", "Demo", "rlbench.backend.observation", "Observation"} <= strings
@@ -80,6 +82,57 @@ def test_low_dim_pickle_names_rlbench_classes() -> None:
     check_rlbench_fields(back[0])  # misc in RLBench's camera order: front before wrist
     with pytest.raises(pickle.UnpicklingError):
         rlbench_demo.loads(pickle.dumps(json.dumps))  # only RLBench's classes and numpy arrays
+
+
+class _RunsShell:
+    """Unpickling this calls os.system (what a hostile episode could hold)."""
+
+    def __init__(self, command: str):
+        self.command = command
+
+    def __reduce__(self):
+        import os
+
+        return os.system, (self.command,)
+
+
+def _resign(path) -> None:
+    """Rewrite SHA256SUMS as a sender of a hostile episode would (it passes verification)."""
+    import hashlib
+
+    files = sorted(p for p in path.rglob("*") if p.is_file() and p.name != "SHA256SUMS")
+    (path / "SHA256SUMS").write_text("".join(
+        f"{hashlib.sha256(p.read_bytes()).hexdigest()}  {p.relative_to(path)}\n" for p in files))
+
+
+@pytest.mark.parametrize("name", ["variation_number.pkl", "variation_descriptions.pkl",
+                                  "low_dim_obs.pkl"])
+def test_read_episode_refuses_code_in_pickles(tmp_path, name) -> None:
+    """Every pickle of an episode goes through the restricted unpickler: one whose reduce
+    calls os.system is refused with an error naming the file, and nothing runs; our own
+    episodes still read."""
+    path = tmp_path / "episode0"
+    ex.write_episode(path, [_frame(), _frame()], ["open the drawer", "pull the drawer"], 2)
+    ep = ex.read_episode(path)
+    assert ep["descriptions"] == ["open the drawer", "pull the drawer"] and ep["variation"] == 2
+    assert len(ep["demo"]) == 2 and ep["keyframes"] == [0, 1]
+    check_rlbench_fields(ep["demo"][0])
+
+    marker = tmp_path / "ran"
+    (path / name).write_bytes(pickle.dumps(_RunsShell(f"touch {marker}")))
+    _resign(path)
+    with pytest.raises(pickle.UnpicklingError, match=rf"{path / name}.*system"):
+        ex.read_episode(path)
+    assert not marker.exists()
+    # A harmless but wrong global (json.dumps) and a wrong type are refused as well.
+    (path / name).write_bytes(pickle.dumps(json.dumps))
+    _resign(path)
+    with pytest.raises(pickle.UnpicklingError, match=str(path / name)):
+        ex.read_episode(path)
+    (path / name).write_bytes(pickle.dumps({"not": "expected"}))
+    _resign(path)
+    with pytest.raises(ValueError, match=str(path / name)):
+        ex.read_episode(path)
 
 
 def test_export_two_tasks_two_demos(tmp_path, capsys) -> None:
@@ -163,11 +216,11 @@ def keypoint_discovery(demo, stopping_delta=0.1):
 
 
 def test_frame_every_and_estimate() -> None:
-    assert ex.frame_every(None, 0.005) is None
-    assert ex.frame_every("rlbench", 0.005) == 10  # RLBench's 50 ms frames
-    assert ex.frame_every("rlbench", 0.002) == 25 and ex.frame_every(3, 0.005) == 3
+    assert frame_every(None, 0.005) is None
+    assert frame_every("rlbench", 0.005) == 10  # RLBench's 50 ms frames
+    assert frame_every("rlbench", 0.002) == 25 and frame_every(3, 0.005) == 3
     with pytest.raises(ValueError):
-        ex.frame_every(0, 0.005)
+        frame_every(0, 0.005)
     assert ex._parse_every("rlbench") == "rlbench" and ex._parse_every("7") == 7
     for bad in ("0", "x", "-2"):
         with pytest.raises(Exception, match="positive"):
@@ -235,7 +288,7 @@ def test_dense_frames(tmp_path) -> None:
     assert "keyframes.json" not in (ex.episode_dir(tmp_path / "keys", task, 0) / "SHA256SUMS"
                                     ).read_text()
     kf = np.array(dense["keyframes"])
-    for name in ex.LOW_DIM_FIELDS + ("front_camera_extrinsics",):
+    for name in fmt.LOW_DIM_FIELDS + ("front_camera_extrinsics",):
         np.testing.assert_array_equal(dense["low_dim"][name][kf], sparse["low_dim"][name],
                                       err_msg=name)
     for name in ("front_rgb", "front_depth", "front_mask"):

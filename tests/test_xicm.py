@@ -10,8 +10,8 @@ import pytest
 
 from agnostos_mjx.policies.retrieval import transfer
 from agnostos_mjx.xicm.memory import DemoMemory, MemoryFileError, default_memory_path
+from agnostos_mjx.xicm.query import Query
 from agnostos_mjx.xicm.selection import (
-    Query,
     RandomSelector,
     TextSelector,
     make_selector,

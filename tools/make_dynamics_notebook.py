@@ -17,22 +17,29 @@ text feature (`lang`), the first-frame latent (`vis.in`) and the predicted last-
 (`vis.out`). This notebook uses only what ships with the package: the float16 export in
 `agnostos_mjx/assets/dynamics` and the seen memory (3,600 demos with their features)."""),
     nbf.v4.new_code_cell("""import json
+import os
 from collections import Counter
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-from agnostos_mjx.xicm.dynamics_selector import default_checkpoint_path, load_pipeline
+from agnostos_mjx.xicm.dynamics_selector import (
+    QUERY_SAMPLE_STEPS,
+    default_checkpoint_path,
+    load_pipeline,
+)
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 
+# AGNOSTOS_NOTEBOOK_SMALL=1 (the tests): 3 unseen tasks, the policies' 10 DDIM steps.
+SMALL = os.environ.get('AGNOSTOS_NOTEBOOK_SMALL') == '1'
 memory = DemoMemory.load(default_memory_path())
-pipeline = load_pipeline()
+pipeline = load_pipeline(sample_steps=QUERY_SAMPLE_STEPS if SMALL else None)
 export = json.loads((default_checkpoint_path() / 'export.json').read_text())
 print(len(memory), 'seen demos of', len(set(memory.task.tolist())), 'tasks; features',
       {k: v.shape for k, v in memory.features.items()})
 print('UNet channels', export['model']['unet']['channels'], '| DDIM steps',
-      export['diffusion']['sample_steps'], '| guidance', export['diffusion']['image_guidance'],
+      pipeline.diffusion.sample_steps, '| guidance', export['diffusion']['image_guidance'],
       export['diffusion']['text_guidance'])"""),
     nbf.v4.new_markdown_cell("""## Predicted last frames of held-out seen demos
 
@@ -51,13 +58,14 @@ For each of the 23 unseen tasks, one scene (variation 0, evaluation seed 0) is r
 frame rendered and its instruction taken, exactly as the policies query the model. The middle
 column shows the first-frame latent and the right column the predicted last-frame latent (three
 of the four latent channels as RGB): where they differ is where the model expects the scene to
-change. About 2 s per query on a CPU core, much less on a GPU."""),
+change. About 2 s per query on a CPU core, much less on a GPU. (With
+`AGNOSTOS_NOTEBOOK_SMALL=1`, as `tests/test_notebooks.py` runs it: three of the tasks.)"""),
     nbf.v4.new_code_cell("""from agnostos_mjx.dynamics.features import extract, similarity
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.eval import episode_keys
 from agnostos_mjx.tasks import parse_tasks
 
-unseen_tasks = parse_tasks('unseen')
+unseen_tasks = parse_tasks('open_grill,close_laptop_lid,turn_oven_on' if SMALL else 'unseen')
 unseen = [t.name for t in unseen_tasks]
 frames, instructions = [], []
 for task in unseen_tasks:
@@ -73,8 +81,8 @@ latent_out = features['vis.out'].reshape(-1, 16, 16, 4)"""),
     z = z[..., :3]
     return (z - z.min()) / (z.max() - z.min() + 1e-8)
 
-rows = 6
-fig, axes = plt.subplots(rows, 3, figsize=(7, 2.3 * rows))
+rows = min(6, len(unseen))
+fig, axes = plt.subplots(rows, 3, figsize=(7, 2.3 * rows), squeeze=False)
 for r, i in enumerate(np.linspace(0, len(unseen) - 1, rows).astype(int)):
     axes[r, 0].imshow(frames[i])
     axes[r, 0].set_title(instructions[i][:32], fontsize=8)

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.physics.mjx_backend import MjxBackend
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 
 B = int(sys.argv[1]) if len(sys.argv) > 1 else 1024

@@ -20,7 +20,8 @@ writes them, read as they are by ``rlbench.utils.get_stored_demos`` (PerAct, and
                                   ignore_collisions (0), joint_forces and
                                   gripper_touch_forces (zeros: not simulated), misc with
                                   <camera>_camera_{extrinsics,intrinsics,near,far}
-        variation_descriptions.pkl, variation_number.pkl   as RLBench (plain pickles)
+        variation_descriptions.pkl, variation_number.pkl   as RLBench (plain pickles: a
+                                  list of str, an int)
         SHA256SUMS                checksums of every file above (written last: the marker
                                   that the episode is complete)
     <out>/manifest.json           settings, segmentation names per task, episode counts
@@ -70,6 +71,12 @@ between them (``cores // N`` each); the files are the same as with one worker (e
 is deterministic on its own).  Only the parent writes ``manifest.json`` (atomically).  A task
 that fails is reported with its name and the others go on; the exit code is then 1.
 
+Code: data/rlbench_format.py (the folder layout, file names, image encodings), data/
+episode_files.py (writing, verifying and reading one episode folder; :func:`read_episode`
+reads every pickle with a restricted unpickler, so an episode from elsewhere cannot run
+code), data/rlbench_demo.py (the pickles), data/expert_frames.py (running the experts with
+observations); this module: the command, the estimate and the task workers.
+
 Examples::
 
     python -m agnostos_mjx.data.export --out data/peract --tasks seen --demos 200 --workers 16
@@ -80,12 +87,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import hashlib
 import json
 import logging
 import os
-import pickle
-import shutil
 import signal
 import sys
 import time
@@ -95,22 +99,21 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.data.rlbench_demo import Demo, Observation, dumps, loads
+from agnostos_mjx.data.episode_files import read_episode, verify_episode, write_episode
+from agnostos_mjx.data.expert_frames import episode_observations, frame_every
+from agnostos_mjx.data.rlbench_format import (
+    FORMAT,
+    RLBENCH_CAMERAS,
+    episode_dir,
+    is_complete,
+)
+
+# The episode format's API, importable from here as before the split (README, reports):
+__all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export",
+           "export_task", "frames_per_demo", "is_complete", "main", "read_episode",
+           "verify_episode", "write_episode"]
 
 log = logging.getLogger("agnostos_mjx.data.export")
-# RLBench's five cameras, in the order its misc dict lists them; get_stored_demos needs the
-# rgb and depth folders of all five.
-RLBENCH_CAMERAS = ("left_shoulder", "right_shoulder", "overhead", "front", "wrist")
-DEPTH_SCALE = 2**24 - 1  # RLBench's DEPTH_SCALE
-SUMS = "SHA256SUMS"
-LOW_DIM_PICKLE = "low_dim_obs.pkl"
-KEYFRAMES = "keyframes.json"  # dense episodes only: indices of the keyframes among the frames
-RLBENCH_FRAME_PERIOD = 0.05  # s: RLBench stores every simulation step (50 ms, 20 Hz)
-FORMAT = 2  # 1: low_dim_obs.npz and depth with R as the low byte (not RLBench's)
-# Observation fields stacked per frame by read_episode (besides misc's camera keys).
-LOW_DIM_FIELDS = ("gripper_pose", "gripper_open", "joint_positions", "joint_velocities",
-                  "joint_forces", "gripper_matrix", "gripper_joint_positions",
-                  "gripper_touch_forces", "task_low_dim_state", "ignore_collisions")
 # Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
 BYTES_PER_CAMERA_FRAME_128 = 30_000
 # Seen tasks' expert demos (18 tasks x 12 demos): 7.7 key actions and 9.25 s (1,850 steps)
@@ -139,188 +142,6 @@ class ExportConfig:
     every: int | str | None = None  # dense frames: see frame_every
 
 
-# ---- RLBench image encodings (pure) --------------------------------------------------------
-def int_to_rgb(values: np.ndarray) -> np.ndarray:
-    """Non-negative integers < 2^24 -> uint8 RGB with R the low byte: RLBench's mask
-    encoding (``rgb_handles_to_mask``: R + 256 G + 65536 B)."""
-    v = np.asarray(values, np.int64)
-    return np.stack([v & 255, (v >> 8) & 255, (v >> 16) & 255], -1).astype(np.uint8)
-
-
-def rgb_to_int(rgb: np.ndarray) -> np.ndarray:
-    rgb = np.asarray(rgb, np.int64)
-    return rgb[..., 0] | (rgb[..., 1] << 8) | (rgb[..., 2] << 16)
-
-
-def encode_depth(depth: np.ndarray, near: float, far: float) -> np.ndarray:
-    """Metres -> RLBench depth PNG pixels: ``float_array_to_rgb_image((d - near) / (far -
-    near), DEPTH_SCALE)``, a 24-bit integer with R the HIGH byte (unlike masks)."""
-    unit = (np.asarray(depth, np.float64) - near) / (far - near)
-    return int_to_rgb(np.clip(np.floor(unit * DEPTH_SCALE + 0.5), 0, DEPTH_SCALE))[..., ::-1]
-
-
-def decode_depth(rgb: np.ndarray, near: float, far: float) -> np.ndarray:
-    """RLBench depth PNG pixels -> metres (``image_to_float_array``, then near/far)."""
-    unit = rgb_to_int(np.asarray(rgb)[..., ::-1]) / DEPTH_SCALE
-    return (near + unit * (far - near)).astype(np.float32)
-
-
-def quat_to_matrix(pose: np.ndarray) -> np.ndarray:
-    """RLBench gripper pose (x y z qx qy qz qw) -> its 4x4 ``gripper_matrix``."""
-    x, y, z, w = np.asarray(pose[3:], np.float64) / np.linalg.norm(pose[3:])
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = pose[:3]
-    return m
-
-
-def rlbench_observation(frame: dict, cameras: Sequence[str]) -> Observation:
-    """One frame (RLBenchObservation.world dict, plus ``task_low_dim_state``) -> the
-    ``Observation`` that RLBench's dataset generator pickles: images None, low-dim fields as
-    float64 arrays; fields we do not simulate (joint_forces, gripper_touch_forces) are zeros
-    and ignore_collisions is 0 (our key actions carry no collision flag)."""
-    f64 = lambda v: np.array(v, np.float64)  # noqa: E731
-    misc: dict = {}
-    for cam in sorted(cameras, key=lambda c: (RLBENCH_CAMERAS + (c,)).index(c)):
-        m = frame["misc"]
-        misc[f"{cam}_camera_extrinsics"] = f64(m[f"{cam}_camera_extrinsics"])
-        misc[f"{cam}_camera_intrinsics"] = f64(m[f"{cam}_camera_intrinsics"])
-        misc[f"{cam}_camera_near"] = float(m[f"{cam}_camera_near"])
-        misc[f"{cam}_camera_far"] = float(m[f"{cam}_camera_far"])
-    pose = f64(frame["gripper_pose"])
-    joints = f64(frame["joint_positions"])
-    return Observation(
-        joint_velocities=f64(frame["joint_velocities"]), joint_positions=joints,
-        joint_forces=f64(frame.get("joint_forces", np.zeros_like(joints))),
-        gripper_open=float(frame["gripper_open"]), gripper_pose=pose,
-        gripper_matrix=quat_to_matrix(pose),
-        gripper_joint_positions=f64(frame["gripper_joint_positions"]),
-        gripper_touch_forces=f64(frame.get("gripper_touch_forces", np.zeros(6))),
-        task_low_dim_state=f64(frame.get("task_low_dim_state", np.zeros(0))),
-        ignore_collisions=np.array(float(frame.get("ignore_collisions", 0.0))), misc=misc)
-
-
-# ---- writing ---------------------------------------------------------------------------------
-def _png(path: Path, img: np.ndarray) -> None:
-    from PIL import Image
-
-    Image.fromarray(np.ascontiguousarray(img)).save(path, compress_level=1)
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def episode_dir(out: Path, task: str, index: int) -> Path:
-    return out / task / "all_variations" / "episodes" / f"episode{index}"
-
-
-def is_complete(path: Path) -> bool:
-    return (path / SUMS).exists()
-
-
-def write_episode(path: Path, frames: list[dict], description: list[str], variation: int,
-                  keyframes: Sequence[int] | None = None) -> None:
-    """One demo's frames (RLBenchObservation.world dicts) -> an episode folder, atomically;
-    `keyframes` (indices of the keyframes among dense frames) go to keyframes.json."""
-    tmp = path.with_name(path.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    cameras = [k[: -len("_camera_near")] for k in frames[0]["misc"] if k.endswith("_camera_near")]
-    for k, f in enumerate(frames):
-        for cam in cameras:
-            near, far = f["misc"][f"{cam}_camera_near"], f["misc"][f"{cam}_camera_far"]
-            images = {"rgb": f.get(f"{cam}_rgb")}
-            if f.get(f"{cam}_depth") is not None:
-                images["depth"] = encode_depth(f[f"{cam}_depth"], near, far)
-            if f.get(f"{cam}_mask") is not None:
-                images["mask"] = int_to_rgb(f[f"{cam}_mask"] + 1)
-            for kind, img in images.items():
-                if img is not None:
-                    (tmp / f"{cam}_{kind}").mkdir(exist_ok=True)
-                    _png(tmp / f"{cam}_{kind}" / f"{k}.png", img)
-    demo = Demo([rlbench_observation(f, cameras) for f in frames], None, int(variation))
-    (tmp / LOW_DIM_PICKLE).write_bytes(dumps(demo))
-    (tmp / "variation_descriptions.pkl").write_bytes(pickle.dumps(list(description)))
-    (tmp / "variation_number.pkl").write_bytes(pickle.dumps(int(variation)))
-    if keyframes is not None:
-        (tmp / KEYFRAMES).write_text(json.dumps([int(k) for k in keyframes]) + "\n")
-    files = sorted(p for p in tmp.rglob("*") if p.is_file())
-    sums = "".join(f"{_sha256(p)}  {p.relative_to(tmp)}\n" for p in files)
-    (tmp / SUMS).write_text(sums)
-    shutil.rmtree(path, ignore_errors=True)
-    tmp.rename(path)
-
-
-def verify_episode(path: Path) -> None:
-    """Raise ValueError naming the first file whose checksum does not match, or that
-    SHA256SUMS does not list."""
-    listed = set()
-    for line in (path / SUMS).read_text().splitlines():
-        digest, name = line.split("  ", 1)
-        listed.add(name)
-        if not (path / name).is_file() or _sha256(path / name) != digest:
-            raise ValueError(f"checksum mismatch: {path / name}")
-    for p in sorted(path.rglob("*")):
-        if p.is_file() and p.name != SUMS and str(p.relative_to(path)) not in listed:
-            raise ValueError(f"not in {SUMS}: {p}")
-
-
-def read_episode(path: Path, verify: bool = True) -> dict:
-    """An exported episode -> {"demo": the unpickled ``low_dim_obs.pkl`` (stand-in
-    ``Demo``), "low_dim": {field or misc key: per-frame stack}, "<cam>_rgb"/"_depth"
-    (metres)/"_mask" (geom id, -1 none): (T, H, W[, 3]) arrays, "descriptions",
-    "variation", "keyframes": indices of the keyframes (every frame unless dense)}.
-    Needs no rlbench."""
-    from PIL import Image
-
-    path = Path(path)
-    if verify:
-        verify_episode(path)
-    demo = loads((path / LOW_DIM_PICKLE).read_bytes())
-    low = {name: np.stack([np.asarray(getattr(o, name)) for o in demo])
-           for name in LOW_DIM_FIELDS}
-    low.update({key: np.stack([np.asarray(o.misc[key]) for o in demo]) for key in demo[0].misc})
-    out: dict = {"demo": demo, "low_dim": low,
-                 "descriptions": pickle.loads((path / "variation_descriptions.pkl").read_bytes()),
-                 "variation": pickle.loads((path / "variation_number.pkl").read_bytes())}
-    n = len(demo)
-    keys = path / KEYFRAMES
-    out["keyframes"] = json.loads(keys.read_text()) if keys.exists() else list(range(n))
-    for folder in sorted(p for p in path.iterdir() if p.is_dir()):
-        cam, kind = folder.name.rsplit("_", 1)
-        imgs = np.stack([np.asarray(Image.open(folder / f"{k}.png")) for k in range(n)])
-        if kind == "depth":
-            imgs = np.stack([decode_depth(im, float(low[f"{cam}_camera_near"][k]),
-                                          float(low[f"{cam}_camera_far"][k]))
-                             for k, im in enumerate(imgs)])
-        elif kind == "mask":
-            imgs = (rgb_to_int(imgs) - 1).astype(np.int32)
-        out[folder.name] = imgs
-    return out
-
-
-# ---- running the experts ---------------------------------------------------------------------
-def frame_every(every: int | str | None, dt: float) -> int | None:
-    """``--every`` -> physics steps between dense frames: None (keyframes only), a positive
-    number of steps, or ``"rlbench"``: RLBench's frame period (50 ms, 20 Hz) at timestep
-    `dt` (10 steps at our 5 ms)."""
-    if every is None:
-        return None
-    if every == "rlbench":
-        steps = max(1, round(RLBENCH_FRAME_PERIOD / dt))
-        if abs(steps * dt - RLBENCH_FRAME_PERIOD) > 1e-9:
-            log.warning("timestep %g s: frames every %d steps (%g s), not RLBench's %g s",
-                        dt, steps, steps * dt, RLBENCH_FRAME_PERIOD)
-        return steps
-    steps = int(every)
-    if steps < 1:
-        raise ValueError(f"--every: a positive number of physics steps or 'rlbench', got {every!r}")
-    return steps
-
-
 def _parse_every(text: str) -> int | str:
     if text == "rlbench":
         return text
@@ -332,106 +153,6 @@ def _parse_every(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"a positive number of physics steps or 'rlbench', "
                                          f"not {text!r}")
     return value
-
-
-def keyframe_observations(episodes, env, spec) -> tuple[object, list[list[dict]]]:
-    """Run the expert; per world the observation after reset and after each key action."""
-    env, frames, _ = episode_observations(episodes, env, spec)
-    return env, frames
-
-
-def episode_observations(episodes, env, spec, every: int | None = None
-                         ) -> tuple[object, list[list[dict]], list[list[int]]]:
-    """Run the expert; per world its frames (RLBenchObservation.world dicts plus
-    ``task_low_dim_state``) and the indices of its keyframes among them.
-
-    Keyframes: the scene after reset and after each key action.  With `every` = K (physics
-    steps, native backend) also the scene after every K-th physics step of each key action,
-    counted from the action's start over its arm and gripper phases, before the action's
-    keyframe (a step that ends the action is its keyframe, not repeated): a key action of S
-    steps gives ceil(S / K) frames, the last its keyframe.  A dense frame is the physics
-    state of that step (qpos, the step's sensordata: joint velocities, gripper, object
-    poses), painted with the state colours as the runtime would paint them had the phase
-    ended there."""
-    import jax
-
-    from agnostos_mjx.observables import Observation
-
-    n = len(env.variation)
-    frames: list[list[dict]] = [[] for _ in range(n)]
-    keyframes: list[list[int]] = [[] for _ in range(n)]
-    task = episodes.scene.task
-    layout = episodes.scene.layout
-
-    def snap(view, worlds, key: bool, rows=None):
-        """Observe `view` and append its row rows[i] (default: worlds[i]) to world
-        worlds[i]'s frames."""
-        obs = episodes.observe(view, spec)
-        state = task_low_dim_state(task, view.obs)
-        for i, w in enumerate(worlds):
-            row = int(w) if rows is None else int(rows[i])
-            if key:
-                keyframes[w].append(len(frames[w]))
-            frames[w].append({**obs.world(row), "task_low_dim_state": state[row]})
-
-    def dense(env, results, rgba, running):
-        """The in-between frames of one key action from its phases' StepResults."""
-        colours = episodes.state_colors
-        offset = np.zeros(n, np.int64)  # steps of this action before the phase
-        total = sum(r.valid.sum(1) for r in results)
-        for r in results:
-            steps = r.valid.sum(1)
-            s = offset[:, None] + np.arange(r.valid.shape[1])[None] + 1
-            want = r.valid & running[:, None] & (s % every == 0) & (s < total[:, None])
-            for t in np.nonzero(want.any(0))[0]:
-                rows = np.nonzero(want[:, t])[0]
-                obs_t = Observation(r.sensordata[:, t], layout, r.attached[:, t])
-                painted = colours.update(rgba, env.initial_obs, obs_t, env.variation)
-                view = env.replace(
-                    physics=env.physics.rows(rows).replace(qpos=r.qpos[rows, t]),
-                    data=r.sensordata[rows, t], attached=r.attached[rows, t],
-                    geom_rgba=np.asarray(painted)[rows], variation=env.variation[rows],
-                    initial_data=env.initial_data[rows])
-                snap(view, rows, key=False, rows=range(len(rows)))
-            # The colours after the phase, as the key action paints them.
-            last = np.maximum(steps - 1, 0)
-            obs_end = Observation(r.sensordata[np.arange(n), last], layout,
-                                  r.attached[np.arange(n), last])
-            rgba = colours.update(rgba, env.initial_obs, obs_end, env.variation)
-            offset += steps
-
-    snap(env, range(n), key=True)
-    actions = episodes.expert_actions(env)
-    recording = episodes.record_qpos
-    episodes.record_qpos = every is not None
-    try:
-        for k in range(actions.pos.shape[1]):
-            step = jax.tree.map(lambda x, k=k: x[:, k], actions)
-            running = ~env.done & np.asarray(step.valid, bool)
-            if not running.any():
-                break
-            rgba = env.geom_rgba
-            env, results = episodes.step(env, step)
-            if every is not None and results:
-                dense(env, results, rgba, running)
-            snap(env, np.nonzero(running)[0], key=True)
-    finally:
-        episodes.record_qpos = recording
-    return env, frames, keyframes
-
-
-def task_low_dim_state(task, obs) -> np.ndarray:
-    """(B, n) RLBench-style ``task_low_dim_state``: the pose (x y z qx qy qz qw) of each of
-    the task's observed frames (``task.observed_frames`` order), then its joint positions
-    (``task.joints``), as RLBench's ``Task.get_low_dim_state`` lists its objects' poses and
-    joint positions."""
-    parts = []
-    for frame in task.observed_frames:
-        quat = np.asarray(obs.quat(frame), np.float64)
-        parts += [np.asarray(obs.pos(frame), np.float64), quat[..., [1, 2, 3, 0]]]
-    parts += [np.asarray(obs.joint(j), np.float64)[..., None] for j in task.joints]
-    batch = np.asarray(obs.data).shape[0]
-    return np.concatenate(parts, -1) if parts else np.zeros((batch, 0))
 
 
 def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -> dict:

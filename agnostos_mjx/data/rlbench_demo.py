@@ -1,4 +1,5 @@
-"""RLBench's ``low_dim_obs.pkl`` without rlbench installed.
+"""RLBench's episode pickles without rlbench installed: ``low_dim_obs.pkl``, and the
+restricted reading of all three (``variation_descriptions.pkl``, ``variation_number.pkl``).
 
 RLBench's dataset generator pickles an ``rlbench.demo.Demo`` whose ``_observations`` are
 ``rlbench.backend.observation.Observation`` objects with the images set to None (they are
@@ -14,13 +15,23 @@ Field set and types follow a pickle written by RLBench itself (PerAct's fork, as
 ``peract_colab``'s sample data): float64 arrays, ``gripper_open`` a Python float,
 ``ignore_collisions`` a 0-d float64 array, ``misc`` with ``<camera>_camera_extrinsics``
 (4, 4), ``_intrinsics`` (3, 3), ``_near`` and ``_far`` (floats) per camera.
+
+Reading is restricted (:func:`read_pickle`): an exported episode may come from elsewhere,
+and a plain ``pickle.load`` runs whatever callable a pickle names.  Each file may name only
+the globals its content needs - RLBench's two classes and numpy's array reconstruction for
+``low_dim_obs.pkl``; for the variation number a numpy scalar at most; nothing at all for the
+descriptions (a list of str) - and anything else is refused with an UnpicklingError naming
+the file and the global.
 """
 
 from __future__ import annotations
 
 import io
 import pickle
+from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 # rlbench.backend.observation.Observation's constructor fields (PerAct's RLBench fork, read
 # by PerAct and RVT; upstream RLBench has the same minus ignore_collisions).
@@ -35,6 +46,9 @@ OBSERVATION_FIELDS = (
     "task_low_dim_state", "ignore_collisions", "misc",
 )
 PROTOCOL = 4  # what RLBench's pickles use (Python 3 default when they were written)
+LOW_DIM_PICKLE = "low_dim_obs.pkl"
+DESCRIPTIONS_PICKLE = "variation_descriptions.pkl"  # list of str
+NUMBER_PICKLE = "variation_number.pkl"  # int
 
 
 class Observation:
@@ -100,17 +114,60 @@ def dumps(demo: Demo) -> bytes:
     return out.getvalue()
 
 
+_NUMPY_SCALAR_NAMES = {"scalar", "dtype"}
+# The globals each episode pickle may name (beyond none at all).
+_ALLOWED = {
+    LOW_DIM_PICKLE: (frozenset(_BY_PATH), _NUMPY_NAMES),
+    NUMBER_PICKLE: (frozenset(), _NUMPY_SCALAR_NAMES),  # a numpy integer from other writers
+    DESCRIPTIONS_PICKLE: (frozenset(), frozenset()),
+}
+
+
 class _Unpickler(pickle.Unpickler):
+    """Resolves only the allowed globals: RLBench's classes (to our stand-ins) and numpy's
+    array names; everything else (os.system, builtins.eval, ...) is refused."""
+
+    def __init__(self, file: Any, what: str = LOW_DIM_PICKLE) -> None:
+        super().__init__(file)
+        self.what = what
+        self.classes, self.numpy_names = _ALLOWED[what]
+
     def find_class(self, module: str, name: str) -> Any:
-        if (module, name) in _BY_PATH:
+        if (module, name) in self.classes:
             return _BY_PATH[(module, name)]
         numpy_module = module == "numpy" or module.startswith(("numpy.core.", "numpy._core."))
-        if numpy_module and name in _NUMPY_NAMES:
+        if numpy_module and name in self.numpy_names:
             return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"{module}.{name} has no place in an RLBench demo pickle")
+        place = "an RLBench demo pickle" if self.what == LOW_DIM_PICKLE else self.what
+        raise pickle.UnpicklingError(f"{module}.{name} has no place in {place}")
 
 
 def loads(data: bytes) -> Demo:
     """An RLBench ``low_dim_obs.pkl`` (ours or RLBench's) -> :class:`Demo` of
     :class:`Observation` (only RLBench's two classes and numpy arrays are accepted)."""
     return _Unpickler(io.BytesIO(data)).load()
+
+
+def read_pickle(path: Path) -> Any:
+    """One of an episode's pickles, unpickled with the globals its name allows (module
+    docs); UnpicklingError naming `path` for anything else (or for what is not a pickle),
+    ValueError naming it if the content is not what RLBench writes there."""
+    path = Path(path)
+    if path.name not in _ALLOWED:
+        raise ValueError(f"{path}: not an RLBench episode pickle ({', '.join(_ALLOWED)})")
+    try:
+        value = _Unpickler(io.BytesIO(path.read_bytes()), path.name).load()
+    except pickle.UnpicklingError as err:
+        raise pickle.UnpicklingError(f"refused to unpickle {path}: {err} (episode pickles "
+                                     "are read with a restricted unpickler)") from None
+    except (EOFError, ValueError, TypeError, IndexError, AttributeError) as err:
+        raise pickle.UnpicklingError(f"{path} is not a readable pickle: {err!r}") from None
+    if path.name == DESCRIPTIONS_PICKLE and not (
+            isinstance(value, list) and all(isinstance(d, str) for d in value)):
+        raise ValueError(f"{path}: expected a list of str, got {type(value).__name__}")
+    if path.name == NUMBER_PICKLE:
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            raise ValueError(f"{path}: expected an int, got {type(value).__name__}")
+    if path.name == LOW_DIM_PICKLE and not isinstance(value, Demo):
+        raise ValueError(f"{path}: expected an RLBench Demo, got {type(value).__name__}")
+    return value

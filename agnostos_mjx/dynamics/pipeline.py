@@ -26,7 +26,7 @@ from agnostos_mjx.dynamics.config import (
     to_dict,
 )
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, ddim_sample
-from agnostos_mjx.dynamics.export import is_export, load_export
+from agnostos_mjx.dynamics.export_format import is_export, read_models
 from agnostos_mjx.dynamics.layers import abstract
 from agnostos_mjx.dynamics.text import tokenize
 
@@ -140,7 +140,7 @@ class Pipeline:
         if is_export(run):
             if ae_run is not None:
                 raise CheckpointError(f"{run} is an export: it holds its own encoder, drop ae_run")
-            return load_export(run, chunk, **sampling)
+            return cls.from_export(run, chunk, **sampling)
         meta = _meta(run, DYN_KIND)
         m = meta["model"]
         text, unet = from_dict(TextConfig, m["text"]), from_dict(UNetConfig, m["unet"])
@@ -155,6 +155,13 @@ class Pipeline:
         model = load_params(run, model, {"kind": DYN_KIND, "model": m})
         identity = f"{Path(run).absolute()}@{meta['step']}|{to_dict(diffusion)}"
         return cls(ae, meta["latent_scale"], model, text, diffusion, chunk, identity)
+
+    @classmethod
+    def from_export(cls, path: str | Path, chunk: int | None = None, **sampling: Any) -> Pipeline:
+        """A feature-extraction pipeline from an export directory (float32 weights, no
+        decoder); CheckpointError naming the path if the export is damaged."""
+        ae, scale, model, text, diffusion, identity = read_models(path, **sampling)
+        return cls(ae, scale, model, text, diffusion, chunk, identity)
 
     @property
     def chunk_size(self) -> int:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from agnostos_mjx.dynamics.data import FramePairs
-from agnostos_mjx.dynamics.export import is_export
+from agnostos_mjx.dynamics.export_format import is_export
 from agnostos_mjx.dynamics.features import (
     DEFAULT_K,
     FeatureIndex,

@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from agnostos_mjx.dynamics.checkpoint import CheckpointError
-from agnostos_mjx.dynamics.export import PARAMS_FILE, export, load_export
+from agnostos_mjx.dynamics.export import export, load_export
+from agnostos_mjx.dynamics.export_format import PARAMS_FILE
 from agnostos_mjx.xicm.dynamics_selector import default_checkpoint_path
 
 

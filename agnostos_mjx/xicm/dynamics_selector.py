@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from agnostos_mjx.xicm.memory import DemoMemory
-from agnostos_mjx.xicm.selection import Query, top_k
+from agnostos_mjx.xicm.query import Query, top_k
 
 log = logging.getLogger("agnostos_mjx.xicm")
 # DDIM steps of a query's vis.out.  Measured against the shipped model's 50 on 1,800 seen

@@ -11,6 +11,8 @@ front frame) and returns memory indices, most similar first.  Modes:
 * dynamics-model features (``lang``, ``vis.in``, ``vis.out`` and ``+``
   combinations, default ``lang+vis.out``), cosine over L2-normalised parts,
   or the original's raw dot product with ``metric="dot"`` (dynamics_selector.py).
+
+The query, the selector protocol and top-k live in query.py, shared with dynamics_selector.py.
 """
 
 from __future__ import annotations
@@ -18,29 +20,15 @@ from __future__ import annotations
 import logging
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 
 from agnostos_mjx.xicm.memory import DemoMemory
+from agnostos_mjx.xicm.query import Query, Selector, top_k  # Query: also imported from here
 
 log = logging.getLogger("agnostos_mjx.xicm")
 TEXT_DIM = 4096
 FEATURE_PARTS = ("lang", "vis.in", "vis.out")
-
-
-@dataclass(frozen=True)
-class Query:
-    instruction: str
-    seed: int  # per (episode, replan): makes random selection reproducible
-    frame: np.ndarray | None = None  # (H, W, 3) uint8 front camera, for dynamics features
-
-
-class Selector(Protocol):
-    name: str
-
-    def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]: ...
 
 
 class RandomSelector:
@@ -62,12 +50,6 @@ def text_vector(text: str) -> np.ndarray:
     for i in range(len(padded) - 2):
         v[zlib.crc32(padded[i:i + 3].encode()) % TEXT_DIM] += 1.0
     return v / max(np.linalg.norm(v), 1e-8)
-
-
-def top_k(similarity: np.ndarray, k: int) -> np.ndarray:
-    """Indices of the k largest values, largest first (ties: lower index first)."""
-    k = min(k, similarity.shape[-1])
-    return np.argsort(-similarity, kind="stable")[:k]
 
 
 class TextSelector:

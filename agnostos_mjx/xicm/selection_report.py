@@ -29,7 +29,7 @@ def task_histogram(name: str, selector: Any, memory: Any, scenes: int, k: int) -
     from agnostos_mjx.eval import episode_keys, episode_variations
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
-    from agnostos_mjx.xicm.selection import Query
+    from agnostos_mjx.xicm.query import Query
 
     task = get_task(name)
     runner = Episodes(task, "native")

@@ -1,0 +1,231 @@
+"""`WarpRenderer`: the MJX ``impl="warp"`` batch ray-tracer (all worlds in one CUDA call),
+and `FixedCamLight`, the closed-form camera and light poses it renders from.  Importing
+this module needs neither warp nor a GPU (they are imported when a renderer is built)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Self
+
+import mujoco
+import numpy as np
+
+from agnostos_mjx.render.common import CameraImages, camera_names, clip_planes, unknown_camera
+
+
+class FixedCamLight:
+    """Camera and light poses of a scene whose cameras and lights are all fixed to a body.
+
+    ``mj_camlight`` in closed form: a pose is the body's pose composed with the camera's
+    (light's) local one.  Warp's ``kinematics`` does not pose cameras and lights and MJX's
+    ``camlight`` is JAX-only, so without this the warp observation ran a full ``forward``
+    (contacts, constraints, solver) only to place five cameras.  Works on numpy or JAX
+    arrays with any leading batch axes (``xp``)."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        moving = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, i)
+                  for i in range(model.ncam) if model.cam_mode[i] != mujoco.mjtCamLight.mjCAMLIGHT_FIXED]
+        moving += [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_LIGHT, i)
+                   for i in range(model.nlight)
+                   if model.light_mode[i] != mujoco.mjtCamLight.mjCAMLIGHT_FIXED]
+        if moving:
+            raise ValueError(f"cameras/lights not fixed to their body: {moving}")
+        self.cam_body = np.asarray(model.cam_bodyid, np.int32)
+        self.cam_pos = np.asarray(model.cam_pos, np.float32)
+        mats = np.zeros((model.ncam, 9))
+        for i in range(model.ncam):
+            mujoco.mju_quat2Mat(mats[i], model.cam_quat[i])
+        self.cam_mat = mats.reshape(-1, 3, 3).astype(np.float32)
+        self.light_body = np.asarray(model.light_bodyid, np.int32)
+        self.light_pos = np.asarray(model.light_pos, np.float32)
+        self.light_dir = np.asarray(model.light_dir, np.float32)
+
+    @staticmethod
+    def supports(model: mujoco.MjModel) -> bool:
+        fixed = mujoco.mjtCamLight.mjCAMLIGHT_FIXED
+        return bool(np.all(model.cam_mode == fixed) and np.all(model.light_mode == fixed))
+
+    def __call__(self, xpos: Any, xmat: Any, xp: Any = np) -> tuple[Any, Any, Any, Any]:
+        """Body poses (..., nbody, 3), (..., nbody, 3, 3) -> cam_xpos, cam_xmat, light_xpos,
+        light_xdir as MuJoCo's Data holds them."""
+        def place(body: np.ndarray, local: np.ndarray) -> Any:
+            return xpos[..., body, :] + (xmat[..., body, :, :] @ xp.asarray(local)[..., None])[..., 0]
+
+        cam_xmat = xmat[..., self.cam_body, :, :] @ xp.asarray(self.cam_mat)
+        light_xdir = (xmat[..., self.light_body, :, :]
+                      @ xp.asarray(self.light_dir)[..., None])[..., 0]
+        return (place(self.cam_body, self.cam_pos), cam_xmat,
+                place(self.light_body, self.light_pos), light_xdir)
+
+
+class WarpRenderer:
+    """MJX-Warp batch ray-tracer: all worlds of an ``mjx.Data`` batch in one GPU call.
+
+    ``nworld`` is fixed by the render context. ``cameras`` limits which cameras are rendered
+    (default: all); ``depth`` and ``segmentation`` add those buffers to the context (they cost
+    nothing measurable on an H100). ``data`` passed to the render methods must be a warp-impl
+    batch (leading axis ``nworld``) on which forward/kinematics already ran (cam_xpos,
+    geom_xpos are read). Colours come from the mjx.Model (``mjx_model``, default
+    ``put_model(model, impl="warp")``) or per world from ``geom_rgba`` [B, ngeom, 4].
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        nworld: int,
+        width: int = 128,
+        height: int = 128,
+        cameras: Sequence[str] | None = None,
+        mjx_model: Any = None,
+        depth: bool = False,
+        segmentation: bool = False,
+    ) -> None:
+        import jax  # lazy: keeps this module importable without warp/CUDA
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        self.width, self.height, self.nworld = int(width), int(height), int(nworld)
+        self.camera_names = tuple(cameras) if cameras is not None else camera_names(model)
+        for cam in self.camera_names:
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, cam) < 0:
+                raise unknown_camera(model, cam)
+        self._model = model
+        self.near, self.far = clip_planes(model)
+        self.depth, self.segmentation = bool(depth), bool(segmentation)
+        self.mx = mjx_model if mjx_model is not None else mjx.put_model(model, impl="warp")
+        self._rc: Any = mjx.create_render_context(
+            mjm=model,
+            nworld=self.nworld,
+            cam_res=(self.width, self.height),
+            cam_active=list(self.camera_names),
+            render_rgb=True,
+            render_depth=self.depth,
+            render_seg=self.segmentation,
+            use_textures=bool(model.ntex),  # match CpuRenderer's look; free without textures
+            use_shadows=False,
+        )
+        mx, rc = self.mx, self._rc.pytree()  # closed over: passing mx to jit is slow
+        cam_ids = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, c)
+                            for c in self.camera_names])
+        far = self.far
+
+        def _buffers(d: Any, rgba: Any) -> tuple[Any, Any, Any]:
+            """Bare renderer: refit the BVH and trace every camera of every world."""
+            m, axes = mx, None
+            if rgba is not None:  # per-world colours: a batched model field
+                m = mx.tree_replace({"geom_rgba": rgba})
+                axes = jax.tree.map(lambda _: None, mx).tree_replace({"geom_rgba": 0})
+            d = jax.vmap(mjx.refit_bvh, in_axes=(axes, 0, None))(m, d, rc)
+            if self.segmentation:
+                rgb, dep, seg, _ = jax.vmap(mjx.render_with_segmentation,
+                                            in_axes=(axes, 0, None))(m, d, rc)
+            else:
+                (rgb, dep, _), seg = jax.vmap(mjx.render, in_axes=(axes, 0, None))(m, d, rc), None
+            return rgb, dep, seg
+
+        def _views(d: Any, rgba: Any) -> dict[str, CameraImages]:
+            rgb, dep, seg = _buffers(d, rgba)
+            views = {}
+            for i, name in enumerate(self.camera_names):
+                img = jnp.round(mjx.get_rgb(rc, i, rgb) * 255.0).astype(jnp.uint8)
+                metres = None
+                if self.depth:  # planar depth in metres; 0 where no geom was hit
+                    raw = mjx.get_depth(rc, i, dep, far)[..., 0] * far
+                    metres = jnp.where(raw > 0.0, raw, far).astype(jnp.float32)
+                labels = mjx.get_segmentation(rc, i, seg).astype(jnp.int32) if seg is not None \
+                    else None
+                views[name] = CameraImages(pos=d.cam_xpos[:, cam_ids[i]],
+                                           mat=d.cam_xmat[:, cam_ids[i]].reshape(-1, 3, 3),
+                                           rgb=img, depth=metres, segmentation=labels)
+            return views
+
+        self._buffers = jax.jit(_buffers)
+        self._views_fn = _views
+        self._views = jax.jit(_views)
+        self._template: Any = None
+        self._pose_jit: Any = None
+        self._camlight = FixedCamLight(model) if FixedCamLight.supports(model) else None
+
+    def template(self) -> Any:
+        """A warp ``mjx.Data`` batch of ``nworld`` worlds, made once (its state is replaced)."""
+        import jax
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        if self._template is None:
+            make = lambda _: mjx.make_data(self._model, impl="warp",  # noqa: E731
+                                           naconmax=64 * self.nworld, njmax=256)
+            self._template = jax.jit(jax.vmap(make))(jnp.arange(self.nworld))
+        return self._template
+
+    def pose(self, template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
+        """``template`` with this state, posed for rendering (traceable: use inside a jit).
+
+        Kinematics and the cameras' and lights' poses when they are all fixed to bodies
+        (every task scene), else a full ``forward``."""
+        import jax
+        import jax.numpy as jnp
+        from mujoco import mjx
+
+        mx = self.mx
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        d = template.replace(qpos=f32(qpos), mocap_pos=f32(mocap_pos), mocap_quat=f32(mocap_quat))
+        if self._camlight is None:
+            return jax.vmap(lambda d: mjx.forward(mx, d))(d)
+        d = jax.vmap(lambda d: mjx.kinematics(mx, d))(d)
+        cam_xpos, cam_xmat, light_xpos, light_xdir = self._camlight(d.xpos, d.xmat, jnp)
+        return d.tree_replace({"cam_xpos": cam_xpos, "cam_xmat": cam_xmat,
+                               "_impl.light_xpos": light_xpos, "_impl.light_xdir": light_xdir})
+
+    def state_data(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
+        """A posed warp ``mjx.Data`` batch from host or device state arrays."""
+        import jax
+
+        if self._pose_jit is None:
+            self._pose_jit = jax.jit(self.pose)
+        return self._pose_jit(self.template(), qpos, mocap_pos, mocap_quat)
+
+    def views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
+        """:meth:`render_views` without the checks (traceable: use inside a jit)."""
+        return self._views_fn(data, geom_rgba)
+
+    def camera_id(self, camera: str) -> int:
+        """Index of ``camera`` among the rendered cameras (what ``get_rgb`` expects)."""
+        if camera not in self.camera_names:
+            raise unknown_camera(self._model, camera)
+        return self.camera_names.index(camera)
+
+    def _check(self, data: Any) -> None:
+        if self._rc is None:
+            raise RuntimeError("WarpRenderer is closed")
+        if data.qpos.shape[0] != self.nworld:
+            raise ValueError(f"data batch {data.qpos.shape[0]} != nworld {self.nworld}")
+
+    def render_buffers(self, data: Any, geom_rgba: Any = None) -> tuple[Any, Any, Any]:
+        """The bare renderer (``refit_bvh`` + ``render``): packed device buffers, for timing."""
+        self._check(data)
+        return self._buffers(data, geom_rgba)
+
+    def render_views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
+        """Every camera of the context -> :class:`CameraImages` of JAX device arrays."""
+        self._check(data)
+        return self._views(data, geom_rgba)
+
+    def render_jax(self, data: Any, camera: str) -> Any:
+        """Like :meth:`render` but returns the device array (no host copy)."""
+        self.camera_id(camera)
+        return self.render_views(data)[camera].rgb
+
+    def render(self, data: Any, camera: str) -> np.ndarray:
+        """Render ``camera`` for every world of ``data`` -> uint8 [B, H, W, 3]."""
+        return np.asarray(self.render_jax(data, camera))
+
+    def close(self) -> None:
+        """Drop the render context so its GPU buffers are released."""
+        self._rc = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
