@@ -238,10 +238,11 @@ class Episodes:
         actions = jax.tree.map(np.asarray, actions)
         return key_action(self.spec, phases, state, actions, plan)
 
-    def step_on_device(self, state: EnvState, actions: KeyActions, physics=None) -> EnvState:
+    def step_on_device(self, state: EnvState, actions: KeyActions, physics=None,
+                       unroll: int | None = None) -> EnvState:
         """`step` as one device program; the physics state and condition carries stay on
         the device, the host receives the per-world bookkeeping and latest sensor row.
-        `physics`: see `device_program`."""
+        `physics`, `unroll`: see `device_program`."""
         from agnostos_mjx.physics.mjx_backend import gc_paused
 
         dev = state.to_device()
@@ -253,7 +254,7 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:  # worlds split over the local devices (sharding.py)
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        program = self.device_program(dev.batch, physics)
+        program = self.device_program(dev.batch, physics, unroll)
         # The plan is its own program, shared by every task (control.jit_for_robot): the
         # IK is most of the compile time, and the robot is the same in every scene.
         plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
@@ -261,14 +262,16 @@ class Episodes:
             new = jax.block_until_ready(program(dev, acts, plan))
         return sharding.unpad(new, n).to_host()
 
-    def device_program(self, batch: int, physics=None):
+    def device_program(self, batch: int, physics=None, unroll: int | None = None):
         """The jitted key action of a batch of `batch` worlds: (state, actions, plan) ->
         state, compiled once per batch size (and per stop_at_success).  `physics`: the
-        DevicePhysics to step (default: this runner's MJX backend's)."""
-        key = (batch, physics)
+        DevicePhysics to step (default: this runner's MJX backend's); `unroll`: physics
+        steps per loop iteration (default: phase.steps_per_iteration)."""
+        key = (batch, physics, unroll)
         if key not in self._device_programs:
             dev = physics or self.backend.device_physics(batch)
-            phases = DevicePhases(dev, self._condition_step, steps_per_iteration(self.backend_name))
+            k = unroll or steps_per_iteration(self.backend_name)
+            phases = DevicePhases(dev, self._condition_step, k)
             self._device_programs[key] = jax.jit(
                 lambda s, a, p: key_action(self.spec, phases, s, a, p)[0])
         return self._device_programs[key]
