@@ -9,7 +9,8 @@ import time
 import numpy as np
 
 from agnostos_mjx.data.generate import demo_keys
-from agnostos_mjx.episode import Episodes, Outcome
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import parse_tasks
 
 out = {}

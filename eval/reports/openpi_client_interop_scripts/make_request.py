@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from agnostos_mjx.episode import Episodes
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.eval import episode_keys
 from agnostos_mjx.remote import wire
 from agnostos_mjx.remote.adapter import sim_state
