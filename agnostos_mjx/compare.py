@@ -21,7 +21,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter, atomic_write
-from agnostos_mjx.eval import EPISODES_FILE, aggregate, group_label
+from agnostos_mjx.evaluation.protocol import group_label
+from agnostos_mjx.evaluation.records import EPISODES_FILE
+from agnostos_mjx.evaluation.summary import aggregate
 
 Key = tuple[str, int, int]
 

@@ -10,7 +10,7 @@ import pytest
 
 from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.episode import EnvState, Episodes
-from agnostos_mjx.eval import episode_keys
+from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.push_buttons import PushButtons
 from agnostos_mjx.visual_state import StateColor, paint

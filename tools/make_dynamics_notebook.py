@@ -54,7 +54,7 @@ of the four latent channels as RGB): where they differ is where the model expect
 change. About 2 s per query on a CPU core, much less on a GPU."""),
     nbf.v4.new_code_cell("""from agnostos_mjx.dynamics.features import extract, similarity
 from agnostos_mjx.episode import Episodes
-from agnostos_mjx.eval import episode_keys
+from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.tasks import parse_tasks
 
 unseen_tasks = parse_tasks('unseen')

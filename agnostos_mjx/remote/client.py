@@ -182,29 +182,31 @@ class RemotePolicy:
     def episode_info(self, world: int) -> dict:
         return {"error": self._errors[world]} if world in self._errors else {}
 
-    def remote_report(self) -> dict:
-        """Requests, failures by outcome and mean round trip, for results.json."""
+    def report(self) -> dict:
+        """Requests, failures by outcome and mean round trip, for results.json
+        (``remote``) and the console summary."""
         answered = self.stats["answered"]
         meta = self.metadata if isinstance(self.metadata, dict) else {}
-        return {"url": self.url, "preset": self.preset,
-                "server": {str(k): str(v) for k, v in meta.items()},
-                "requests": self.stats["requests"], "answered": answered,
-                "failures": {k: v for k, v in self.stats.items()
-                             if k not in ("requests", "answered", "round_trip_s")},
-                "mean_round_trip_ms": round(1000 * self.stats["round_trip_s"]
-                                            / max(answered, 1), 3)}
+        return {"remote": {
+            "url": self.url, "preset": self.preset,
+            "server": {str(k): str(v) for k, v in meta.items()},
+            "requests": self.stats["requests"], "answered": answered,
+            "failures": {k: v for k, v in self.stats.items()
+                         if k not in ("requests", "answered", "round_trip_s")},
+            "mean_round_trip_ms": round(1000 * self.stats["round_trip_s"]
+                                        / max(answered, 1), 3)}}
 
     # ---- pieces ---------------------------------------------------------------------------
     def _requests(self, episodes: Episodes, env: EnvState, worlds: np.ndarray,
                   observation: RLBenchObservation | None) -> list[tuple[int, bytes]]:
         """Encoded requests of `worlds` (rendering what the adapter needs, once)."""
-        from agnostos_mjx.observation import observe, proprioception
+        from agnostos_mjx.observation import proprioception
 
         if not len(worlds):
             return []
         spec = self.adapter.spec()
         if spec is not None and observation is None:
-            observation = observe(episodes, env, spec)
+            observation = episodes.observe(env, spec)
         sources: dict[str, Any] = lowdim(proprioception(episodes, env))
         sources["instruction"] = self.instructions
         if self.adapter.wants_sim_state:

@@ -49,7 +49,7 @@ def task_row(name: str, seeds: list[int], episodes: int) -> dict[str, Any]:
     import jax
 
     from agnostos_mjx.episode import Episodes
-    from agnostos_mjx.eval import episode_keys, episode_variations
+    from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
     from agnostos_mjx.policies.xicm import SEGMENTED_SPEC
     from agnostos_mjx.scene_text import object_voxels, segmented_object_voxels
     from agnostos_mjx.tasks import get_task

@@ -27,7 +27,7 @@ def task_histogram(name: str, selector: Any, memory: Any, scenes: int, k: int) -
     import jax
 
     from agnostos_mjx.episode import Episodes
-    from agnostos_mjx.eval import episode_keys, episode_variations
+    from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
     from agnostos_mjx.tasks import get_task
     from agnostos_mjx.xicm.selection import Query
 
