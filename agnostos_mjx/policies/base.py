@@ -122,9 +122,10 @@ class PolicyExtras(Policy, Protocol):
 
 
 class PolicyAdapter:
-    """A policy behind the whole contract: the optional parts it lacks get their defaults,
-    so the evaluator calls every part and never asks a policy what it has.  Checked once
-    per policy here, rather than with hasattr and signatures throughout the loop."""
+    """A policy behind the whole contract: each optional part it lacks gets its default,
+    so the evaluator calls every part and never asks a policy what it has (the asking
+    happens here and nowhere else).  Attributes a policy may replace at reset
+    (end_reasons, observation_spec) are read at every call."""
 
     def __init__(self, policy: Policy, default_name: str = "policy") -> None:
         self.policy = policy
@@ -180,6 +181,7 @@ class PolicyAdapter:
         return None if info is None else info(world)
 
     def report(self) -> dict[str, Any]:
+        """Sections of results.json on the run's requests ({} for none)."""
         report = getattr(self.policy, "report", None)
         return {} if report is None else report()
 
