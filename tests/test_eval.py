@@ -239,6 +239,24 @@ def test_help(capsys: pytest.CaptureFixture) -> None:
     assert re.fullmatch(r"results/retrieval-\d{8}-\d{6}", run.default_out("retrieval").as_posix())
 
 
+def test_the_command_line_is_generated_from_eval_config() -> None:
+    """Every EvalConfig field is one documented option; no options means the defaults, and
+    each option reaches its field."""
+    from dataclasses import asdict, fields
+
+    from agnostos_mjx.evaluation.config import EvalConfig, build_parser, parse_config
+
+    options = {a.dest: a for a in build_parser()._actions if a.dest != "help"}
+    assert sorted(options) == sorted(f.name for f in fields(EvalConfig))
+    assert all(a.help and a.option_strings for a in options.values())
+    assert parse_config([]) == EvalConfig()
+    cfg = parse_config(["--seeds", "2,0,2", "--policy-arg", "k=[1]", "--policy-arg", "s=a b",
+                        "--resume", "--llm-timeout", "9", "--process-id", "1"])
+    assert cfg.seeds == [2, 0] and cfg.policy_args == {"k": [1], "s": "a b"}
+    assert cfg.resume and cfg.llm_timeout == 9.0 and cfg.process_id == 1
+    assert asdict(EvalConfig(**asdict(cfg))) == asdict(cfg)  # as merge rebuilds it
+
+
 def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
     from agnostos_mjx.paper import published
     from agnostos_mjx.report_plot import plot_summary
