@@ -35,7 +35,7 @@ log = logging.getLogger("agnostos_mjx.bench")
 
 
 def _int_list(text: str) -> list[int]:
-    from agnostos_mjx.eval import _int_list as int_list
+    from agnostos_mjx.evaluation.config import int_list
 
     values = int_list(text)
     if min(values) < 1:
@@ -82,7 +82,7 @@ def _block(x: Any) -> Any:
 
 def bench_physics(runner, batch: int, steps: int, min_time: float) -> dict[str, float]:
     """steps/s of `runner.backend.run` alone, after a warm-up call of the same shape."""
-    from agnostos_mjx.eval import episode_keys
+    from agnostos_mjx.evaluation.protocol import episode_keys
 
     keys = episode_keys(np.zeros(batch), np.arange(batch))
     env = runner.reset(keys, np.zeros(batch, np.int32))
@@ -107,7 +107,7 @@ def seconds_per_call(fn, min_time: float) -> tuple[float, int]:
 
 def oracle_episodes(runner, batch: int, seed: int) -> tuple[Any, float, float]:
     """One batch of oracle episodes: (final EnvState, wall seconds, reset seconds)."""
-    from agnostos_mjx.eval import episode_keys
+    from agnostos_mjx.evaluation.protocol import episode_keys
     from agnostos_mjx.policies.oracle import OraclePolicy
 
     t0 = time.perf_counter()
@@ -142,7 +142,7 @@ def bench_episodes(runner, batch: int) -> dict[str, float]:
 def bench_reset(runner, batch: int) -> dict[str, float]:
     """Seconds to reset `batch` worlds (sampling, settling, the expert-reachability check
     and re-sampling of rejected scenes): the first call (compiles) and a second one."""
-    from agnostos_mjx.eval import episode_keys
+    from agnostos_mjx.evaluation.protocol import episode_keys
 
     times = []
     for seed in (1, 0):

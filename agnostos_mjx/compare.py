@@ -31,7 +31,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter, atomic_write
-from agnostos_mjx.eval import EPISODES_FILE, GROUPS, aggregate, group_label
+from agnostos_mjx.evaluation.protocol import GROUPS, group_label
+from agnostos_mjx.evaluation.records import EPISODES_FILE
+from agnostos_mjx.evaluation.summary import aggregate
 from agnostos_mjx.stats import (
     Pairing,
     bootstrap_difference,

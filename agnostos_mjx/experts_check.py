@@ -18,7 +18,9 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx.eval import evaluate, load_records, parse_config
+from agnostos_mjx.evaluation.config import parse_config
+from agnostos_mjx.evaluation.records import load_records
+from agnostos_mjx.evaluation.run import evaluate
 from agnostos_mjx.tasks import parse_tasks
 
 DEFAULT_OUT = Path("eval/reports/oracle_per_variation")

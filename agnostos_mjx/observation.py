@@ -3,8 +3,8 @@
 A policy that consumes images declares what it needs with an :class:`ObservationSpec`
 (cameras, resolution, modalities); the evaluator then calls
 ``policy.act(episodes, env, observation=episodes.observe(env, spec))`` at every key-action
-step (runtime/observe.py renders it).  Policies that declare nothing (oracle, X-ICM with ground-truth
-objects, retrieval) are called as before and nothing is rendered for them.
+step (see ``policies.base.PolicyAdapter``).  Policies that declare nothing (oracle, X-ICM
+with ground-truth objects, retrieval) are called as before and nothing is rendered for them.
 
 Per requested camera an observation holds (B worlds, H x W pixels):
 
@@ -275,14 +275,6 @@ def observation_spec(policy: Any) -> ObservationSpec | None:
     """The spec a policy declares through an ``observation_spec`` attribute (or method)."""
     spec = getattr(policy, "observation_spec", None)
     return spec() if callable(spec) else spec
-
-
-def act(policy: Any, episodes: Any, env: Any) -> Any:
-    """``policy.act``, given ``observation=`` when the policy declares an ObservationSpec."""
-    spec = observation_spec(policy)
-    if spec is None:
-        return policy.act(episodes, env)
-    return policy.act(episodes, env, observation=episodes.observe(env, spec))
 
 
 # ---- X-ICM's object positions from segmented point clouds (xicm_reference.md §3.4) ------

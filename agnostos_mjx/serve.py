@@ -17,13 +17,13 @@ from agnostos_mjx.cli import HelpFormatter, setup_logging
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agnostos_mjx.eval import _policy_arg
+    from agnostos_mjx.evaluation.config import policy_arg
 
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.serve", formatter_class=HelpFormatter,
                                 description="Serve a policy over openpi's websocket protocol.")
     p.add_argument("--policy", default="oracle",
                    help="oracle, retrieval, xicm or 'module:attr' / 'file.py:attr'")
-    p.add_argument("--policy-arg", action="append", type=_policy_arg, default=None,
+    p.add_argument("--policy-arg", action="append", type=policy_arg, default=None,
                    metavar="KEY=VALUE", help="keyword argument for the policy factory")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: all)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (0: any free one)")

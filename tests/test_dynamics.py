@@ -491,7 +491,7 @@ def test_cpu_group_norm_and_attention_match_flax():
 def _first_frames(tasks: tuple[str, ...], n: int) -> tuple[np.ndarray, list[str]]:
     """The evaluation's first queries: n scenes of each task (seed 0, variation 0) rendered
     by the front camera, with the task's instruction."""
-    from agnostos_mjx.eval import episode_keys
+    from agnostos_mjx.evaluation.protocol import episode_keys
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import eval as ev
+from agnostos_mjx.evaluation import protocol, records, run, scheduler, summary
 
 
 def _records(task: str, split: str, seed: int, successes: list[bool]) -> list[dict]:
@@ -26,11 +27,11 @@ def _records(task: str, split: str, seed: int, successes: list[bool]) -> list[di
 
 def test_aggregate_matches_hand_computed_values() -> None:
     # A (Level 1): seed 0 -> 100 %, seed 1 -> 50 %.  B (Level 2): seed 0 -> 0 %, seed 1 -> 50 %.
-    records = (_records("a", "unseen_level1", 0, [True, True])
-               + _records("a", "unseen_level1", 1, [True, False])
-               + _records("b", "unseen_level2", 0, [False, False])
-               + _records("b", "unseen_level2", 1, [False, True]))
-    s = ev.aggregate(records, ["a", "b"])
+    recs = (_records("a", "unseen_level1", 0, [True, True])
+            + _records("a", "unseen_level1", 1, [True, False])
+            + _records("b", "unseen_level2", 0, [False, False])
+            + _records("b", "unseen_level2", 1, [False, True]))
+    s = summary.aggregate(recs, ["a", "b"])
     a, b = s["tasks"]["a"], s["tasks"]["b"]
     assert a["success_per_seed"] == {"0": 100.0, "1": 50.0}
     assert (a["success_mean"], a["success_std"]) == pytest.approx((75.0, 25.0))  # ddof = 0
@@ -45,9 +46,9 @@ def test_aggregate_matches_hand_computed_values() -> None:
     assert g["All"]["success_per_seed"] == {"0": 50.0, "1": 50.0}
     assert (g["All"]["success_mean"], g["All"]["success_std"]) == pytest.approx((50.0, 0.0))
     assert "Seen" not in g
-    md = ev.format_markdown(s)
+    md = summary.format_markdown(s)
     assert "| a | unseen_level1 | 75.0 (25.0) |" in md and "max_steps: 1" in md
-    rows = {r["name"]: r for r in ev.csv_rows(s)}
+    rows = {r["name"]: r for r in summary.csv_rows(s)}
     assert list(rows) == ["a", "b", "Level-1", "Level-2", "All"]
     assert rows["a"] == {"name": "a", "kind": "task", "split": "unseen_level1", "tasks": 1,
                          "seeds": 2, "episodes": 4, "successes": 3, "success_pct_mean": 75.0,
@@ -59,15 +60,15 @@ def test_aggregate_matches_hand_computed_values() -> None:
 
 
 def test_variations_follow_the_protocol() -> None:
-    keys = ev.episode_keys(np.zeros(16), np.arange(16))
-    assert not ev.episode_variations(keys, 3, "unseen_level1", "protocol").any()
-    seen = ev.episode_variations(keys, 3, "seen", "protocol")
+    keys = protocol.episode_keys(np.zeros(16), np.arange(16))
+    assert not protocol.episode_variations(keys, 3, "unseen_level1", "protocol").any()
+    seen = protocol.episode_variations(keys, 3, "seen", "protocol")
     assert seen.min() >= 0 and seen.max() < 3 and len(set(seen.tolist())) > 1
-    np.testing.assert_array_equal(seen, ev.episode_variations(keys, 3, "seen", "all"))
-    assert not ev.episode_variations(keys, 3, "seen", "zero").any()
-    assert (ev.episode_variations(keys, 3, "seen", "2") == 2).all()
+    np.testing.assert_array_equal(seen, protocol.episode_variations(keys, 3, "seen", "all"))
+    assert not protocol.episode_variations(keys, 3, "seen", "zero").any()
+    assert (protocol.episode_variations(keys, 3, "seen", "2") == 2).all()
     # A key depends on (seed, episode) only, not on the batch it runs in.
-    np.testing.assert_array_equal(ev.episode_keys(np.zeros(1), np.array([5]))[0], keys[5])
+    np.testing.assert_array_equal(protocol.episode_keys(np.zeros(1), np.array([5]))[0], keys[5])
 
 
 @pytest.fixture(scope="module")
@@ -143,17 +144,17 @@ def test_resume_ignores_a_torn_last_line(run_dir: Path, tmp_path: Path) -> None:
 def test_load_records_keeps_the_first_of_duplicates(tmp_path: Path) -> None:
     path = tmp_path / "episodes.jsonl"
     recs = _records("a", "seen", 0, [True, False])
-    ev.append_records(path, recs)
-    ev.append_records(path, [{**recs[0], "success": False}])
+    records.append_records(path, recs)
+    records.append_records(path, [{**recs[0], "success": False}])
     path.write_text(path.read_text() + "not json\n")
-    assert ev.load_records(path) == recs
-    assert ev.repair_records(path) == recs and path.read_text() == ev._jsonl(recs)
+    assert records.load_records(path) == recs
+    assert records.repair_records(path) == recs and path.read_text() == records.jsonl(recs)
 
 
 def test_resume_command_repeats_the_options_with_out_and_resume() -> None:
     argv = ["--tasks", "lamp_on,lamp_off", "--out", "old", "--resume", "--policy-arg",
             "model=a b", "--out=older"]
-    command = ev.resume_command(argv, Path("results/my run"))
+    command = records.resume_command(argv, Path("results/my run"))
     assert shlex.split(command) == ["python", "-m", "agnostos_mjx.eval", "--tasks",
                                     "lamp_on,lamp_off", "--policy-arg", "model=a b", "--out",
                                     "results/my run", "--resume"]
@@ -235,22 +236,40 @@ def test_help(capsys: pytest.CaptureFixture) -> None:
         assert flag in out
     # The default folder the help names is the one a run uses.
     assert "results/<policy>-<timestamp>" in " ".join(out.split())
-    assert re.fullmatch(r"results/retrieval-\d{8}-\d{6}", ev._default_out("retrieval").as_posix())
+    assert re.fullmatch(r"results/retrieval-\d{8}-\d{6}", run.default_out("retrieval").as_posix())
+
+
+def test_the_command_line_is_generated_from_eval_config() -> None:
+    """Every EvalConfig field is one documented option; no options means the defaults, and
+    each option reaches its field."""
+    from dataclasses import asdict, fields
+
+    from agnostos_mjx.evaluation.config import EvalConfig, build_parser, parse_config
+
+    options = {a.dest: a for a in build_parser()._actions if a.dest != "help"}
+    assert sorted(options) == sorted(f.name for f in fields(EvalConfig))
+    assert all(a.help and a.option_strings for a in options.values())
+    assert parse_config([]) == EvalConfig()
+    cfg = parse_config(["--seeds", "2,0,2", "--policy-arg", "k=[1]", "--policy-arg", "s=a b",
+                        "--resume", "--llm-timeout", "9", "--process-id", "1"])
+    assert cfg.seeds == [2, 0] and cfg.policy_args == {"k": [1], "s": "a b"}
+    assert cfg.resume and cfg.llm_timeout == 9.0 and cfg.process_id == 1
+    assert asdict(EvalConfig(**asdict(cfg))) == asdict(cfg)  # as merge rebuilds it
 
 
 def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
     from agnostos_mjx.paper import published
     from agnostos_mjx.report_plot import plot_summary
 
-    records = (_records("lamp_on", "unseen_level1", 0, [True, False])
-               + _records("beat_the_buzz", "unseen_level2", 0, [False, False]))
-    summary = ev.aggregate(records)
+    recs = (_records("lamp_on", "unseen_level1", 0, [True, False])
+            + _records("beat_the_buzz", "unseen_level2", 0, [False, False]))
+    aggregated = summary.aggregate(recs)
     ref = published("X-ICM 72B")
-    md = ev.format_markdown(summary, "t", ref, "X-ICM 72B")
+    md = summary.format_markdown(aggregated, "t", ref, "X-ICM 72B")
     assert "| success % mean (std) | X-ICM 72B (published) |" in md
     assert "| lamp_on | unseen_level1 | 50.0 (0.0) | 74.7 |" in md
     assert "| All (unseen) | 2 | 25.0 (0.0) | 30.1 |" in md
-    assert plot_summary(summary, tmp_path / "r.png", "t", ref, "X-ICM 72B")
+    assert plot_summary(aggregated, tmp_path / "r.png", "t", ref, "X-ICM 72B")
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(KeyError, match="unknown published method"):
         published("GPT")
@@ -258,8 +277,6 @@ def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
 
 def test_run_interleaved_runs_others_while_one_waits():
     import concurrent.futures
-
-    from agnostos_mjx.eval import run_interleaved
 
     events: list[str] = []
     gate: concurrent.futures.Future = concurrent.futures.Future()
@@ -277,7 +294,7 @@ def test_run_interleaved_runs_others_while_one_waits():
         yield  # noqa: B901
 
     finished = []
-    values = run_interleaved([waits(), runs()], limit=2,
+    values = scheduler.run_interleaved([waits(), runs()], limit=2,
                              on_done=lambda i, v: finished.append((i, v)))
     assert values == ["a", "b"]
     assert events == ["a:start", "b:run", "a:end"] and finished == [(1, "b"), (0, "a")]
@@ -288,7 +305,7 @@ def test_run_interleaved_runs_others_while_one_waits():
         yield done
         return "c"
 
-    assert run_interleaved([lone()], limit=1) == ["c"]
+    assert scheduler.run_interleaved([lone()], limit=1) == ["c"]
 
 
 def test_progress_moves_with_rounds_and_prints_at_once() -> None:
@@ -410,5 +427,5 @@ def test_run_interleaved_cancels_waiting_work_when_interrupted() -> None:
         yield  # noqa: B901
 
     with pytest.raises(KeyboardInterrupt):
-        ev.run_interleaved([waits(), interrupted()], limit=2)
+        scheduler.run_interleaved([waits(), interrupted()], limit=2)
     assert waiting.cancelled() and closed == ["a"]

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.eval import episode_keys
+from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import put_groceries_in_cupboard as groceries
 from tests.conftest import episodes_for

@@ -411,14 +411,15 @@ def test_small_unpublished_context_is_printed_and_exits_non_zero(memory_file, tm
 
 def test_llm_flags_are_documented(capsys):
     from agnostos_mjx import eval as ev
+    from agnostos_mjx.evaluation.config import parse_config, resolve_policy
 
     with pytest.raises(SystemExit):
         ev.main(["--help"])
     out = capsys.readouterr().out
     for flag in ("--llm-timeout", "--llm-concurrency", "--llm-server-kind"):
         assert flag in out
-    cfg = ev.parse_config(["--llm-timeout", "30", "--llm-server-kind", "llamacpp"])
-    _, kwargs, _ = ev.resolve_policy(replace(cfg, policy="xicm"))
+    cfg = parse_config(["--llm-timeout", "30", "--llm-server-kind", "llamacpp"])
+    _, kwargs, _ = resolve_policy(replace(cfg, policy="xicm"))
     assert (kwargs["timeout_s"], kwargs["server_kind"], kwargs["concurrency"]) == (
         30.0, "llamacpp", None)
 

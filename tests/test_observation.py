@@ -183,11 +183,14 @@ class TwoCameraPolicy:
 
 
 def test_policy_gets_exactly_what_it_asks_for() -> None:
-    from agnostos_mjx.eval import EvalConfig, run_task
+    from agnostos_mjx.evaluation.config import EvalConfig
+    from agnostos_mjx.evaluation.rollout import run_task
+    from agnostos_mjx.policies.base import PolicyAdapter
 
     policy = TwoCameraPolicy()
     cfg = EvalConfig(batch=2, episodes=2, seeds=[0], backend="native")
-    records = run_task(get_task("close_jar"), policy, [(0, 0), (0, 1)], cfg, lambda r: None)
+    records = run_task(get_task("close_jar"), PolicyAdapter(policy), [(0, 0), (0, 1)], cfg,
+                       lambda r: None)
     assert [r["outcome"] for r in records] == ["no_action", "no_action"]
     (obs,) = policy.seen
     assert tuple(obs.cameras) == ("front", "wrist")
@@ -282,7 +285,8 @@ def test_readme_plugin_runs(tmp_path) -> None:
     """examples/vla_policy.py (the README's plug-in) runs through the evaluator."""
     from pathlib import Path
 
-    from agnostos_mjx.eval import EvalConfig, evaluate
+    from agnostos_mjx.evaluation.config import EvalConfig
+    from agnostos_mjx.evaluation.run import evaluate
 
     plugin = Path(__file__).resolve().parents[1] / "examples" / "vla_policy.py"
     cfg = EvalConfig(policy=f"{plugin}:GreenSeeker", tasks="lamp_on", seeds=[0], episodes=2,

@@ -21,7 +21,8 @@ def _probe(path) -> tuple[int, float, tuple[int, int]]:
 
 
 def test_eval_writes_selected_episode_videos(tmp_path) -> None:
-    from agnostos_mjx.eval import EvalConfig, evaluate
+    from agnostos_mjx.evaluation.config import EvalConfig
+    from agnostos_mjx.evaluation.run import evaluate
     from agnostos_mjx.video import VideoSpec
 
     cfg = EvalConfig(policy="oracle", tasks="lamp_on,close_microwave", seeds=[0], episodes=4,

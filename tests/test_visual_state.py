@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.eval import episode_keys
+from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.state import EnvState
 from agnostos_mjx.tasks import get_task

@@ -126,7 +126,7 @@ def test_shipped_model_selects_demos_of_the_querys_task(memory, bank_dir):
 
 
 def test_ddim_steps_flag_reaches_the_selection_policies():
-    from agnostos_mjx.eval import parse_config, resolve_policy
+    from agnostos_mjx.evaluation.config import parse_config, resolve_policy
 
     for policy in ("retrieval", "xicm"):
         argv = ["--policy", policy, "--ddim-steps", "20", "--llm-url", "http://x/v1",

@@ -62,7 +62,7 @@ change. About 2 s per query on a CPU core, much less on a GPU. (With
 `AGNOSTOS_NOTEBOOK_SMALL=1`, as `tests/test_notebooks.py` runs it: three of the tasks.)"""),
     nbf.v4.new_code_cell("""from agnostos_mjx.dynamics.features import extract, similarity
 from agnostos_mjx.runtime.env import Episodes
-from agnostos_mjx.eval import episode_keys
+from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.tasks import parse_tasks
 
 unseen_tasks = parse_tasks('open_grill,close_laptop_lid,turn_oven_on' if SMALL else 'unseen')

@@ -91,7 +91,7 @@ class MjxBackend:
     @functools.lru_cache(maxsize=16)
     def device_physics(self, batch: int) -> DevicePhysics:
         """The pure pieces of this backend for a batch of `batch` worlds, for jitted
-        programs that fuse physics with control and conditions (episode.KeyActionStep)."""
+        programs that fuse physics with control and conditions (runtime.phase.DevicePhases)."""
         mx = self.mx
         impl = self.impl
         # make_data wants the MjModel for warp and accepts the mjx.Model for jax.

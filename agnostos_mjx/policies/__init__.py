@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from agnostos_mjx.policies.base import (
     Policy,
+    PolicyAdapter,
+    PolicyExtras,
     list_policies,
     load_object,
     make_policy,
@@ -14,5 +16,5 @@ from agnostos_mjx.policies.base import (
     register_policy,
 )
 
-__all__ = ["Policy", "list_policies", "load_object", "make_policy", "no_actions",
-           "register_policy"]
+__all__ = ["Policy", "PolicyAdapter", "PolicyExtras", "list_policies", "load_object",
+           "make_policy", "no_actions", "register_policy"]

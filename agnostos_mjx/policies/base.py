@@ -15,12 +15,27 @@ A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that
 is how a policy says "I have nothing to execute" (an unparsable LLM answer,
 an exhausted plan).  Worlds that already finished ignore their action.
 
-A policy that consumes camera images declares an `observation_spec` (an
-`agnostos_mjx.observation.ObservationSpec`: cameras, resolution, modalities);
-the evaluator then renders exactly that at every step and calls
-``policy.act(episodes, env, observation=...)`` with an `RLBenchObservation`
-(RGB, depth, point clouds, segmentation, camera matrices, gripper pose and
-joints; see observation.py).  Policies without one pay for no rendering.
+The contract has a required part, `Policy` (`name`, `reset`, `act`), and optional
+parts, `PolicyExtras`; a policy adds whichever it needs:
+
+* ``observation_spec``: a policy that consumes camera images declares one (an
+  `agnostos_mjx.observation.ObservationSpec`: cameras, resolution, modalities); the
+  evaluator then renders exactly that with ``episodes.observe(env, spec)`` at every step
+  and calls ``policy.act(episodes, env, observation=...)`` with an `RLBenchObservation`
+  (RGB, depth, point clouds, segmentation, camera matrices, gripper pose and joints; see
+  observation.py).  Policies without one pay for no rendering.
+* ``reset(..., episode_seeds=...)``: a seed per world for the policy's own randomness,
+  a function of the episode alone (not of the batch it runs in).
+* ``act_steps``: `act` as a generator that yields the futures it waits on (LLM
+  requests, a policy server's answers), so that other tasks simulate meanwhile.
+* ``end_reasons``: per world, the outcome code that explains a ``valid=False`` action
+  (bad LLM output, LLM error, ...); 0 leaves it ``no_action``.
+* ``episode_info(world)``: what to store with the episode's record (``policy_info``).
+* ``report()``: the run's request statistics, as sections of results.json (``llm``,
+  ``remote``).
+
+The evaluator reaches every policy through `PolicyAdapter`, which supplies the defaults
+of the optional parts a policy lacks.
 
 Policies are found by name with `make_policy`: a registered name ("oracle") or
 a "module:attr" / "path/to/file.py:attr" string naming a class, a factory
@@ -31,10 +46,13 @@ template: write a class with `name`, `reset` and `act`, then run
 
 from __future__ import annotations
 
+import concurrent.futures
+import copy
 import importlib
 import importlib.util
+import inspect
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Generator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -43,8 +61,11 @@ import numpy as np
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
+    from agnostos_mjx.observation import ObservationSpec, RLBenchObservation
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
+
+ActSteps = Generator[concurrent.futures.Future, Any, KeyActions]
 
 
 @runtime_checkable
@@ -62,6 +83,115 @@ class Policy(Protocol):
         coordinates, quat (B, 4) wxyz, gripper (B,) open amount in [0, 1] and
         valid (B,) bool; valid=False ends that world with Outcome.NO_ACTION."""
         ...
+
+
+class PolicyExtras(Policy, Protocol):
+    """A policy with every optional part (see the module docstring); `PolicyAdapter`
+    supplies the default of each part a policy lacks."""
+
+    # An ObservationSpec (or a method returning one); default None: act gets no observation.
+    observation_spec: ObservationSpec | Callable[[], ObservationSpec | None] | None
+    # Per world, an Outcome code for a world given no action (0: plain no_action);
+    # default: all 0.
+    end_reasons: np.ndarray
+
+    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
+              episode_seeds: Sequence[int] | None = None) -> None:
+        """As Policy.reset; `episode_seeds[i]` seeds world i's own randomness."""
+        ...
+
+    def act(self, episodes: Episodes, env: EnvState,
+            observation: RLBenchObservation | None = None) -> KeyActions:
+        """As Policy.act; `observation` is given when the policy has an observation_spec."""
+        ...
+
+    def act_steps(self, episodes: Episodes, env: EnvState,
+                  observation: RLBenchObservation | None = None) -> ActSteps:
+        """`act` as a generator yielding the futures it waits on; returns the actions.
+        Default: `act`, which blocks (no other task runs meanwhile)."""
+        ...
+
+    def episode_info(self, world: int) -> dict:
+        """What the evaluator stores as ``policy_info`` in world's episode record once it
+        finishes.  Default: no policy_info."""
+        ...
+
+    def report(self) -> dict[str, Any]:
+        """Sections of results.json about the run's requests (``{"llm": {...}}``);
+        called as results are written.  Default: none."""
+        ...
+
+
+class PolicyAdapter:
+    """A policy behind the whole contract: each optional part it lacks gets its default,
+    so the evaluator calls every part and never asks a policy what it has (the asking
+    happens here and nowhere else).  Attributes a policy may replace at reset
+    (end_reasons, observation_spec) are read at every call."""
+
+    def __init__(self, policy: Policy, default_name: str = "policy") -> None:
+        self.policy = policy
+        self._default_name = default_name
+        self._seeded = _accepts(policy.reset, "episode_seeds")
+        # A policy that yields while it waits lets the evaluator overlap tasks.
+        self.interleaves = hasattr(policy, "act_steps")
+
+    @property
+    def name(self) -> str:
+        return getattr(self.policy, "name", self._default_name)
+
+    def copy(self) -> PolicyAdapter:
+        """A shallow copy of the policy (shared heavy parts, its own per-batch state, which
+        reset() replaces), so that tasks running at once do not share episodes."""
+        return PolicyAdapter(copy.copy(self.policy), self._default_name)
+
+    def observation_spec(self) -> ObservationSpec | None:
+        spec = getattr(self.policy, "observation_spec", None)
+        return spec() if callable(spec) else spec
+
+    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
+              episode_seeds: Sequence[int]) -> None:
+        if self._seeded:
+            self.policy.reset(episodes, env, instructions, episode_seeds=list(episode_seeds))
+        else:
+            self.policy.reset(episodes, env, instructions)
+
+    def _observation(self, episodes: Episodes, env: EnvState) -> dict[str, Any]:
+        """act's keyword arguments: the observation its spec asks for, if it has one."""
+        spec = self.observation_spec()
+        return {} if spec is None else {"observation": episodes.observe(env, spec)}
+
+    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
+        """The next key actions, waiting for them (a caller with nothing else to run)."""
+        return self.policy.act(episodes, env, **self._observation(episodes, env))
+
+    def act_steps(self, episodes: Episodes, env: EnvState) -> ActSteps:
+        """The next key actions as a generator over the futures the policy waits on."""
+        kwargs = self._observation(episodes, env)
+        if self.interleaves:
+            return (yield from self.policy.act_steps(episodes, env, **kwargs))
+        return self.policy.act(episodes, env, **kwargs)
+
+    def end_reasons(self, env: EnvState) -> np.ndarray:
+        """Per world, the outcome that replaces no_action (0: none)."""
+        reasons = getattr(self.policy, "end_reasons", None)
+        return np.zeros_like(env.outcome) if reasons is None else reasons
+
+    def episode_info(self, world: int) -> dict | None:
+        """The record's policy_info of `world`, None when the policy keeps none."""
+        info = getattr(self.policy, "episode_info", None)
+        return None if info is None else info(world)
+
+    def report(self) -> dict[str, Any]:
+        """Sections of results.json on the run's requests ({} for none)."""
+        report = getattr(self.policy, "report", None)
+        return {} if report is None else report()
+
+
+def _accepts(func: Callable, name: str) -> bool:
+    try:
+        return name in inspect.signature(func).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def no_actions(batch: int) -> KeyActions:

@@ -5,7 +5,7 @@ Every world that needs a plan sends its request in the same round; the
 client keeps up to `concurrency` requests in flight, so a batch of 75
 episodes costs about one LLM latency per round instead of 75.  Every prompt,
 answer and parse result is kept in the episode record, every request's
-attempts and causes in the run's `llm_report`.  Before the run, prompts of
+attempts and causes in the run's `report` (results.json's ``llm``).  Before the run, prompts of
 `num_demos` demos are measured against the server's context length where it
 publishes one, so a too-small context is one clear error, not a run of
 ``llm_error`` episodes.
@@ -133,10 +133,10 @@ class XICMPolicy(PlanningPolicy):
                         "server's context of %d tokens; some requests will fail: %s", k,
                         longest, answer, context, context_advice())
 
-    def llm_report(self) -> dict:
-        """The run's LLM requests, for results.json and the console summary."""
+    def report(self) -> dict:
+        """The run's LLM requests, for results.json (``llm``) and the console summary."""
         report = getattr(self.client, "report", None)
-        return report() if report is not None else {}
+        return {"llm": report() if report is not None else {}}
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
         return run_blocking(self.plan_steps(episodes, env, worlds))

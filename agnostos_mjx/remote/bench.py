@@ -22,25 +22,23 @@ import numpy as np
 
 def run_batch(runner, policy, batch: int, seed: int) -> tuple[float, int, int, np.ndarray]:
     """(seconds, key actions, steps, outcomes) of one batch of `policy` on `runner`."""
-    from agnostos_mjx.eval import _accepts, episode_keys
-    from agnostos_mjx.observation import act
+    from agnostos_mjx.evaluation.protocol import episode_keys, policy_seed
+    from agnostos_mjx.policies.base import PolicyAdapter
 
+    policy = PolicyAdapter(policy)
     episodes = np.arange(batch)
     keys = episode_keys(np.full(batch, seed), episodes)
     variations = np.zeros(batch, np.int32)
     t0 = time.perf_counter()
     env = runner.reset(keys, variations)
     instructions = [runner.task.descriptions(0)[0]] * batch
-    if _accepts(policy.reset, "episode_seeds"):
-        policy.reset(runner, env, instructions,
-                     episode_seeds=[seed * 100_003 + int(e) for e in episodes])
-    else:
-        policy.reset(runner, env, instructions)
+    policy.reset(runner, env, instructions,
+                 episode_seeds=[policy_seed(seed, e) for e in episodes])
     steps = 0
     for _ in range(runner.task.max_key_actions):
         if env.done.all():
             break
-        env, _ = runner.step(env, act(policy, runner, env))
+        env, _ = runner.step(env, policy.act(runner, env))
         steps += 1
     return time.perf_counter() - t0, int(env.key_actions.sum()), steps, env.outcome.copy()
 

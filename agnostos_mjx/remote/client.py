@@ -183,17 +183,19 @@ class RemotePolicy:
     def episode_info(self, world: int) -> dict:
         return {"error": self._errors[world]} if world in self._errors else {}
 
-    def remote_report(self) -> dict:
-        """Requests, failures by outcome and mean round trip, for results.json."""
+    def report(self) -> dict:
+        """Requests, failures by outcome and mean round trip, for results.json
+        (``remote``) and the console summary."""
         answered = self.stats["answered"]
         meta = self.metadata if isinstance(self.metadata, dict) else {}
-        return {"url": self.url, "preset": self.preset,
-                "server": {str(k): str(v) for k, v in meta.items()},
-                "requests": self.stats["requests"], "answered": answered,
-                "failures": {k: v for k, v in self.stats.items()
-                             if k not in ("requests", "answered", "round_trip_s")},
-                "mean_round_trip_ms": round(1000 * self.stats["round_trip_s"]
-                                            / max(answered, 1), 3)}
+        return {"remote": {
+            "url": self.url, "preset": self.preset,
+            "server": {str(k): str(v) for k, v in meta.items()},
+            "requests": self.stats["requests"], "answered": answered,
+            "failures": {k: v for k, v in self.stats.items()
+                         if k not in ("requests", "answered", "round_trip_s")},
+            "mean_round_trip_ms": round(1000 * self.stats["round_trip_s"]
+                                        / max(answered, 1), 3)}}
 
     # ---- pieces ---------------------------------------------------------------------------
     def _requests(self, episodes: Episodes, env: EnvState, worlds: np.ndarray,

@@ -35,6 +35,7 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
+from agnostos_mjx.policies.base import PolicyAdapter
 from agnostos_mjx.remote import wire
 
 log = logging.getLogger("agnostos_mjx.serve")
@@ -82,13 +83,10 @@ class Session:
     """One connection's policy copy, driven through mirror EnvStates."""
 
     def __init__(self, policy: Any) -> None:
-        self.policy = copy.copy(policy)
+        self.policy = PolicyAdapter(copy.copy(policy))
         self.episode: tuple | None = None
 
     def infer(self, obs: dict) -> dict:
-        from agnostos_mjx.eval import _accepts
-        from agnostos_mjx.observation import act
-
         state = obs.get("sim_state") if isinstance(obs, dict) else None
         if not isinstance(state, dict):
             raise ValueError("this server needs the 'sim_state' source (client preset 'sim')")
@@ -97,12 +95,9 @@ class Session:
         episode = (state["task"], int(state["episode_seed"]))
         if self.episode != episode or int(state["key_actions"]) == 0:
             prompt = str(obs.get("prompt", ""))
-            if _accepts(self.policy.reset, "episode_seeds"):
-                self.policy.reset(runner, env, [prompt], episode_seeds=[episode[1]])
-            else:
-                self.policy.reset(runner, env, [prompt])
+            self.policy.reset(runner, env, [prompt], episode_seeds=[episode[1]])
             self.episode = episode
-        actions = act(self.policy, runner, env)
+        actions = self.policy.act(runner, env)
         if not bool(np.asarray(actions.valid)[0]):
             return {"actions": np.zeros((0, 8), np.float32)}
         quat = np.asarray(actions.quat, np.float32)[0]

@@ -48,7 +48,7 @@ def task_row(name: str, seeds: list[int], episodes: int) -> dict[str, Any]:
     """One task: reset its protocol episodes, observe five cameras, compare the two texts."""
     import jax
 
-    from agnostos_mjx.eval import episode_keys, episode_variations
+    from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
     from agnostos_mjx.policies.xicm import SEGMENTED_SPEC
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.scene_text import object_voxels, segmented_object_voxels

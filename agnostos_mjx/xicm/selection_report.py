@@ -26,7 +26,7 @@ def task_histogram(name: str, selector: Any, memory: Any, scenes: int, k: int) -
     """One task's row: seen-task counts over its scenes' top-k, and per-scene majorities."""
     import jax
 
-    from agnostos_mjx.eval import episode_keys, episode_variations
+    from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
     from agnostos_mjx.xicm.query import Query

@@ -3,7 +3,7 @@
 import numpy as np
 
 from agnostos_mjx.runtime.env import Episodes
-from agnostos_mjx.eval import episode_keys
+from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.remote import wire
 from agnostos_mjx.remote.adapter import sim_state
 from agnostos_mjx.tasks import get_task

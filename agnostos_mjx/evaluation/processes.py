@@ -2,7 +2,7 @@
 
 Each process is the same command with ``--num-processes N --process-id I`` (every N-th task
 into ``--out/proc-I``, its log in ``--out/proc-I.log``); when all have finished, their
-records are merged into ``--out`` as one process would have written them (eval.merge).
+records are merged into ``--out`` as one process would have written them (summary.merge).
 
 Why: with MJX-Warp at the protocol's batch of 75 a physics step leaves the GPU mostly idle
 (its cost is latency, not work), so tasks run side by side: on one H100 the main job took
@@ -24,6 +24,10 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from agnostos_mjx.evaluation.config import EvalConfig
+from agnostos_mjx.evaluation.records import EPISODES_FILE
+from agnostos_mjx.evaluation.summary import merge_main
+
 log = logging.getLogger("agnostos_mjx.eval")
 JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
 
@@ -44,23 +48,34 @@ def _without(argv: Sequence[str], flag: str) -> list[str]:
 def _episodes_done(out: Path, n: int) -> int:
     total = 0
     for i in range(n):
-        path = out / f"proc-{i}" / "episodes.jsonl"
+        path = out / f"proc-{i}" / EPISODES_FILE
         if path.exists():
             with path.open("rb") as f:
                 total += sum(1 for _ in f)
     return total
 
 
+def main(cfg: EvalConfig, argv: Sequence[str]) -> int:
+    """``--local-processes N``: the run of `argv` as N processes, then merged; the exit code."""
+    if cfg.out is None:
+        print("error: --local-processes needs --out DIR, the folder the processes share",
+              file=sys.stderr)
+        return 2
+    if cfg.num_processes > 1 or cfg.coordinator:
+        print("error: --local-processes starts its own processes; drop --num-processes, "
+              "--process-id and --coordinator", file=sys.stderr)
+        return 2
+    return run(argv, cfg.local_processes, Path(cfg.out), cfg.quiet, cfg.gpu_mem_fraction)
+
+
 def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: float | None,
         poll_s: float = 5.0) -> int:
     """Start the N processes, wait for them, merge; the exit code (130 if interrupted)."""
-    from agnostos_mjx.eval import main as eval_main
-
     child = _without(argv, "--local-processes")
     if memory_fraction is None and not os.environ.get("AGNOSTOS_GPU_MEM_FRACTION"):
         child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / n:.4f}"]
     out.mkdir(parents=True, exist_ok=True)
-    package_root = str(Path(__file__).resolve().parent.parent)
+    package_root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ,
            "PYTHONPATH": os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
     procs: list[subprocess.Popen] = []
@@ -111,4 +126,4 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     if failed:
         return 1
     log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
-    return eval_main(["--out", str(out), "--merge"] + (["--quiet"] if quiet else []))
+    return merge_main(str(out))

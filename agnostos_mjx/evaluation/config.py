@@ -1,0 +1,280 @@
+"""EvalConfig and the command line generated from it.
+
+Each option is written once, as a field of `EvalConfig`: its type and default there, its
+help, flag and argparse details in the field's metadata (see `option`).  `build_parser`
+turns the fields into ``python -m agnostos_mjx.eval``'s options, in field order, and
+`parse_config` turns parsed arguments back into an EvalConfig.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+from dataclasses import MISSING, Field, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from agnostos_mjx.cli import HelpFormatter
+from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
+from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
+from agnostos_mjx.physics import BACKENDS
+
+VARIATION_MODES = ("protocol", "all", "zero")
+# Option groups of --help (None: the main options).
+SCALE = "several devices and hosts (see README, Scale out)"
+LLM = "X-ICM and retrieval"
+
+
+class UsageError(Exception):
+    """A bad command line or output directory: reported in one line, exit code 2."""
+
+
+# ---- converters of option values -----------------------------------------------------------
+def int_list(text: str) -> list[int]:
+    """Comma-separated integers, duplicates dropped (``--seeds 0,1,2``)."""
+    try:
+        values = [int(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}") from None
+    if not values:
+        raise argparse.ArgumentTypeError("expected at least one integer")
+    return list(dict.fromkeys(values))
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def variation_mode(text: str) -> str:
+    if text in VARIATION_MODES or text.isdigit():
+        return text
+    raise argparse.ArgumentTypeError(
+        f"expected one of {', '.join(VARIATION_MODES)} or a variation number, got {text!r}")
+
+
+def policy_arg(text: str) -> tuple[str, Any]:
+    """KEY=VALUE, VALUE parsed as JSON where it can be (``--policy-arg model="qwen"``)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value
+
+
+# ---- the configuration -------------------------------------------------------------------
+def option(default: Any, help: str, *, flag: str | None = None, group: str | None = None,
+           **argparse_kwargs: Any) -> Any:
+    """A field of EvalConfig that is also a command-line option.
+
+    `help` and `argparse_kwargs` (type, choices, metavar) go to ``add_argument``; the flag
+    is ``--field-name`` unless `flag` says otherwise; `group` is the --help section.  The
+    default's type sets the option's form: False is a switch, a list is given as
+    comma-separated text (its `type` parses it), a dict collects repeated KEY=VALUE options."""
+    metadata = {"help": help, "flag": flag, "group": group, "argparse": argparse_kwargs}
+    if isinstance(default, list | dict):
+        return field(default_factory=lambda: copy.copy(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+@dataclass
+class EvalConfig:
+    """One evaluation run; the fields are the command line's options, in --help's order."""
+
+    policy: str = option(
+        "auto", "auto (xicm when an LLM is configured, else retrieval), xicm, retrieval, "
+                "oracle, or 'module:attr' / 'file.py:attr' naming a Policy class, factory or "
+                "instance (see agnostos_mjx/policies/base.py)")
+    policy_args: dict[str, Any] = option(
+        {}, "keyword argument for the policy factory (VALUE parsed as JSON if it can be); "
+            "repeatable", flag="--policy-arg", type=policy_arg, metavar="KEY=VALUE")
+    policy_url: str | None = option(
+        None, "the policy server of --policy remote (openpi's websocket protocol; default "
+              "$AGNOSTOS_POLICY_URL); its adapter options (preset, keys, timeout_s, "
+              "action_index, quat_order, gripper, height, width) go in --policy-arg, see "
+              "agnostos_mjx/remote/adapter.py", metavar="ws://HOST:PORT")
+    gpu_mem_fraction: float | None = option(
+        None, "cap JAX's GPU memory pool at F of the card, 0: no preallocation (default "
+              "$AGNOSTOS_GPU_MEM_FRACTION; 0.35 when the policy or LLM server is on this "
+              "machine; else JAX's 75%%); see agnostos_mjx/gpu.py", type=float, metavar="F")
+    tasks: str = option(
+        "unseen", "comma-separated task names and/or split names (seen, unseen, "
+                  "unseen_level1, unseen_level2, all)")
+    seeds: list[int] = option([0, 1, 2], "comma-separated evaluation seeds", type=int_list)
+    episodes: int = option(25, "episodes per task and seed", type=positive_int)
+    batch: int = option(
+        75, "worlds simulated at once; the episodes of all seeds of a task are pooled and "
+            "run in chunks of this size", type=positive_int)
+    backend: str = option(
+        "auto", "physics backend (auto: MJX-warp on a CUDA GPU for batches of >= 4096 worlds, "
+                "else native MuJoCo on all CPU threads, which is faster below that and "
+                "bit-reproducible)", choices=BACKENDS)
+    variations: str = option(
+        "protocol", "protocol: unseen tasks use variation 0, seen tasks sample one per "
+                    "episode; all: sample for every task; zero: always 0; N: always N",
+        type=variation_mode)
+    out: str | None = option(
+        None, "output directory; default results/<policy>-<timestamp>, <policy> being the "
+              "policy run (retrieval or xicm under auto)")
+    resume: bool = option(
+        False, "continue the run in --out (required): skip episodes already in its "
+               "episodes.jsonl")
+    fail_fast: bool = option(
+        False, "re-raise policy exceptions instead of recording policy_error")
+    quiet: bool = option(
+        False, "no progress bar, warnings-only logging (the table is still printed)")
+    video: str | None = option(
+        None, "MP4 per episode in <out>/videos for episodes 0..N-1 of each task and seed, or "
+              "the failures (see agnostos_mjx/video.py; needs PyAV)",
+        metavar="first:N|failures[:N]")
+    video_cameras: str | None = option(
+        None, "comma-separated cameras side by side (default front,overhead,wrist)")
+
+    devices: int | None = option(
+        None, "local accelerators a batch's worlds (MJX-jax) and the dynamics features are "
+              "sharded over (default: all)", group=SCALE, type=positive_int, metavar="N")
+    num_processes: int = option(
+        1, "processes (hosts) sharing the run: process I runs tasks I, I+N, ... into "
+           "--out/proc-I; then --merge", group=SCALE, type=positive_int, metavar="N")
+    process_id: int = option(0, "this process's index, 0..N-1", group=SCALE, type=int,
+                             metavar="I")
+    coordinator: str | None = option(
+        None, "process 0's address: each process calls jax.distributed.initialize with it "
+              "(one JAX cluster; sharding stays on each host's local devices); without it "
+              "the processes run independently", group=SCALE, metavar="HOST:PORT")
+    local_processes: int = option(
+        1, "run as N processes on this machine (each every N-th task, sharing its GPU; logs "
+           "in --out/proc-I.log), then merge: with warp at batch 75 the GPU is mostly idle "
+           "(H100 main job: 407 s as 8 processes; see agnostos_mjx/evaluation/processes.py)",
+        group=SCALE, type=positive_int, metavar="N")
+    merge: bool = option(
+        False, "only merge --out/proc-*/episodes.jsonl into --out's results files "
+               "(episodes.jsonl, results.json/.csv/.md/.png)", group=SCALE)
+
+    llm_url: str | None = option(
+        None, "OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or 'vllm:' for an "
+              "in-process vLLM engine (extra 'vllm') (default: $AGNOSTOS_LLM_URL); the key "
+              "comes from $AGNOSTOS_LLM_API_KEY or $OPENAI_API_KEY", group=LLM)
+    llm_model: str | None = option(
+        None, "model name on that server (default: $AGNOSTOS_LLM_MODEL)", group=LLM)
+    llm_cache: str | None = option(
+        None, "response cache directory (default: <out>/llm_cache); reruns and --resume "
+              "reuse answers, a shipped cache replays a run offline", group=LLM)
+    llm_concurrency: int | None = option(
+        None, "LLM requests in flight at once (default: the server's slot count where it "
+              "publishes one (llama.cpp: 1 unless started with --parallel N), capping this "
+              "flag too; else 64 for vLLM, which batches on the GPU, and 8 for other "
+              "servers)", group=LLM, type=positive_int)
+    llm_timeout: float = option(
+        DEFAULT_TIMEOUT_S, "seconds without a byte from the LLM server before a request is "
+                           "given up (answers are streamed, so this is silence, not total "
+                           "time; not retried, since the server may still be computing). "
+                           "Covers prompt processing before the first token: seconds on a "
+                           "GPU, up to minutes for long prompts on a CPU",
+        group=LLM, type=positive_float)
+    llm_server_kind: str = option(
+        "auto", "which sampling field names to send: vllm (repetition_penalty; also "
+                "SGLang), llamacpp (repeat_penalty; llama.cpp and llama-cpp-python), openai "
+                "(no penalty field); auto detects it in the start-up check",
+        group=LLM, choices=LLM_SERVER_KINDS)
+    overlap_tasks: int = option(
+        3, "tasks evaluated at once when the policy waits on an LLM: while one task's "
+           "requests are in flight the others simulate (1: one task at a time; results do "
+           "not depend on it)", group=LLM, type=positive_int)
+    selection: str = option(
+        "auto", "in-context demo selection: random, text (instruction trigrams), dynamics "
+                "features lang, vis.in, vis.out joined with '+', or auto (lang+vis.out when "
+                "the memory has dynamics features, else text)", group=LLM)
+    num_demos: int = option(18, "K, in-context demonstrations per prompt", group=LLM,
+                            type=positive_int)
+    ddim_steps: int | None = option(
+        None, "DDIM steps of a query's dynamics features (default 10: as good as the "
+              "original's 50 for selection and 5x cheaper, see "
+              "eval/reports/sampling_steps_h100)", group=LLM, type=positive_int)
+    memory: str | None = option(
+        None, "seen-demo memory .npz (default: the one shipped with the package)", group=LLM)
+    compare: str | None = option(
+        None, "add a column of published numbers: 'X-ICM 7B', 'X-ICM 72B', pi0, VoxPoser or "
+              "RVT2", group=LLM)
+
+
+def _default(f: Field) -> Any:
+    return f.default_factory() if f.default is MISSING else f.default
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of EvalConfig's fields (see `option`)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m agnostos_mjx.eval",
+        description="Evaluate a policy on AGNOSTOS tasks (X-ICM protocol) and write "
+                    "episodes.jsonl, results.json, results.csv and results.md.",
+        formatter_class=HelpFormatter)
+    groups: dict[str | None, Any] = {None: parser}
+    for f in fields(EvalConfig):
+        meta, default = f.metadata, _default(f)
+        kwargs = dict(meta["argparse"])
+        if default is False:
+            kwargs["action"] = "store_true"
+        elif isinstance(default, list):
+            default = ",".join(map(str, default))  # parsed by the option's type
+        elif isinstance(default, dict):
+            kwargs["action"], default = "append", None
+        if meta["group"] not in groups:
+            groups[meta["group"]] = parser.add_argument_group(meta["group"])
+        groups[meta["group"]].add_argument(meta["flag"] or "--" + f.name.replace("_", "-"),
+                                           dest=f.name, default=default, help=meta["help"],
+                                           **kwargs)
+    return parser
+
+
+def parse_config(argv: list[str] | None = None) -> EvalConfig:
+    """EvalConfig of a command line (argparse exits on a bad one)."""
+    args = vars(build_parser().parse_args(argv))
+    return EvalConfig(**{f.name: dict(args[f.name] or []) if isinstance(_default(f), dict)
+                         else args[f.name] for f in fields(EvalConfig)})
+
+
+def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
+    """(policy spec, factory kwargs, a one-line explanation) for `cfg`; fills in
+    the built-in policies' arguments from the command line."""
+    from agnostos_mjx.llm.client import LLMConfig
+
+    spec, note = cfg.policy, ""
+    if spec == "auto":
+        configured = LLMConfig.from_env(cfg.llm_url, cfg.llm_model) is not None
+        spec = "xicm" if configured else "retrieval"
+        note = ("an LLM is configured: running X-ICM" if configured else
+                "no LLM configured (set --llm-url/--llm-model or AGNOSTOS_LLM_URL/"
+                "AGNOSTOS_LLM_MODEL for X-ICM): running the retrieval baseline")
+    kwargs: dict[str, Any] = {}
+    if spec in ("xicm", "retrieval"):
+        kwargs.update(selection=cfg.selection, memory=cfg.memory, sample_steps=cfg.ddim_steps)
+    if spec == "xicm":
+        cache = cfg.llm_cache or str(Path(cfg.out or ".") / "llm_cache")
+        kwargs.update(llm_url=cfg.llm_url, llm_model=cfg.llm_model, llm_cache=cache,
+                      concurrency=cfg.llm_concurrency, timeout_s=cfg.llm_timeout,
+                      server_kind=cfg.llm_server_kind, num_demos=cfg.num_demos)
+    if spec == "remote":
+        kwargs["url"] = cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL")
+    kwargs.update(cfg.policy_args)
+    return spec, kwargs, note

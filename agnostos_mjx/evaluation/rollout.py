@@ -1,0 +1,176 @@
+"""The episodes of one task, a batch of worlds at a time, and their records.
+
+A task's pending (seed, episode) pairs run in chunks of --batch worlds.  Each episode's
+record goes out as soon as its world finishes, so an interrupted run keeps it.  The loop is
+a generator over the futures the policy waits on, so that `scheduler.run_interleaved` can
+simulate other tasks meanwhile; `run_task` drives it alone.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Generator, Iterable, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agnostos_mjx.cli import Progress
+from agnostos_mjx.evaluation.config import EvalConfig
+from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
+from agnostos_mjx.policies.base import PolicyAdapter
+
+if TYPE_CHECKING:
+    import concurrent.futures
+
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
+    from agnostos_mjx.tasks.base import Task
+    from agnostos_mjx.video import EpisodeVideos
+
+log = logging.getLogger("agnostos_mjx.eval")
+
+OnRecords = Callable[[list[dict]], None]
+# tick(episodes done, partial (key-action rounds of unfinished episodes, in episodes), detail)
+Tick = Callable[..., None]
+Steps = Generator["concurrent.futures.Future", Any, list[dict]]
+
+
+def run_task(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
+             cfg: EvalConfig, on_records: OnRecords, progress: Progress | None = None,
+             done_before: int = 0) -> list[dict]:
+    """Run `pending` (seed, episode) pairs of one task in chunks of cfg.batch;
+    `on_records(records)` is called as episodes finish.  Returns the records."""
+    from agnostos_mjx.policies.planning import run_blocking
+
+    tick = None if progress is None else (
+        lambda n, partial=0.0, detail=None: progress.update(done_before + n, partial=partial,
+                                                            detail=detail))
+    return run_blocking(task_steps(task, policy, pending, cfg, on_records, tick))
+
+
+def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
+               cfg: EvalConfig, on_records: OnRecords, tick: Tick | None = None) -> Steps:
+    """`run_task` as a generator that yields the futures the policy waits on (see
+    PolicyAdapter.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
+    `tick(episodes_done, partial, detail)` reports progress within the task."""
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.video import EpisodeVideos
+
+    t0 = time.perf_counter()
+    runner = Episodes(task, cfg.backend)
+    videos = EpisodeVideos.for_task(cfg, runner)
+    log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
+             runner.backend_name, time.perf_counter() - t0)
+    chunk = min(cfg.batch, len(pending))
+    batches = -(-len(pending) // chunk)
+    # MJX recompiles for every new batch shape: pad the last chunk there.
+    pad = runner.backend_name != "native"
+    out: list[dict] = []
+    for b, start in enumerate(range(0, len(pending), chunk)):
+        part = pending[start:start + chunk]
+        t_batch = time.perf_counter()
+        label = f"{task.name} batch {b + 1}/{batches}"
+        out += yield from batch_steps(task, policy, runner, part, chunk if pad else len(part),
+                                      cfg, on_records, tick, len(out), label, videos)
+        rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
+        log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
+                 time.perf_counter() - t_batch, rate)
+    return out
+
+
+def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
+                part: list[tuple[int, int]], size: int, cfg: EvalConfig,
+                on_records: OnRecords, tick: Tick | None = None, done_before: int = 0,
+                label: str = "", videos: EpisodeVideos | None = None) -> Steps:
+    """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
+    `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
+    also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
+    from agnostos_mjx.runtime.outcome import Outcome
+
+    n = len(part)
+    run_part = part + [part[-1]] * (size - n)
+    t_batch = time.perf_counter()
+    keys = episode_keys(np.array([s for s, _ in run_part]), np.array([e for _, e in run_part]))
+    variations = episode_variations(keys, task.num_variations, task.split.value, cfg.variations)
+    instructions = [task.descriptions(int(v))[0] for v in variations]
+    recorded = np.zeros(n, bool)
+    out: list[dict] = []
+
+    def record(env: EnvState, outcome: np.ndarray) -> None:
+        new = (outcome[:n] != Outcome.RUNNING) & ~recorded
+        if new.any():
+            records = episode_records(task, policy, runner.backend_name, part, variations,
+                                      instructions, env, outcome, np.nonzero(new)[0],
+                                      time.perf_counter() - t_batch, len(run_part))
+            recorded[new] = True
+            out.extend(records)
+            on_records(records)
+
+    def report(rounds: int) -> None:
+        if tick is not None:
+            tick(done_before + len(out), (n - recorded.sum()) * rounds / task.max_key_actions,
+                 f"{label} key action {min(rounds + 1, task.max_key_actions)}"
+                 f"/{task.max_key_actions}")
+
+    report(0)
+    env = runner.reset(keys, variations)
+    if videos is not None:
+        videos.start(env, part)
+    try:
+        policy.reset(runner, env, instructions,
+                     episode_seeds=[policy_seed(s, e) for s, e in run_part])
+        for rounds in range(task.max_key_actions):
+            if env.done.all():
+                break
+            actions = yield from policy.act_steps(runner, env)
+            running = env.outcome == Outcome.RUNNING
+            env, _ = runner.step(env, actions)
+            if videos is not None:
+                videos.capture(env)
+            # A policy may say why a world got no action (bad LLM output, LLM error).
+            reasons = policy.end_reasons(env)
+            ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
+            env = replace(env, outcome=np.where(ended, reasons, env.outcome))
+            record(env, np.where(env.done, env.outcome, Outcome.RUNNING))
+            report(rounds + 1)
+    except Exception:
+        if cfg.fail_fast:
+            raise
+        log.exception("%s: the policy raised; running episodes of this batch end as "
+                      "policy_error", task.name)
+        env = replace(env, outcome=np.where(env.done, env.outcome, Outcome.POLICY_ERROR))
+    record(env, np.where(env.done, env.outcome, Outcome.MAX_STEPS))
+    if videos is not None:
+        by_episode = {(r["seed"], r["episode"]): r for r in out}
+        videos.write([by_episode[int(s), int(e)] for s, e in part])
+    if tick is not None:
+        tick(done_before + len(out))
+    return out
+
+
+def episode_records(task: Task, policy: PolicyAdapter, backend: str,
+                    part: Sequence[tuple[int, int]], variations: np.ndarray,
+                    instructions: list[str], env: EnvState, outcome: np.ndarray,
+                    worlds: Iterable[int], wall_s: float, batch_size: int) -> list[dict]:
+    """The records of the finished `worlds` of a batch (episodes.jsonl's lines)."""
+    from agnostos_mjx.runtime.outcome import Outcome
+
+    records = []
+    for i in worlds:
+        seed, episode = part[i]
+        record = {
+            "task": task.name, "split": task.split.value, "seed": int(seed),
+            "episode": int(episode), "variation": int(variations[i]),
+            "instruction": instructions[i], "policy": policy.name,
+            "success": bool(outcome[i] == Outcome.SUCCESS),
+            "outcome": Outcome(int(outcome[i])).label,
+            "key_actions": int(env.key_actions[i]), "sim_steps": int(env.sim_steps[i]),
+            "backend": backend, "batch_size": batch_size, "wall_s": round(wall_s, 4),
+        }
+        info = policy.episode_info(int(i))
+        if info is not None:
+            record["policy_info"] = info
+        records.append(record)
+    return records

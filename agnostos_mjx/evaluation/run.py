@@ -1,0 +1,186 @@
+"""One evaluation run: `evaluate(cfg)` and the folder it writes.
+
+The folder (--out, default ``results/<policy>-<timestamp>``) is checked before anything is
+loaded and created when the first episode finishes; a process of a multi-process run
+writes into its own ``proc-I`` inside it.  A run resumed with --resume skips the episodes
+its episodes.jsonl already holds.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import re
+import time
+from dataclasses import asdict, replace
+from datetime import datetime
+from pathlib import Path
+
+from agnostos_mjx.cli import check_writable_dir, progress_bar, versions
+from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
+from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, select_tasks
+from agnostos_mjx.evaluation.records import (
+    EPISODES_FILE,
+    append_records,
+    latest_run,
+    record_key,
+    repair_records,
+)
+from agnostos_mjx.evaluation.rollout import task_steps
+from agnostos_mjx.evaluation.scheduler import run_interleaved
+from agnostos_mjx.evaluation.summary import write_outputs
+from agnostos_mjx.policies.base import PolicyAdapter
+
+log = logging.getLogger("agnostos_mjx.eval")
+
+
+# ---- the run's folder --------------------------------------------------------------------
+def default_out(policy: str) -> Path:
+    tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", policy.split(":")[-1]).strip("_") or "policy"
+    return Path("results") / f"{tag}-{datetime.now():%Y%m%d-%H%M%S}"
+
+
+def process_dir(out: Path, cfg: EvalConfig) -> Path:
+    """Where this process writes: `out` itself, or out/proc-I when several processes share
+    it, so each keeps its own episodes.jsonl (and --resume) with no file locking."""
+    return out / f"proc-{cfg.process_id}" if cfg.num_processes > 1 else out
+
+
+def resolve_out(cfg: EvalConfig, spec: str) -> Path:
+    """Sets cfg.out (default results/<policy>-<timestamp>) and checks, before anything
+    is loaded or created, that the run can write there."""
+    if cfg.out is None and cfg.num_processes > 1:
+        raise UsageError("--num-processes needs --out DIR, the folder the processes share")
+    if cfg.out is None:
+        if cfg.resume:
+            latest = latest_run()
+            hint = f" (the latest run is {latest})" if latest else ""
+            raise UsageError(f"--resume needs --out DIR, the folder of the run to continue"
+                             f"{hint}")
+        cfg.out = str(default_out(spec))
+    if not 0 <= cfg.process_id < cfg.num_processes:
+        raise UsageError(f"--process-id {cfg.process_id}: expected 0..{cfg.num_processes - 1}")
+    out_dir = process_dir(Path(cfg.out), cfg)
+    problem = check_writable_dir(out_dir)
+    if problem:
+        raise UsageError(f"--out: {problem}")
+    if (out_dir / EPISODES_FILE).exists() and not cfg.resume:
+        raise UsageError(f"{out_dir / EPISODES_FILE} exists; pass --resume to continue that "
+                         f"run or choose another --out")
+    return out_dir
+
+
+# ---- checks and loading ------------------------------------------------------------------
+def _check_video(cfg: EvalConfig) -> None:
+    if cfg.video:
+        from agnostos_mjx.video import VideoSpec
+
+        try:
+            VideoSpec.parse(cfg.video, cfg.video_cameras)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+
+
+def _check_compare(cfg: EvalConfig) -> None:
+    if cfg.compare:
+        from agnostos_mjx.paper import published
+
+        try:
+            published(cfg.compare)
+        except KeyError as e:
+            raise UsageError(f"--compare: {e.args[0]}") from None
+
+
+def load_policy(cfg: EvalConfig) -> tuple[str, str, PolicyAdapter]:
+    """(spec, note, the policy) of `cfg`; a policy that cannot load is a UsageError."""
+    from agnostos_mjx.llm.client import LLMConfigError
+    from agnostos_mjx.policies import make_policy
+    from agnostos_mjx.xicm.memory import MemoryFileError
+
+    spec, kwargs, note = resolve_policy(cfg)
+    if note:
+        log.info("%s", note)
+    try:
+        policy = make_policy(spec, **kwargs)
+    except (LLMConfigError, MemoryFileError) as e:
+        raise UsageError(str(e)) from None
+    except (KeyError, ImportError, ValueError, TypeError) as e:
+        raise UsageError(f"cannot load policy {spec!r}: "
+                         f"{e.args[0] if isinstance(e, KeyError) else e}") from None
+    return spec, note, PolicyAdapter(policy, default_name=cfg.policy)
+
+
+# ---- the run -----------------------------------------------------------------------------
+def evaluate(cfg: EvalConfig) -> dict:
+    """Run the evaluation described by `cfg`, write the outputs, return results.json's dict."""
+    from agnostos_mjx import sharding
+    from agnostos_mjx.physics import resolve_backend
+
+    tasks = select_tasks(cfg)
+    all_tasks = [t.name for t in tasks]
+    _check_video(cfg)
+    out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
+    episodes_path = out_dir / EPISODES_FILE
+    sharding.configure(cfg.devices)
+    tasks = process_share(tasks, cfg)
+    if cfg.num_processes > 1:
+        log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
+                 ", ".join(t.name for t in tasks) or "no task")
+    _check_compare(cfg)
+    spec, note, policy = load_policy(cfg)
+    policy_class = f"{type(policy.policy).__module__}.{type(policy.policy).__qualname__}"
+    log.info("policy %s (%s)", policy.name, policy_class)
+    backend = resolve_backend(cfg.backend, cfg.batch)
+
+    all_records = repair_records(episodes_path) if cfg.resume else []
+    if all_records:
+        earlier = {r.get("policy") for r in all_records} - {None}
+        if earlier and earlier != {policy.name}:
+            log.warning("%s holds episodes of policy %s; continuing with %s", out_dir,
+                        ", ".join(sorted(earlier)), policy.name)
+    recorded = {record_key(r) for r in all_records}
+    plan = {t.name: pending_episodes(t.name, cfg, recorded) for t in tasks}
+    total = sum(map(len, plan.values()))
+    skipped = len(tasks) * len(cfg.seeds) * cfg.episodes - total
+    log.info("%d tasks (%s), seeds %s, %d episodes each: %d to run%s", len(tasks),
+             ", ".join(t.name for t in tasks), ",".join(map(str, cfg.seeds)), cfg.episodes,
+             total, f", {skipped} already recorded" if skipped else "")
+
+    started = datetime.now().isoformat(timespec="seconds")
+    t0 = time.perf_counter()
+    meta = {"config": asdict(cfg), "policy": {"spec": spec, "name": policy.name, "note": note,
+                                              "class": policy_class},
+            "backend": backend, "versions": versions(), "started": started,
+            "tasks": all_tasks}
+
+    def selected() -> list[dict]:
+        names, seeds = {t.name for t in tasks}, set(cfg.seeds)
+        return [r for r in all_records if r["task"] in names and int(r["seed"]) in seeds
+                and int(r["episode"]) < cfg.episodes]
+
+    def write_results(final: bool) -> dict:
+        # policy.report(): requests, retries, failures, what was sent (LLM, policy server)
+        return write_outputs(out_dir, meta, selected(), [t.name for t in tasks], cfg,
+                             time.perf_counter() - t0, final, policy.report())
+
+    def on_records(records: list[dict]) -> None:
+        append_records(episodes_path, records)
+        all_records.extend(records)
+
+    todo = [t for t in tasks if plan[t.name]]
+    # One policy copy per task running at once: copies share the heavy parts (LLM client,
+    # memory, selector); reset() gives each its own per-episode state.
+    overlap = cfg.overlap_tasks if policy.interleaves else 1
+    with progress_bar(total, enabled=not cfg.quiet) as progress:
+        done = {t.name: (0, 0.0) for t in todo}
+
+        def tick(name: str, n: int, partial: float = 0.0, detail: str | None = None) -> None:
+            done[name] = (n, partial)
+            progress.update(sum(d for d, _ in done.values()),
+                            partial=sum(p for _, p in done.values()), detail=detail)
+
+        run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
+        jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
+                           on_records, functools.partial(tick, t.name)) for t in todo]
+        run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
+    return write_results(final=True)
