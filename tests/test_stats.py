@@ -126,3 +126,27 @@ def test_pair_records_reports_unpaired_and_duplicates():
     assert (p.unpaired, p.duplicates_a, p.duplicates_b, p.fully_paired) == (3, 1, 0, False)
     assert p.tasks() == ["x"]
     assert stats.pair_records(a[:2], b[:2]).fully_paired
+
+
+def test_summary_reports_wilson_intervals_per_task_and_group(tmp_path):
+    """results.csv/.md carry the Wilson 95 % interval of each task's and group's pooled
+    episodes (a group pools its tasks' episodes)."""
+    from agnostos_mjx.evaluation.summary import aggregate, csv_rows, format_markdown
+    from agnostos_mjx.stats import wilson_interval
+
+    records = [{"task": t, "split": "unseen_level1", "seed": s, "episode": e,
+                "success": e < k, "outcome": "success" if e < k else "max_steps",
+                "key_actions": 1, "sim_steps": 10}
+               for t, k in (("a", 5), ("b", 25)) for s in (0, 1, 2) for e in range(25)]
+    summary = aggregate(records)
+    low, high = wilson_interval(15, 75)
+    assert summary["tasks"]["a"]["wilson95"] == [round(100 * low, 2), round(100 * high, 2)]
+    assert summary["tasks"]["b"]["wilson95"][1] == 100.0
+    low, high = wilson_interval(90, 150)
+    assert summary["groups"]["All"]["wilson95"] == [round(100 * low, 2), round(100 * high, 2)]
+    rows = {r["name"]: r for r in csv_rows(summary)}
+    assert rows["a"]["success_pct_ci_low"] == summary["tasks"]["a"]["wilson95"][0]
+    assert rows["All"]["success_pct_ci_high"] == summary["groups"]["All"]["wilson95"][1]
+    md = format_markdown(summary)
+    assert "| a | unseen_level1 | 20.0 (0.0) | [{:.1f}, {:.1f}] |".format(
+        *summary["tasks"]["a"]["wilson95"]) in md

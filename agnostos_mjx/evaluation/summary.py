@@ -10,6 +10,9 @@ tasks, Seen), with these columns (success rates in percent)::
     name, kind (task | group), split (task rows; empty for groups),
     tasks (1, or the group's task count), seeds, episodes, successes,
     success_pct_mean, success_pct_std (population std over seeds),
+    success_pct_ci_low, success_pct_ci_high (Wilson 95 % interval of the pooled episodes:
+    with 75 episodes a task's rate is known to about +-10 points, which the std over 3
+    seeds does not show),
     success_pct_seed<S> (one column per seed; empty where a task lacks it),
     mean_key_actions, mean_sim_steps (task rows),
     outcome_<label> (episode counts per outcome: success, max_steps, ...)
@@ -37,17 +40,25 @@ from agnostos_mjx.cli import atomic_write
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError
 from agnostos_mjx.evaluation.protocol import GROUPS, group_label
 from agnostos_mjx.evaluation.records import EPISODES_FILE, jsonl, load_records, record_key
+from agnostos_mjx.stats import wilson_interval
 
 log = logging.getLogger("agnostos_mjx.eval")
 
 CSV_COLUMNS = ("name", "kind", "split", "tasks", "seeds", "episodes", "successes",
-               "success_pct_mean", "success_pct_std", "mean_key_actions", "mean_sim_steps")
+               "success_pct_mean", "success_pct_std", "success_pct_ci_low", "success_pct_ci_high",
+               "mean_key_actions", "mean_sim_steps")
 
 
 # ---- aggregation (pure) ------------------------------------------------------------------
 def _mean_std(values: Iterable[float]) -> tuple[float, float]:
     v = np.asarray(list(values), np.float64)
     return float(v.mean()), float(v.std())  # population std, as X-ICM's np.std
+
+
+def wilson_pct(successes: int, episodes: int) -> list[float]:
+    """Wilson 95 % interval of a success count, in percent (stats.wilson_interval)."""
+    low, high = wilson_interval(successes, episodes)
+    return [round(100.0 * low, 2), round(100.0 * high, 2)]
 
 
 def aggregate(records: Sequence[dict], tasks: Sequence[str] | None = None) -> dict:
@@ -80,6 +91,8 @@ def aggregate(records: Sequence[dict], tasks: Sequence[str] | None = None) -> di
             "success_per_seed": per_seed,
             "success_mean": mean,
             "success_std": std,
+            "successes": int(outcomes.get("success", 0)),
+            "wilson95": wilson_pct(int(outcomes.get("success", 0)), len(recs)),
             "mean_key_actions": float(np.mean([r["key_actions"] for r in recs])),
             "mean_sim_steps": float(np.mean([r["sim_steps"] for r in recs])),
             "outcomes": dict(sorted(outcomes.items(), key=lambda kv: (-kv[1], kv[0]))),
@@ -96,8 +109,11 @@ def aggregate(records: Sequence[dict], tasks: Sequence[str] | None = None) -> di
                     if s in per_task[n]["success_per_seed"]]
             per_seed[s] = float(np.mean(vals))
         mean, std = _mean_std(per_seed.values())
+        successes = sum(per_task[n]["successes"] for n in members)
+        episodes = sum(per_task[n]["episodes"] for n in members)
         groups[group] = {"tasks": members, "success_per_seed": per_seed,
-                         "success_mean": mean, "success_std": std}
+                         "success_mean": mean, "success_std": std, "episodes": episodes,
+                         "successes": successes, "wilson95": wilson_pct(successes, episodes)}
     return {"tasks": per_task, "groups": groups}
 
 
@@ -116,19 +132,20 @@ def format_markdown(summary: dict, title: str = "", compare: dict[str, float] | 
     extra = f" | {compare_label} (published)" if compare else ""
     sep = "|---" if compare else ""
     lines = [f"## {title}", ""] if title else []
-    lines += [f"| task | split | success % mean (std){extra} | key actions | sim steps | failures |",
-              f"|---|---|---{sep}|---|---|---|"]
+    ci = lambda item: "[{:.1f}, {:.1f}]".format(*item["wilson95"])  # noqa: E731
+    lines += [f"| task | split | success % mean (std){extra} | 95% CI (Wilson) | key actions "
+              "| sim steps | failures |", f"|---|---|---{sep}|---|---|---|---|"]
     for name, t in summary["tasks"].items():
         lines.append(f"| {name} | {t['split']} | {t['success_mean']:.1f} ({t['success_std']:.1f})"
-                     f"{ref(name)} | {t['mean_key_actions']:.2f} | {t['mean_sim_steps']:.0f}"
-                     f" | {_failures(t['outcomes'])} |")
+                     f"{ref(name)} | {ci(t)} | {t['mean_key_actions']:.2f} "
+                     f"| {t['mean_sim_steps']:.0f} | {_failures(t['outcomes'])} |")
     if summary["groups"]:
-        lines += ["", f"| group | tasks | success % mean (std){extra} | per seed |",
-                  f"|---|---|---{sep}|---|"]
+        lines += ["", f"| group | tasks | success % mean (std){extra} | 95% CI (Wilson, pooled "
+                  "episodes) | per seed |", f"|---|---|---{sep}|---|---|"]
         for name, g in summary["groups"].items():
             per_seed = ", ".join(f"{s}: {v:.1f}" for s, v in g["success_per_seed"].items())
             lines.append(f"| {group_label(name)} | {len(g['tasks'])} | {g['success_mean']:.1f} "
-                         f"({g['success_std']:.1f}){ref(name)} | {per_seed} |")
+                         f"({g['success_std']:.1f}){ref(name)} | {ci(g)} | {per_seed} |")
     return "\n".join(lines) + "\n"
 
 
@@ -150,6 +167,8 @@ def csv_rows(summary: dict) -> list[dict[str, Any]]:
             "successes": counts.get("success", 0),
             "success_pct_mean": round(item["success_mean"], 4),
             "success_pct_std": round(item["success_std"], 4),
+            "success_pct_ci_low": item["wilson95"][0],
+            "success_pct_ci_high": item["wilson95"][1],
             **{f"success_pct_seed{s}": round(per_seed[s], 4) if s in per_seed else None
                for s in seeds},
             "mean_key_actions": round(single["mean_key_actions"], 4) if single else None,
