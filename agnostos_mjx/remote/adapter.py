@@ -165,8 +165,8 @@ def sim_state(episodes: Episodes, env: EnvState, world: int, episode_seed: int) 
     p = env.physics
     return {"task": episodes.task.name, "variation": int(env.variation[world]),
             "episode_seed": int(episode_seed), "key_actions": int(env.key_actions[world]),
-            "sensordata": np.asarray(env.obs.data[world]),
-            "initial_sensordata": np.asarray(env.initial_obs.data[world]),
+            "sensordata": np.asarray(env.data[world]),
+            "initial_sensordata": np.asarray(env.initial_data[world]),
             "attached": np.asarray(env.attached[world], bool),
             "gripper": float(env.gripper[world]),
             "qpos": np.asarray(p.qpos[world]), "mocap_pos": np.asarray(p.mocap_pos[world]),

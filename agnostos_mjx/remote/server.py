@@ -55,13 +55,11 @@ def runner_for(task_name: str):
 
 def mirror_env(runner, state: dict):
     """A one-world EnvState from a request's ``sim_state`` (see adapter.sim_state)."""
-    from agnostos_mjx.observables import Observation
     from agnostos_mjx.physics import PhysicsState
     from agnostos_mjx.runtime.state import EnvState
 
     m, layout = runner.scene.model, runner.scene.layout
     one = lambda x, dtype=np.float64: np.array(x, dtype)[None]  # noqa: E731
-    attached = one(state["attached"], bool)
     physics = PhysicsState(
         qpos=one(state["qpos"]), qvel=np.zeros((1, m.nv)), act=np.zeros((1, m.na)),
         ctrl=np.zeros((1, m.nu)), mocap_pos=one(state["mocap_pos"]),
@@ -70,12 +68,13 @@ def mirror_env(runner, state: dict):
     sensordata = np.asarray(state["sensordata"])
     initial = np.asarray(state["initial_sensordata"])
     return EnvState(
-        physics=physics, obs=Observation(one(sensordata, sensordata.dtype), layout, attached),
-        carry=(), variation=np.array([int(state["variation"])], np.int32),
+        physics=physics, data=one(sensordata, sensordata.dtype),
+        attached=one(state["attached"], bool), carry=(),
+        variation=np.array([int(state["variation"])], np.int32),
         gripper=one(state["gripper"]), outcome=np.zeros(1, np.int32),
         key_actions=np.array([int(state["key_actions"])], np.int32),
         sim_steps=np.zeros(1, np.int32), geom_rgba=one(state["geom_rgba"], np.float32),
-        initial_obs=Observation(one(initial, initial.dtype), layout, np.zeros_like(attached)))
+        initial_data=one(initial, initial.dtype), layout=layout)
 
 
 class Session:
