@@ -441,8 +441,7 @@ def test_openvla_deltas_over_http_run_the_served_oracle(tmp_path: Path,
                     "--policy-arg", f"keys={json.dumps(keys)}",
                     "--policy-arg", "gripper_threshold=null") == 0
     served, local = _episodes(tmp_path / "openvla"), _episodes(local_oracle)
-    same = ("task", "episode", "variation", "success", "outcome", "key_actions")
-    assert [{k: r[k] for k in same} for r in served] == [{k: r[k] for k in same}
+    assert [{k: r[k] for k in SAME} for r in served] == [{k: r[k] for k in SAME}
                                                          for r in local]
     results = json.loads((tmp_path / "openvla" / "results.json").read_text())
     assert results["policy"]["name"] == "openvla"
@@ -491,4 +490,4 @@ def test_unreachable_http_server_is_a_usage_error(tmp_path: Path, capsys) -> Non
     assert code == 2 and "cannot reach the policy server" in capsys.readouterr().err
     code = ev.main(["--tasks", "lamp_on", "--policy", "openvla", "--out", str(tmp_path / "y"),
                     "--quiet"])
-    assert code == 2 and "--policy openvla needs --policy-url" in capsys.readouterr().err
+    assert code == 2 and "--policy openvla needs --policy-arg url=" in capsys.readouterr().err

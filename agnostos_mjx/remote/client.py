@@ -97,8 +97,9 @@ class _Loop:
 
 def check_url(url: str | None, policy: str = "remote") -> str:
     if not url:
-        raise RemotePolicyError(f"--policy {policy} needs --policy-url ws://HOST:PORT or "
-                                f"http://HOST:PORT")
+        where = "--policy-url " if policy == "remote" else "--policy-arg url="
+        raise RemotePolicyError(f"--policy {policy} needs {where}ws://HOST:PORT or "
+                                f"{where}http://HOST:PORT (or $AGNOSTOS_POLICY_URL)")
     parsed = urlparse(url)
     if parsed.scheme not in SCHEMES or not parsed.hostname:
         raise RemotePolicyError(f"--policy-url must look like ws://HOST:PORT (openpi) or "
