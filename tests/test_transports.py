@@ -181,6 +181,41 @@ def test_json_wire_is_json_numpys_layout() -> None:
         json_wire.dumps(np.array([object()]))
 
 
+def test_http_answers_decode_like_deploy_py_writes_them() -> None:
+    import asyncio
+
+    from agnostos_mjx.remote.client import HttpTransport, ServerError, _read_response
+
+    t = HttpTransport("http://example:9000")
+    assert (t.host, t.port, t.path) == ("example", 9000, "/act")
+    assert HttpTransport("https://h/v1/act?x=1").path == "/v1/act?x=1"
+    action = np.arange(7, dtype=np.float32)
+    assert np.array_equal(t.decode(json_wire.dumps(action).encode()), action)
+    # deploy.py's double-encoded answer (JSONResponse(json_numpy.dumps(action)))
+    twice = json.dumps(json_wire.dumps(action)).encode()
+    assert np.array_equal(t.decode(twice), action)
+    with pytest.raises(ServerError, match='"error"'):
+        t.decode(b'"error"')
+    with pytest.raises(ValueError):
+        t.decode(b"\xc1 not json")
+
+    async def read(raw: bytes):
+        reader = asyncio.StreamReader()
+        reader.feed_data(raw)
+        reader.feed_eof()
+        return await _read_response(reader, "POST")
+
+    chunked = (b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n"
+               b"4\r\n[1,2\r\n3;x=y\r\n,3]\r\n0\r\n\r\n")
+    assert asyncio.run(read(chunked)) == (200, {"transfer-encoding": "chunked"}, b"[1,2,3]")
+    plain = b"HTTP/1.0 500 Internal Server Error\r\nContent-Length: 4\r\n\r\noops"
+    assert asyncio.run(read(plain))[::2] == (500, b"oops")
+    with pytest.raises(ConnectionError, match="without an answer"):
+        asyncio.run(read(b""))
+    with pytest.raises(asyncio.IncompleteReadError):
+        asyncio.run(read(b"HTTP/1.1 200 OK\r\nContent-Length: 9\r\n\r\nabc"))
+
+
 # ---- loopback servers, fake runner --------------------------------------------------------
 class FakeRunner:
     """What RemotePolicy reads of an Episodes runner: proprioception and observe()."""
