@@ -111,7 +111,8 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
     --coordinator (before anything touches a device)."""
     from agnostos_mjx.gpu import apply_memory_limit
 
-    servers = {"remote": cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL"),
+    served = cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL")
+    servers = {"remote": served, "openvla": served,
                "xicm": cfg.llm_url or os.environ.get("AGNOSTOS_LLM_URL")}
     try:
         apply_memory_limit(cfg.gpu_mem_fraction, [servers.get(spec)])

@@ -149,3 +149,96 @@ def mat_to_quat(m: Array) -> Array:
     q = xp.where(choice == 0, cases[0], xp.where(choice == 1, cases[1],
                                                   xp.where(choice == 2, cases[2], cases[3])))
     return quat_normalize(q)
+
+
+# ---- rotation representations (what policy servers send) --------------------------------
+# Conventions follow scipy.spatial.transform.Rotation, checked against it in
+# tests/test_transports.py; no scipy at runtime.  Quaternions stay (w, x, y, z) here.
+def euler_xyz_to_quat(angles: Array) -> Array:
+    """Extrinsic x-y-z Euler angles (..., 3) in radians -> unit quaternions (..., 4):
+    scipy's ``Rotation.from_euler("xyz", angles)`` (R = Rz(c) Ry(b) Rx(a))."""
+    xp = array_module(angles)
+    angles = xp.asarray(angles)
+    half = 0.5 * angles
+    c, s = xp.cos(half), xp.sin(half)
+    cx, cy, cz = c[..., 0], c[..., 1], c[..., 2]
+    sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
+    return xp.stack([cz * cy * cx + sz * sy * sx,
+                     cz * cy * sx - sz * sy * cx,
+                     cz * sy * cx + sz * cy * sx,
+                     sz * cy * cx - cz * sy * sx], axis=-1)
+
+
+def quat_to_euler_xyz(q: Array) -> Array:
+    """Unit quaternions (..., 4) -> extrinsic x-y-z Euler angles (..., 3), radians,
+    exactly as scipy's ``Rotation.as_euler("xyz")`` computes them (the quaternion method
+    of Bernardes & Viollet, 2022): first and third angle in [-pi, pi], second in
+    [-pi/2, pi/2]; at gimbal lock (second angle within 1e-7 of +-pi/2) the third is 0."""
+    xp = array_module(q)
+    q = xp.asarray(q)
+    q = q / xp.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    # Axes i, j, k = x, y, z (an even permutation): a rotation about the intermediate
+    # axis j turns the problem into the symmetric (proper Euler) case.
+    a, b, c, d = w - y, x + z, y + w, z - x
+    half_sum, half_diff = xp.arctan2(b, a), xp.arctan2(d, c)
+    second = 2.0 * xp.arctan2(xp.hypot(c, d), xp.hypot(a, b))
+    eps = 1e-7
+    near_zero, near_pi = xp.abs(second) <= eps, xp.abs(second - xp.pi) <= eps
+    regular = ~(near_zero | near_pi)
+    first = xp.where(regular, half_sum - half_diff,
+                     xp.where(near_zero, 2.0 * half_sum, -2.0 * half_diff))
+    third = xp.where(regular, half_sum + half_diff, 0.0)
+    angles = xp.stack([first, second - xp.pi / 2, third], axis=-1)
+    # into [-pi, pi], keeping an exact +-pi as computed (scipy's compiled path does so)
+    return xp.where(angles < -xp.pi, angles + 2 * xp.pi,
+                    xp.where(angles > xp.pi, angles - 2 * xp.pi, angles))
+
+
+def rotvec_to_quat(v: Array) -> Array:
+    """Rotation vectors (axis * angle, radians) (..., 3) -> unit quaternions (..., 4):
+    scipy's ``Rotation.from_rotvec``."""
+    xp = array_module(v)
+    v = xp.asarray(v)
+    angle = xp.linalg.norm(v, axis=-1, keepdims=True)
+    small = angle < 1e-3  # sin(t/2)/t by its Taylor series near 0
+    safe = xp.where(small, 1.0, angle)
+    scale = xp.where(small, 0.5 - angle ** 2 / 48 + angle ** 4 / 3840, xp.sin(0.5 * safe) / safe)
+    return xp.concatenate([xp.cos(0.5 * angle), scale * v], axis=-1)
+
+
+def quat_to_rotvec(q: Array) -> Array:
+    """Unit quaternions (..., 4) -> rotation vectors (..., 3), angle in [0, pi]:
+    scipy's ``Rotation.as_rotvec``."""
+    xp = array_module(q)
+    q = xp.asarray(q)
+    q = q / xp.linalg.norm(q, axis=-1, keepdims=True)
+    q = xp.where(q[..., :1] < 0, -q, q)
+    s = xp.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * xp.arctan2(s, q[..., :1])
+    small = angle < 1e-3
+    safe = xp.where(small, 1.0, s)
+    scale = xp.where(small, 2.0 + angle ** 2 / 12 + 7 * angle ** 4 / 2880, angle / safe)
+    return scale * q[..., 1:]
+
+
+def rot6d_to_mat(d6: Array) -> Array:
+    """6-D rotations (..., 6) -> rotation matrices (..., 3, 3).  The 6 numbers are the
+    first two *columns* of the matrix, column 0 then column 1 (Zhou et al., "On the
+    Continuity of Rotation Representations in Neural Networks", 2019); they need not be
+    orthonormal: Gram-Schmidt makes them so, the third column is their cross product.
+    (PyTorch3D's ``matrix_to_rotation_6d`` stores the first two *rows* instead.)"""
+    xp = array_module(d6)
+    d6 = xp.asarray(d6)
+    a1, a2 = d6[..., :3], d6[..., 3:6]
+    b1 = a1 / xp.linalg.norm(a1, axis=-1, keepdims=True)
+    a2 = a2 - xp.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    b2 = a2 / xp.linalg.norm(a2, axis=-1, keepdims=True)
+    return xp.stack([b1, b2, xp.cross(b1, b2)], axis=-1)
+
+
+def mat_to_rot6d(m: Array) -> Array:
+    """Rotation matrices (..., 3, 3) -> their first two columns (..., 6), column 0 first."""
+    xp = array_module(m)
+    m = xp.asarray(m)
+    return xp.concatenate([m[..., :, 0], m[..., :, 1]], axis=-1)

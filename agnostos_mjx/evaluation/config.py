@@ -274,7 +274,7 @@ def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
         kwargs.update(llm_url=cfg.llm_url, llm_model=cfg.llm_model, llm_cache=cache,
                       concurrency=cfg.llm_concurrency, timeout_s=cfg.llm_timeout,
                       server_kind=cfg.llm_server_kind, num_demos=cfg.num_demos)
-    if spec == "remote":
+    if spec in ("remote", "openvla"):
         kwargs["url"] = cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL")
     kwargs.update(cfg.policy_args)
     return spec, kwargs, note

@@ -209,6 +209,7 @@ _REGISTRY: dict[str, str | Callable[..., Policy]] = {
     "xicm": "agnostos_mjx.policies.xicm:XICMPolicy",
     "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
     "remote": "agnostos_mjx.remote.client:RemotePolicy",
+    "openvla": "agnostos_mjx.remote.client:OpenVLAPolicy",
 }
 
 

@@ -1,4 +1,5 @@
-"""The reference policy server: any of our policies over openpi's websocket protocol.
+"""The reference policy server: any of our policies over openpi's websocket protocol, or
+over HTTP with json_numpy bodies (OpenVLA's deploy.py protocol, `JsonNumpyServer`).
 
 Our policies are written against the evaluator's ``Episodes`` runner and ``EnvState``
 (the oracle reads the scene the episode started from, retrieval the current object
@@ -15,15 +16,21 @@ chunk when the policy has nothing to execute.
 The mirror holds everything the built-in policies read, so the served oracle's episodes
 equal the in-process oracle's (tests/test_serve.py).  It is privileged information: a
 learned policy served for evaluation would take the rendered cameras instead.
+
+Both servers take `faults` (tests) and a replacement for the policy's sessions
+(`session=` / `infer=`: anything that maps a request to an answer), so tests can serve
+answers in other layouts (X-ICM's Euler rows, OpenVLA's deltas) from the same oracle.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import copy
 import functools
 import http
+import http.server
 import logging
 import threading
 import traceback
@@ -36,12 +43,14 @@ from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
 from agnostos_mjx.policies.base import PolicyAdapter
-from agnostos_mjx.remote import wire
+from agnostos_mjx.remote import json_wire, wire
 
 log = logging.getLogger("agnostos_mjx.serve")
 # Faults for tests: given the decoded request, None or "drop" (close without answering),
-# "stall" (answer after `stall_s`), "garbage" (bytes that are not msgpack), "no_actions"
-# (a map without "actions") or "error" (raise: traceback as text, then close).
+# "stall" (answer after `stall_s`), "garbage" (bytes that are not msgpack / JSON),
+# "no_actions" (a map without "actions") or "error" (raise: over websockets the traceback
+# as text, then close; over HTTP deploy.py's answer, the JSON string "error"); over HTTP
+# also "http_error" (status 500).
 Faults = Callable[[dict], str | None]
 
 
@@ -56,13 +65,11 @@ def runner_for(task_name: str):
 
 def mirror_env(runner, state: dict):
     """A one-world EnvState from a request's ``sim_state`` (see adapter.sim_state)."""
-    from agnostos_mjx.observables import Observation
     from agnostos_mjx.physics import PhysicsState
     from agnostos_mjx.runtime.state import EnvState
 
     m, layout = runner.scene.model, runner.scene.layout
     one = lambda x, dtype=np.float64: np.array(x, dtype)[None]  # noqa: E731
-    attached = one(state["attached"], bool)
     physics = PhysicsState(
         qpos=one(state["qpos"]), qvel=np.zeros((1, m.nv)), act=np.zeros((1, m.na)),
         ctrl=np.zeros((1, m.nu)), mocap_pos=one(state["mocap_pos"]),
@@ -71,12 +78,13 @@ def mirror_env(runner, state: dict):
     sensordata = np.asarray(state["sensordata"])
     initial = np.asarray(state["initial_sensordata"])
     return EnvState(
-        physics=physics, obs=Observation(one(sensordata, sensordata.dtype), layout, attached),
-        carry=(), variation=np.array([int(state["variation"])], np.int32),
+        physics=physics, data=one(sensordata, sensordata.dtype),
+        attached=one(state["attached"], bool), carry=(),
+        variation=np.array([int(state["variation"])], np.int32),
         gripper=one(state["gripper"]), outcome=np.zeros(1, np.int32),
         key_actions=np.array([int(state["key_actions"])], np.int32),
         sim_steps=np.zeros(1, np.int32), geom_rgba=one(state["geom_rgba"], np.float32),
-        initial_obs=Observation(one(initial, initial.dtype), layout, np.zeros_like(attached)))
+        initial_data=one(initial, initial.dtype), layout=layout)
 
 
 class Session:
@@ -127,8 +135,12 @@ class PolicyServer:
 
     def __init__(self, policy: Any, host: str = "127.0.0.1", port: int = 0,
                  faults: Faults | None = None, stall_s: float = 5.0,
-                 on_ready: Callable[[str], None] | None = None) -> None:
+                 on_ready: Callable[[str], None] | None = None,
+                 session: Callable[[], Any] | None = None, meta: dict | None = None) -> None:
         self.policy, self.host, self.port = policy, host, port
+        # One session (an object with infer(request) -> answer) per connection.
+        self.session = session or (lambda: Session(self.policy))
+        self.meta = metadata(policy) if meta is None else meta
         self.on_ready = on_ready
         self.faults, self.stall_s = faults, stall_s
         self.requests = 0
@@ -138,9 +150,9 @@ class PolicyServer:
         self._ready = threading.Event()
 
     async def _handler(self, conn: ServerConnection) -> None:
-        session = Session(self.policy)
+        session = self.session()
         loop = asyncio.get_running_loop()
-        await conn.send(wire.packb(metadata(self.policy)))
+        await conn.send(wire.packb(self.meta))
         try:
             async for message in conn:
                 self.requests += 1
@@ -209,3 +221,146 @@ class PolicyServer:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+# ---- HTTP (OpenVLA's deploy.py protocol) --------------------------------------------------
+class EpisodeSessions:
+    """Sessions keyed by episode (task, episode seed of the request's ``sim_state``): an
+    HTTP server has no connection per episode.  The last `keep` episodes are kept."""
+
+    def __init__(self, policy: Any, keep: int = 1024) -> None:
+        self.policy, self.keep = policy, keep
+        self.sessions: collections.OrderedDict = collections.OrderedDict()
+
+    def infer(self, obs: dict) -> dict:
+        state = obs.get("sim_state") if isinstance(obs, dict) else None
+        if not isinstance(state, dict):
+            raise ValueError("this server needs the 'sim_state' source (client preset 'sim')")
+        key = (str(state["task"]), int(state["episode_seed"]))
+        if key not in self.sessions:
+            self.sessions[key] = Session(self.policy)
+            while len(self.sessions) > self.keep:
+                self.sessions.popitem(last=False)
+        self.sessions.move_to_end(key)
+        return self.sessions[key].infer(obs)
+
+
+class JsonNumpyServer:
+    """Serves `policy` (or any `infer(request) -> answer`) as OpenVLA's deploy.py does:
+    ``POST /act`` with a json_numpy body, the answer as json_numpy JSON (our policies'
+    answers: ``{"actions": chunk}``, preset ``sim``), the JSON string ``"error"`` when
+    inference raised; ``GET /`` answers the metadata (JSON), ``GET /healthz`` OK.  On the
+    standard library's threading HTTP server; inference runs one request at a time.
+    `start()` runs it on a thread (tests), `run()` in the foreground."""
+
+    def __init__(self, policy: Any = None, host: str = "127.0.0.1", port: int = 0,
+                 faults: Faults | None = None, stall_s: float = 5.0,
+                 infer: Callable[[Any], Any] | None = None, meta: dict | None = None,
+                 on_ready: Callable[[str], None] | None = None) -> None:
+        if infer is None:
+            if policy is None:
+                raise ValueError("give a policy or an infer function")
+            infer = EpisodeSessions(policy).infer
+        self.infer, self.faults, self.stall_s = infer, faults, stall_s
+        self.meta = (metadata(policy) if policy is not None else {}) if meta is None else meta
+        self.meta = {**self.meta, "transport": "http json_numpy (POST /act)"}
+        self.on_ready = on_ready
+        self.requests = 0
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._httpd = _HTTPServer((host, port), _handler(self))
+        self.host, self.port = host, self._httpd.server_address[1]
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def answer(self, body: bytes) -> tuple[int, bytes] | None:
+        """(status, body) of one POST /act, None to close without answering."""
+        self.requests += 1
+        try:
+            obs = json_wire.loads(body)
+        except ValueError as e:
+            return 400, json_wire.dumps({"detail": f"not json_numpy JSON: {e}"}).encode()
+        fault = self.faults(obs) if self.faults else None
+        if fault == "drop":
+            return None
+        if fault == "stall" and self._stopping.wait(self.stall_s):
+            return None  # stopped while stalling
+        if fault == "garbage":
+            return 200, b"\xc1 not json"
+        if fault == "no_actions":
+            return 200, json_wire.dumps({"action": [1, 2, 3]}).encode()
+        if fault == "http_error":
+            return 500, b"Internal Server Error"
+        try:
+            if fault == "error":
+                raise RuntimeError("injected server fault")
+            with self._lock:
+                return 200, json_wire.dumps(self.infer(obs)).encode()
+        except Exception as e:  # deploy.py's behaviour: log, answer "error"
+            log.warning("request failed (%s: %s); answering \"error\"", type(e).__name__, e)
+            return 200, b'"error"'
+
+    def run(self) -> None:
+        if self.on_ready is not None:
+            self.on_ready(self.url)
+        self._httpd.serve_forever()
+
+    def start(self) -> JsonNumpyServer:
+        threading.Thread(target=self._httpd.serve_forever, name="agnostos-serve-http",
+                         daemon=True).start()
+        return self
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self._httpd.shutdown()
+        self._httpd.server_close()
+
+    def __enter__(self) -> JsonNumpyServer:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+class _HTTPServer(http.server.ThreadingHTTPServer):
+    request_queue_size = 256  # a batch's worlds connect at once
+    daemon_threads = True
+
+
+def _handler(server: JsonNumpyServer) -> type[http.server.BaseHTTPRequestHandler]:
+    class Handler(http.server.BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"
+        server_version = "agnostos-mjx"
+
+        def log_message(self, format: str, *args: Any) -> None:  # noqa: A002
+            log.debug("%s - " + format, self.address_string(), *args)
+
+        def _send(self, status: int, body: bytes, kind: str = "application/json") -> None:
+            self.send_response(status)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+            if self.path == "/healthz":
+                self._send(200, b"OK\n", "text/plain")
+            elif self.path == "/":
+                self._send(200, json_wire.dumps(server.meta).encode())
+            else:
+                self._send(404, b'{"detail":"Not Found"}')
+
+        def do_POST(self) -> None:  # noqa: N802
+            body = self.rfile.read(int(self.headers.get("Content-Length") or 0))
+            if self.path.split("?")[0] != "/act":
+                self._send(404, b'{"detail":"Not Found"}')
+                return
+            result = server.answer(body)
+            if result is None:  # "drop": close the connection without a word
+                self.close_connection = True
+                return
+            self._send(*result)
+
+    return Handler
