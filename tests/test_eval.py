@@ -52,7 +52,8 @@ def test_aggregate_matches_hand_computed_values() -> None:
     assert list(rows) == ["a", "b", "Level-1", "Level-2", "All"]
     assert rows["a"] == {"name": "a", "kind": "task", "split": "unseen_level1", "tasks": 1,
                          "seeds": 2, "episodes": 4, "successes": 3, "success_pct_mean": 75.0,
-                         "success_pct_std": 25.0, "success_pct_seed0": 100.0,
+                         "success_pct_std": 25.0, "success_pct_ci_low": 30.06,
+                         "success_pct_ci_high": 95.44, "success_pct_seed0": 100.0,
                          "success_pct_seed1": 50.0, "mean_key_actions": 7.75,
                          "mean_sim_steps": 150.0, "outcome_max_steps": 1, "outcome_success": 3}
     assert rows["All"]["tasks"] == 2 and rows["All"]["episodes"] == 8

@@ -109,10 +109,11 @@ class EvalConfig:
         {}, "keyword argument for the policy factory (VALUE parsed as JSON if it can be); "
             "repeatable", flag="--policy-arg", type=policy_arg, metavar="KEY=VALUE")
     policy_url: str | None = option(
-        None, "the policy server of --policy remote (openpi's websocket protocol; default "
-              "$AGNOSTOS_POLICY_URL); its adapter options (preset, keys, timeout_s, "
-              "action_index, quat_order, gripper, height, width) go in --policy-arg, see "
-              "agnostos_mjx/remote/adapter.py", metavar="ws://HOST:PORT")
+        None, "the policy server of --policy remote or openvla: ws://... speaks openpi's "
+              "websocket protocol, http://... POSTs json_numpy bodies to /act (OpenVLA's "
+              "deploy.py); default $AGNOSTOS_POLICY_URL; its adapter options (preset, keys, "
+              "rotation, execute, timeout_s, action_index, ...) go in --policy-arg, see "
+              "agnostos_mjx/remote/adapter.py", metavar="URL")
     gpu_mem_fraction: float | None = option(
         None, "cap JAX's GPU memory pool at F of the card, 0: no preallocation (default "
               "$AGNOSTOS_GPU_MEM_FRACTION; 0.35 when the policy or LLM server is on this "
