@@ -570,9 +570,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         manifest = export(cfg, a.workers)
     except KeyboardInterrupt:
-        print(f"interrupted: complete episodes in {cfg.out} are kept; run again to resume",
+        where = cfg.staging_root() if cfg.format == "lerobot" else cfg.out
+        print(f"interrupted: complete episodes in {where} are kept; run again to resume",
               file=sys.stderr)
         return 130
+    except ValueError as err:  # a foreign --out, settings unlike the earlier run's
+        print(f"export: {err}", file=sys.stderr)
+        return 2
     if failed := manifest.get("failed_tasks"):
         print(f"done in {manifest['wall_s']:.0f} s with {len(failed)} failed task(s) "
               f"({', '.join(failed)}): {cfg.out}", file=sys.stderr)
