@@ -365,3 +365,80 @@ def _read_with_datasets(root: Path) -> None:
     ds = datasets.load_dataset("parquet", data_dir=str(root / "data"), split="train")
     assert isinstance(ds.features["observation.images.front"], datasets.Image)
     assert np.asarray(ds[0]["observation.images.front"]).shape == (32, 32, 3)
+
+
+# ---- opt-in: the real LeRobot reads both versions -------------------------------------------------
+LEROBOT_SIDE = r'''
+import sys
+import numpy as np
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+
+root, out, mode = sys.argv[1:4]
+if mode == "convert":  # LeRobot's own v2.1 -> v3.0 converter, in place (root/<repo_id>)
+    from pathlib import Path
+    from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
+    convert_dataset(repo_id="local/agnostos", root=str(Path(root).parent.parent),
+                    push_to_hub=False)
+meta = LeRobotDatasetMetadata("local/agnostos", root=root)
+ds = LeRobotDataset("local/agnostos", root=root,
+                    delta_timestamps={"action": [k / meta.fps for k in range(3)]})
+dump = {}
+for i in range(len(ds)):
+    for k, v in ds[i].items():
+        dump.setdefault(k, []).append(v if k == "task" else np.asarray(v))
+np.savez(out, **{k: np.array(v) if k == "task" else np.stack(v) for k, v in dump.items()},
+         stats=np.array([f"{f}/{s}" for f in meta.stats for s in meta.stats[f]]))
+'''
+
+
+@pytest.mark.parametrize("variable", ["AGNOSTOS_LEROBOT_PYTHON", "AGNOSTOS_LEROBOT21_PYTHON"])
+def test_real_lerobot_reads_both_versions(tmp_path, variable) -> None:
+    """Opt-in, with a command running a Python that has lerobot (e.g. "env PYTHONPATH=/x
+    /venv/bin/python"): AGNOSTOS_LEROBOT_PYTHON, lerobot >= 0.4 (v3.0): LeRobotDataset reads
+    our v3.0 export, and LeRobot's v2.1 -> v3.0 converter turns our v2.1 export into the
+    same data; AGNOSTOS_LEROBOT21_PYTHON, lerobot 0.3.3 (v2.1, openpi's format):
+    LeRobotDataset reads our v2.1 export.  Every image, state, action chunk (with its
+    padding) and task as our reader's."""
+    import os
+    import shlex
+    import shutil
+    import subprocess
+
+    command = os.environ.get(variable)
+    if not command:
+        pytest.skip(f"set {variable} to a Python with lerobot installed")
+    staging = tmp_path / "staging"
+    _stage(staging, "open_drawer", 0, 4)
+    _stage(staging, "push_buttons", 0, 3)
+    (tmp_path / "side.py").write_text(LEROBOT_SIDE)
+    lr.assemble(tmp_path / "v30", staging, TASKS, 1, lr.Layout("v3.0", "euler", "xicm"))
+    lr.assemble(tmp_path / "v21", staging, TASKS, 1, lr.Layout("v2.1", "euler", "xicm"))
+    converted = tmp_path / "conv" / "local" / "agnostos"
+    shutil.copytree(tmp_path / "v21", converted)
+    ours = lr.read_lerobot(tmp_path / "v30")["frames"]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    runs = (((tmp_path / "v30", "read"), (converted, "convert"))
+            if variable == "AGNOSTOS_LEROBOT_PYTHON" else ((tmp_path / "v21", "read"),))
+    for root, mode in runs:
+        dump = tmp_path / f"{mode}.npz"
+        subprocess.run([*shlex.split(command), str(tmp_path / "side.py"), str(root), str(dump),
+                        mode], check=True, env=env, timeout=600)
+        d = np.load(dump)
+        assert len(d["index"]) == len(ours)
+        for cam in CAMS:
+            key = f"observation.images.{cam}"
+            img = np.round(d[key] * 255).astype(np.uint8).transpose(0, 2, 3, 1)
+            np.testing.assert_array_equal(img, np.stack([f[key] for f in ours]))
+        for key in ("observation.state", "frame_index", "episode_index", "index", "task_index",
+                    "timestamp"):
+            np.testing.assert_array_equal(d[key], np.stack([np.asarray(f[key]) for f in ours]))
+        assert list(d["task"]) == [f["task"] for f in ours]
+        ep = np.array([f["episode_index"] for f in ours])
+        for i in range(len(ours)):
+            for k in range(3):
+                pad = i + k >= len(ours) or ep[i + k] != ep[i]
+                assert bool(d["action_is_pad"][i, k]) == pad
+                if not pad:
+                    np.testing.assert_array_equal(d["action"][i, k], ours[i + k]["action"])
+        assert {f"action/{q}" for q in lay.QUANTILE_KEYS} <= set(d["stats"]) or \
+            variable == "AGNOSTOS_LEROBOT21_PYTHON"  # v2.1 aggregates min..count only

@@ -45,7 +45,9 @@ lerobot_dataset.py (LeRobotDatasetMetadata.save_episode, load_hf_dataset: ``load
                                   video_path, features
     meta/episodes.jsonl           {"episode_index", "tasks": [str], "length"}
     meta/tasks.jsonl              {"task_index", "task"}
-    meta/episodes_stats.jsonl     {"episode_index", "stats": {feature: {min,max,mean,std,count}}}
+    meta/episodes_stats.jsonl     {"episode_index", "stats": {feature: {min,max,mean,std,count,
+                                  q01..q99}}} (lerobot v2.1 aggregates the first five and
+                                  ignores the quantiles; its v2.1 -> v3.0 converter keeps them)
     meta/stats.json               as v3.0's (lerobot v2.1 itself aggregates episodes_stats)
     meta/agnostos_mjx.json        as above
     data/chunk-000/episode_000000.parquet                 one file per episode
@@ -97,7 +99,6 @@ from agnostos_mjx.data.lerobot_layout import (
     ROTATION_DOCS,
     STAT_KEYS,
     STATE_DOCS,
-    V21_STAT_KEYS,
     action_vector,
     check_state,
     features,
@@ -473,7 +474,7 @@ def assemble(out: Path, staging: Path, tasks: Sequence[str], demos: int,
                                             for k, s in enumerate(instructions)])
         _write_jsonl(meta / "episodes_stats.jsonl", [
             {"episode_index": e["episode_index"],
-             "stats": jsonable({f: {k: s[f][k] for k in V21_STAT_KEYS} for f in s})}
+             "stats": jsonable(s)}
             for e, s in zip(episodes, ep_stats)])
         info = {"codebase_version": "v2.1", "robot_type": ROBOT_TYPE,
                 "total_episodes": len(episodes), "total_frames": total,

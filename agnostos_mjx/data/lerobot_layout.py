@@ -56,7 +56,6 @@ ROTATION_DOCS = {
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
 QUANTILE_KEYS = tuple(f"q{round(q * 100):02d}" for q in QUANTILES)
 STAT_KEYS = ("min", "max", "mean", "std", "count") + QUANTILE_KEYS
-V21_STAT_KEYS = ("min", "max", "mean", "std", "count")  # lerobot v2.1's episodes_stats
 # LeRobot's DEFAULT_FEATURES (src/lerobot/utils/constants.py), appended after ours.
 DEFAULT_FEATURES = {
     "timestamp": {"dtype": "float32", "shape": [1], "names": None},
