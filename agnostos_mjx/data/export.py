@@ -128,9 +128,10 @@ __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export
 log = logging.getLogger("agnostos_mjx.data.export")
 FORMATS = ("rlbench", "lerobot")
 DEFAULT_SIZE = {"rlbench": 128, "lerobot": 224}
-# A LeRobot export renders RGB only: its share of the RLBench export's bytes and camera time
-# (rough, from the PNG sizes and render passes; not measured separately).
-LEROBOT_BYTES_SHARE = 0.4
+# A LeRobot export renders RGB only: bytes per camera-frame measured at 224 px (one RGB PNG;
+# open_drawer + stack_blocks, 2 demos each, 5 cameras: 10.2 KB) and its share of the RLBench
+# export's camera time (rough: one render pass of four; not measured separately).
+LEROBOT_BYTES_PER_CAMERA_FRAME_224 = 10_000
 LEROBOT_TIME_SHARE = 0.6
 # Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
 BYTES_PER_CAMERA_FRAME_128 = 30_000
@@ -320,8 +321,8 @@ def estimate(cfg: ExportConfig, frames: float | None = None, workers: int = 1
     camera_frames = len(cfg.tasks) * cfg.demos * frames * len(cfg.cameras)
     pixels = (cfg.size / 128) ** 2
     rgb_only = cfg.format == "lerobot"
-    size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * pixels * (
-        LEROBOT_BYTES_SHARE if rgb_only else 1.0)
+    size = camera_frames * (LEROBOT_BYTES_PER_CAMERA_FRAME_224 * (cfg.size / 224) ** 2
+                            if rgb_only else BYTES_PER_CAMERA_FRAME_128 * pixels)
     seconds = (len(cfg.tasks) * (CPU_TASK_SETUP_S + cfg.demos * CPU_PHYSICS_S_PER_DEMO)
                + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels
                * (LEROBOT_TIME_SHARE if rgb_only else 1.0))

@@ -31,8 +31,11 @@ def decode_png_column(column) -> np.ndarray:
 
 def encode_video(path: Path, frames: np.ndarray, fps: int) -> str:
     """uint8 (T, H, W, 3) -> MP4 at `fps`; returns the codec's name."""
+    import os
+
     import av
 
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1's banner and warnings: errors only
     codec = next(c for c in VIDEO_CODECS if c in av.codecs_available)
     path.parent.mkdir(parents=True, exist_ok=True)
     h, w = frames.shape[1:3]
