@@ -211,6 +211,33 @@ def test_assemble_synthetic(tmp_path, version) -> None:
     _check_dataset(out, [staged[0], staged[2]], lr.Layout(version))
 
 
+@pytest.mark.parametrize("version", lr.VERSIONS)
+def test_many_files_and_chunks(tmp_path, monkeypatch, version) -> None:
+    """Past the file size (v3.0) and the files per chunk directory, episodes spread over
+    files and chunks in dataset order; a feature that disagrees with its column is caught."""
+    staging = tmp_path / "staging"
+    staged = [_stage(staging, t, i, 2 + i) for t in TASKS for i in range(2)]
+    monkeypatch.setattr(lr, "DATA_FILE_MB", 1e-9)  # v3.0: a new file per episode
+    monkeypatch.setattr(lr, "CHUNKS_SIZE", 3)
+    out = tmp_path / "ds"
+    lr.assemble(out, staging, TASKS, 2, lr.Layout(version))
+    data = _check_dataset(out, staged, lr.Layout(version))
+    files = sorted(str(p.relative_to(out)) for p in (out / "data").rglob("*.parquet"))
+    if version == "v3.0":
+        assert files == ["data/chunk-000/file-000.parquet", "data/chunk-000/file-001.parquet",
+                         "data/chunk-000/file-002.parquet", "data/chunk-001/file-000.parquet"]
+        assert [(e["data/chunk_index"], e["data/file_index"]) for e in data["episodes"]] == [
+            (0, 0), (0, 1), (0, 2), (1, 0)]
+    else:
+        assert files[-1] == "data/chunk-001/episode_000003.parquet"
+        assert data["info"]["total_chunks"] == 2
+    info = json.loads((out / "meta/info.json").read_text())
+    info["features"]["action"]["shape"] = [7]
+    (out / "meta/info.json").write_text(json.dumps(info))
+    with pytest.raises(lr.LeRobotFormatError, match="action"):
+        lr.read_lerobot(out)
+
+
 def test_dense_actions_and_fps(tmp_path) -> None:
     staging = tmp_path / "staging"
     staged = [_stage(staging, "open_drawer", 0, 5, dense=True)]

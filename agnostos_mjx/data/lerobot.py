@@ -53,6 +53,13 @@ lerobot_dataset.py (LeRobotDatasetMetadata.save_episode, load_hf_dataset: ``load
     data/chunk-000/episode_000000.parquet                 one file per episode
     videos/chunk-000/<key>/episode_000000.mp4             (--video)
 
+Read back as written by LeRobot's own ``LeRobotDataset``: lerobot 0.4.4 (v3.0; and its
+``convert_dataset_v21_to_v30`` turns our v2.1 export into our v3.0 one) and lerobot 0.3.3
+(v2.1) with datasets 3.6.0 (openpi's) return our reader's images bit for bit, states,
+action chunks with their padding and tasks (tests/test_lerobot_export.py, opt-in
+``test_real_lerobot_reads_both_versions``); ``datasets`` 3.6.0 and 5.2.0 decode the
+images from the schema metadata alone.
+
 Data columns, in info.json's feature order: ``observation.images.<camera>`` (struct
 {bytes: PNG, path: null}, HF ``Image``), ``observation.state`` and ``action`` (fixed-size
 float32 lists), ``timestamp`` (float32, frame_index / fps), ``frame_index``,
