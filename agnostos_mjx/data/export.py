@@ -1,8 +1,14 @@
 """Seen-task demos with observations as VLA training data: ``python -m agnostos_mjx.data.export``.
 
-Format: RLBench's per-episode folders as its dataset generator (PerAct's fork, ``--all_variations``)
+Formats: ``--format rlbench`` (default, below) and ``--format lerobot``: a LeRobot dataset
+(v3.0, or v2.1 for openpi, with ``--lerobot-version``), written with pyarrow, pandas and
+Pillow, no torch; its layout, ``--rotation``, ``--state`` and ``--video`` are described in
+data/lerobot.py and data/lerobot_layout.py.  Both formats export the same demos, cameras
+and sizes (``--size`` defaults to 128 for rlbench, 224 for lerobot).
+
+RLBench: per-episode folders as its dataset generator (PerAct's fork, ``--all_variations``)
 writes them, read as they are by ``rlbench.utils.get_stored_demos`` (PerAct, and RVT's
-``peract_colab`` loader); LeRobot's format is not written (``lerobot`` pulls in torch)::
+``peract_colab`` loader)::
 
     <out>/<task>/all_variations/episodes/episode<i>/
         <camera>_rgb/<k>.png      RGB
@@ -81,6 +87,10 @@ Examples::
 
     python -m agnostos_mjx.data.export --out data/peract --tasks seen --demos 200 --workers 16
     python -m agnostos_mjx.data.export --out /tmp/x --tasks open_drawer --demos 2 --size 64
+    python -m agnostos_mjx.data.export --format lerobot --out data/agnostos_seen --demos 200 \
+        --cameras front,left_shoulder,right_shoulder,wrist --workers 16
+    python -m agnostos_mjx.data.export --format lerobot --lerobot-version v2.1 \
+        --rotation euler --state xicm --out $HF_LEROBOT_HOME/agnostos/seen --demos 200
 """
 
 from __future__ import annotations
@@ -101,12 +111,14 @@ import numpy as np
 
 from agnostos_mjx.data.episode_files import read_episode, verify_episode, write_episode
 from agnostos_mjx.data.expert_frames import episode_observations, frame_every
+from agnostos_mjx.data.lerobot_layout import STATE_LAYOUTS
 from agnostos_mjx.data.rlbench_format import (
     FORMAT,
     RLBENCH_CAMERAS,
     episode_dir,
     is_complete,
 )
+from agnostos_mjx.data.rotations import ROTATIONS
 
 # The episode format's API, importable from here as before the split (README, reports):
 __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export",
@@ -114,6 +126,13 @@ __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export
            "verify_episode", "write_episode"]
 
 log = logging.getLogger("agnostos_mjx.data.export")
+FORMATS = ("rlbench", "lerobot")
+DEFAULT_SIZE = {"rlbench": 128, "lerobot": 224}
+# A LeRobot export renders RGB only: bytes per camera-frame measured at 224 px (one RGB PNG;
+# open_drawer + stack_blocks, 2 demos each, 5 cameras: 10.2 KB) and its share of the RLBench
+# export's camera time (rough: one render pass of four; not measured separately).
+LEROBOT_BYTES_PER_CAMERA_FRAME_224 = 10_000
+LEROBOT_TIME_SHARE = 0.6
 # Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
 BYTES_PER_CAMERA_FRAME_128 = 30_000
 # Seen tasks' expert demos (18 tasks x 12 demos): 7.7 key actions and 9.25 s (1,850 steps)
@@ -140,6 +159,46 @@ class ExportConfig:
     batch: int = 25
     max_attempts: int = 10
     every: int | str | None = None  # dense frames: see frame_every
+    format: str = "rlbench"
+    # --format lerobot only (data/lerobot.py): the layout, and where demos are staged
+    # (default: <out>.staging).
+    lerobot_version: str = "v3.0"
+    rotation: str = "quat"
+    state: str = "rlbench"
+    video: bool = False
+    staging: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.format not in FORMATS:
+            raise ValueError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
+        if self.format == "lerobot":
+            from agnostos_mjx.data.lerobot import require_libraries
+
+            require_libraries()
+            self.layout()  # checks version, rotation, state and --video's PyAV
+
+    def layout(self):
+        from agnostos_mjx.data.lerobot import Layout
+
+        return Layout(self.lerobot_version, self.rotation, self.state, self.video)
+
+    def staging_root(self) -> Path:
+        from agnostos_mjx.data.lerobot import staging_dir
+
+        return Path(self.staging) if self.staging is not None else staging_dir(self.out)
+
+    def episode_path(self, task: str, index: int) -> Path:
+        """Where demo `index` of `task` is written: its RLBench episode folder or its
+        LeRobot staging file."""
+        if self.format == "lerobot":
+            from agnostos_mjx.data.lerobot import staged_path
+
+            return staged_path(self.staging_root(), task, index)
+        return episode_dir(self.out, task, index)
+
+    def is_done(self, task: str, index: int) -> bool:
+        path = self.episode_path(task, index)
+        return path.is_file() if self.format == "lerobot" else is_complete(path)
 
 
 def _parse_every(text: str) -> int | str:
@@ -165,14 +224,15 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)
-    todo = [i for i in range(cfg.demos) if not is_complete(episode_dir(cfg.out, task.name, i))]
+    todo = [i for i in range(cfg.demos) if not cfg.is_done(task.name, i)]
     stats = {"task": task.name, "skipped": cfg.demos - len(todo), "written": 0, "failed": 0}
     if not todo:
         return stats
     episodes = Episodes(task, "native", threads=threads)
     every = frame_every(cfg.every, episodes.dt)
+    lerobot = cfg.format == "lerobot"
     spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
-                           modalities=MODALITIES, renderer="cpu")
+                           modalities=("rgb",) if lerobot else MODALITIES, renderer="cpu")
     stats["every_steps"] = every
     stats["labels"] = {"geom_names": list(scene_labels(episodes.scene).geom_names),
                        "objects": {k: list(v) for k, v in
@@ -183,14 +243,21 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
         keys = demo_keys(cfg.seed, task.name, batch, np.array([attempts[i] for i in batch]))
         variations = (batch % task.num_variations).astype(np.int32)
         env = episodes.reset(keys, variations, stop_at_success=False)
+        # The expert's key actions (what episode_observations runs; a pure function of
+        # the scene after reset), for the LeRobot actions.
+        actions = episodes.expert_actions(env) if lerobot else None
         env, frames, keyframes = episode_observations(episodes, env, spec, every)
         for w, index in enumerate(batch):
             index = int(index)
             if env.outcome[w] == Outcome.SUCCESS:
                 v = int(variations[w])
-                write_episode(episode_dir(cfg.out, task.name, index), frames[w],
-                              task.descriptions(v), v,
-                              None if every is None else keyframes[w])
+                if lerobot:
+                    _stage(cfg, task, index, v, frames[w], keyframes[w], actions, w,
+                           every, episodes.dt)
+                else:
+                    write_episode(episode_dir(cfg.out, task.name, index), frames[w],
+                                  task.descriptions(v), v,
+                                  None if every is None else keyframes[w])
                 stats["written"] += 1
                 todo.remove(index)
             else:
@@ -201,6 +268,20 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
                                 attempts[index])
                     todo.remove(index)
     return stats
+
+
+def _stage(cfg: ExportConfig, task, index: int, variation: int, frames: list[dict],
+           keyframes: list[int], actions, w: int, every: int | None, dt: float) -> None:
+    """One successful demo -> its LeRobot staging file (data/lerobot.py)."""
+    from agnostos_mjx.data.lerobot import stage_episode
+
+    info = {"task": task.name, "demo": index, "variation": variation,
+            "instruction": task.descriptions(variation)[0], "cameras": list(cfg.cameras),
+            "size": cfg.size, "seed": cfg.seed, "every_steps": every,
+            "frame_period_s": None if every is None else every * dt}
+    stage_episode(cfg.episode_path(task.name, index), frames, keyframes,
+                  np.asarray(actions.pos[w]), np.asarray(actions.quat[w]),
+                  np.asarray(actions.gripper[w]), info, dense=every is not None)
 
 
 def frames_per_demo(every: int | str | None) -> float:
@@ -239,9 +320,12 @@ def estimate(cfg: ExportConfig, frames: float | None = None, workers: int = 1
     frames = frames_per_demo(cfg.every) if frames is None else frames
     camera_frames = len(cfg.tasks) * cfg.demos * frames * len(cfg.cameras)
     pixels = (cfg.size / 128) ** 2
-    size = camera_frames * BYTES_PER_CAMERA_FRAME_128 * pixels
+    rgb_only = cfg.format == "lerobot"
+    size = camera_frames * (LEROBOT_BYTES_PER_CAMERA_FRAME_224 * (cfg.size / 224) ** 2
+                            if rgb_only else BYTES_PER_CAMERA_FRAME_128 * pixels)
     seconds = (len(cfg.tasks) * (CPU_TASK_SETUP_S + cfg.demos * CPU_PHYSICS_S_PER_DEMO)
-               + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels)
+               + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels
+               * (LEROBOT_TIME_SHARE if rgb_only else 1.0))
     return size, seconds / parallel_tasks(cfg, workers)
 
 
@@ -299,32 +383,46 @@ def _stop_workers(pool) -> None:
 def export(cfg: ExportConfig, workers: int = 1) -> dict:
     """Export `cfg`'s tasks, `workers` at once (each in its own process when more than 1);
     returns the manifest, with "failed_tasks" {task: one-line error} when some failed."""
-    cfg.out.mkdir(parents=True, exist_ok=True)
+    lerobot = cfg.format == "lerobot"
+    if lerobot:  # refuse a foreign --out before rendering anything
+        from agnostos_mjx.data.lerobot import check_out
+
+        check_out(cfg.out)
+    # The episodes' home: the RLBench folders, or the LeRobot staging directory.
+    home = cfg.staging_root() if lerobot else cfg.out
+    home.mkdir(parents=True, exist_ok=True)
     workers = max(1, int(workers))
     size, seconds = estimate(cfg, workers=workers)
     at_once = parallel_tasks(cfg, workers)
-    print(f"export: {len(cfg.tasks)} tasks x {cfg.demos} demos, cameras {','.join(cfg.cameras)}"
-          f" at {cfg.size}px{_every_text(cfg.every)}"
+    kind = f"LeRobot {cfg.lerobot_version} " if lerobot else ""
+    print(f"export: {kind}{len(cfg.tasks)} tasks x {cfg.demos} demos, cameras "
+          f"{','.join(cfg.cameras)} at {cfg.size}px{_every_text(cfg.every)}"
           f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and "
           f"{seconds / 60:.0f} min with {at_once} task(s) at once ({workers} worker(s), "
           f"{cpu_cores()} cores; rough: the time per task measured on 2 shared cores; "
-          f"complete episodes in {cfg.out} are skipped)", flush=True)
+          f"complete episodes in {home} are skipped)", flush=True)
     t0 = time.perf_counter()
-    manifest_path = cfg.out / "manifest.json"
+    manifest_path = home / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
     # Settings that change what an episode holds must match between runs.
     config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()
               if k in ("seed", "cameras", "size")}
-    config["format"] = FORMAT
+    if lerobot:
+        from agnostos_mjx.data.lerobot import STAGING_VERSION
+
+        config["format"] = f"lerobot-staging-{STAGING_VERSION}"
+    else:
+        config["format"] = FORMAT
     if cfg.every is not None:  # absent for keyframes only, as in exports made before --every
         config["every"] = cfg.every
-    if missing := [c for c in RLBENCH_CAMERAS if c not in cfg.cameras]:
+    if not lerobot and (missing := [c for c in RLBENCH_CAMERAS if c not in cfg.cameras]):
         log.warning("cameras %s not exported: RLBench's get_stored_demos (PerAct, RVT) needs "
                     "the rgb and depth folders of all five", ",".join(missing))
     if manifest.get("config", config) != config:
-        raise ValueError(f"{cfg.out} was exported with {manifest['config']}, not {config}")
+        raise ValueError(f"{home} was exported with {manifest['config']}, not {config}")
     manifest["config"] = config
     manifest.pop("failed_tasks", None)
+    manifest.pop("lerobot", None)
     order = list(manifest.get("tasks", {})) + [t for t in cfg.tasks
                                                if t not in manifest.get("tasks", {})]
     failed: dict[str, str] = {}
@@ -351,8 +449,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
         entry = manifest.setdefault("tasks", {}).setdefault(name, {})
         entry.update({k: v for k, v in stats.items() if k in ("labels", "every_steps")
                       and v is not None})
-        entry["episodes"] = sum(is_complete(episode_dir(cfg.out, name, i))
-                                for i in range(cfg.demos))
+        entry["episodes"] = sum(cfg.is_done(name, i) for i in range(cfg.demos))
         print(f"export: {name}: {entry['episodes']}/{cfg.demos} episodes ({stats['written']} "
               f"written, {stats['skipped']} skipped, {stats['failed']} failed attempts) in "
               f"{stats['seconds']:.1f} s [{done}/{len(cfg.tasks)} tasks]", flush=True)
@@ -389,6 +486,23 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
                 write()
                 raise
             pool.shutdown()
+    if lerobot:
+        if failed:
+            print(f"export: {len(failed)} task(s) failed: LeRobot dataset {cfg.out} not "
+                  f"assembled (the staged demos in {home} are kept)", file=sys.stderr,
+                  flush=True)
+        else:
+            from agnostos_mjx.data.lerobot import assemble
+
+            t1 = time.perf_counter()
+            done_ = assemble(cfg.out, home, cfg.tasks, cfg.demos, cfg.layout())
+            verb = "already assembled" if done_["skipped"] else "assembled"
+            print(f"export: LeRobot {cfg.lerobot_version} dataset {cfg.out} {verb}: "
+                  f"{done_['episodes']} episodes, {done_['frames']} frames, {done_['tasks']} "
+                  f"instructions ({time.perf_counter() - t1:.1f} s); staged demos: {home}",
+                  flush=True)
+            manifest["lerobot"] = {"out": str(cfg.out), **asdict(cfg.layout()),
+                                   **{k: done_[k] for k in ("episodes", "frames", "tasks")}}
     manifest["wall_s"] = round(time.perf_counter() - t0, 1)
     write()
     return manifest
@@ -407,7 +521,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cameras", default=",".join(RLBENCH_CAMERAS),
                    help="RLBench's reader needs all five")
-    p.add_argument("--size", type=int, default=128, help="image height and width")
+    p.add_argument("--size", type=int, default=None,
+                   help="image height and width (default: 128 for rlbench, 224 for lerobot)")
     p.add_argument("--batch", type=int, default=25, help="worlds simulated at once")
     p.add_argument("--every", type=_parse_every, default=None, metavar="K|rlbench",
                    help="dense frames: also the scene every K physics steps of each key "
@@ -416,20 +531,53 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1,
                    help="tasks exported at once, each in its own process (at most the "
                         "cores; the native physics' threads are split between them)")
+    p.add_argument("--format", choices=FORMATS, default="rlbench",
+                   help="rlbench: RLBench's episode folders; lerobot: a LeRobot dataset "
+                        "(data/lerobot.py; needs pyarrow, pandas, Pillow)")
+    p.add_argument("--lerobot-version", default=None, metavar="v3.0|v2.1",
+                   help="LeRobot layout: v3.0 (lerobot >= 0.4; default) or v2.1 (openpi)")
+    p.add_argument("--rotation", default=None, metavar="|".join(ROTATIONS),
+                   help="the action's orientation (lerobot; default quat, qx qy qz qw)")
+    p.add_argument("--state", default=None, metavar="|".join(STATE_LAYOUTS),
+                   help="observation.state layout (lerobot; default rlbench: gripper_pose + "
+                        "gripper_open; libero: xyz + axis-angle + fingers; xicm: xyz + Euler + "
+                        "gripper_open)")
+    p.add_argument("--video", action="store_true",
+                   help="lerobot: cameras as MP4 videos (PyAV; lossy) instead of PNGs in the "
+                        "parquet")
+    p.add_argument("--staging", default=None,
+                   help="lerobot: where each demo is staged before assembly, what a rerun "
+                        "resumes from (default: <out>.staging)")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
     if a.workers < 1:
         p.error("--workers: at least 1")
+    lerobot_only = {"--lerobot-version": a.lerobot_version, "--rotation": a.rotation,
+                    "--state": a.state, "--video": a.video or None, "--staging": a.staging}
+    if a.format != "lerobot" and (given := [k for k, v in lerobot_only.items() if v is not None]):
+        p.error(f"{', '.join(given)}: only with --format lerobot")
+    if a.size is not None and a.size < 1:
+        p.error("--size: a positive number of pixels")
     setup_logging(a.quiet)
-    cfg = ExportConfig(out=Path(a.out), tasks=tuple(t.name for t in parse_tasks(a.tasks)),
-                       demos=a.demos, seed=a.seed, cameras=tuple(a.cameras.split(",")),
-                       size=a.size, batch=a.batch, every=a.every)
+    try:
+        cfg = ExportConfig(out=Path(a.out), tasks=tuple(t.name for t in parse_tasks(a.tasks)),
+                           demos=a.demos, seed=a.seed, cameras=tuple(a.cameras.split(",")),
+                           size=a.size or DEFAULT_SIZE[a.format], batch=a.batch, every=a.every,
+                           format=a.format, lerobot_version=a.lerobot_version or "v3.0",
+                           rotation=a.rotation or "quat", state=a.state or "rlbench",
+                           video=a.video, staging=None if a.staging is None else Path(a.staging))
+    except (ValueError, ImportError) as err:
+        p.error(str(err))
     try:
         manifest = export(cfg, a.workers)
     except KeyboardInterrupt:
-        print(f"interrupted: complete episodes in {cfg.out} are kept; run again to resume",
+        where = cfg.staging_root() if cfg.format == "lerobot" else cfg.out
+        print(f"interrupted: complete episodes in {where} are kept; run again to resume",
               file=sys.stderr)
         return 130
+    except ValueError as err:  # a foreign --out, settings unlike the earlier run's
+        print(f"export: {err}", file=sys.stderr)
+        return 2
     if failed := manifest.get("failed_tasks"):
         print(f"done in {manifest['wall_s']:.0f} s with {len(failed)} failed task(s) "
               f"({', '.join(failed)}): {cfg.out}", file=sys.stderr)
