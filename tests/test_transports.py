@@ -382,7 +382,7 @@ def test_http_client_failures_on_a_fake_runner() -> None:
     errors = [policy.episode_info(w).get("error", "") for w in range(len(plan))]
     assert "without an answer" in errors[0] and '"error"' in errors[3]
     assert "HTTP 500" in errors[5]
-    report = policy.remote_report()
+    report = policy.report()["remote"]
     assert report["requests"] == 7 and sum(report["failures"].values()) == 6
     with pytest.raises(ValueError, match="cannot reach"):
         make_policy("openvla", url=f"http://127.0.0.1:{free_port()}", connect_timeout_s=2)
