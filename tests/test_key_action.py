@@ -59,6 +59,24 @@ def test_device_step_traces_with_the_documented_shapes(task):
         assert out.stop_at_success is stop
 
 
+def _assert_same_episodes(ep: Episodes, host, dev) -> None:
+    """The constructed batch ends alike on both paths: outcomes, key actions, grasps, step
+    counts within STEP_TOL, tip and object frames within POS_TOL."""
+    assert Outcome(int(host.outcome[0])) == Outcome.SUCCESS, "the expert world succeeds"
+    assert Outcome(int(host.outcome[1])) == Outcome.NO_ACTION
+    assert Outcome(int(host.outcome[2])) == Outcome.OUT_OF_WORKSPACE
+    np.testing.assert_array_equal(dev.outcome, host.outcome)
+    np.testing.assert_array_equal(dev.key_actions, host.key_actions)
+    np.testing.assert_array_equal(dev.attached, host.attached)
+    assert np.abs(dev.sim_steps - host.sim_steps).max() <= STEP_TOL
+    layout = ep.scene.layout
+    for name in ("tip", *ep.task.observed_frames):
+        key = f"{name}.pos"
+        if key in layout.names:
+            err = np.abs(np.asarray(dev.obs[key]) - np.asarray(host.obs[key])).max()
+            assert err < POS_TOL, f"{ep.task.name}: {key} differs by {err:.4f} m"
+
+
 def _run(ep: Episodes, env, steps: list[KeyActions], record: bool):
     history = []
     for action in steps:
@@ -77,19 +95,7 @@ def test_device_step_matches_host_path(task):
     host, _ = _run(ep, env, steps, record=True)
     dev, history = _run(ep, env, steps, record=False)
 
-    assert Outcome(int(host.outcome[0])) == Outcome.SUCCESS, "the expert world succeeds"
-    assert Outcome(int(host.outcome[1])) == Outcome.NO_ACTION
-    assert Outcome(int(host.outcome[2])) == Outcome.OUT_OF_WORKSPACE
-    np.testing.assert_array_equal(dev.outcome, host.outcome)
-    np.testing.assert_array_equal(dev.key_actions, host.key_actions)
-    np.testing.assert_array_equal(dev.attached, host.attached)
-    assert np.abs(dev.sim_steps - host.sim_steps).max() <= STEP_TOL
-    layout = ep.scene.layout
-    for name in ("tip", *ep.task.observed_frames):
-        key = f"{name}.pos"
-        if key in layout.names:
-            err = np.abs(np.asarray(dev.obs[key]) - np.asarray(host.obs[key])).max()
-            assert err < POS_TOL, f"{task}: {key} differs by {err:.4f} m"
+    _assert_same_episodes(ep, host, dev)
 
     # Frozen worlds: world 1 never moves after its first key action, world 2 never moves,
     # and every world's clock stops at its own last step.
@@ -118,19 +124,7 @@ def test_device_program_matches_host_path_on_native_physics(task):
     for action in steps:
         dev = ep.step_on_device(dev, action, physics=physics)
 
-    assert Outcome(int(host.outcome[0])) == Outcome.SUCCESS, "the expert world succeeds"
-    assert Outcome(int(host.outcome[1])) == Outcome.NO_ACTION
-    assert Outcome(int(host.outcome[2])) == Outcome.OUT_OF_WORKSPACE
-    np.testing.assert_array_equal(dev.outcome, host.outcome)
-    np.testing.assert_array_equal(dev.key_actions, host.key_actions)
-    np.testing.assert_array_equal(dev.attached, host.attached)
-    assert np.abs(dev.sim_steps - host.sim_steps).max() <= STEP_TOL
-    layout = ep.scene.layout
-    for name in ("tip", *ep.task.observed_frames):
-        key = f"{name}.pos"
-        if key in layout.names:
-            err = np.abs(np.asarray(dev.obs[key]) - np.asarray(host.obs[key])).max()
-            assert err < POS_TOL, f"{task}: {key} differs by {err:.4f} m"
+    _assert_same_episodes(ep, host, dev)
 
 
 def test_several_steps_per_iteration_change_nothing():
