@@ -56,8 +56,11 @@ features = {}
 for devices in (1, 4):
     sharding.configure(devices)
     features[devices] = extract(pipe, pairs.first, list(pairs.instructions))
+# Equal to float32 rounding: XLA compiles the 2-query-per-device program differently from
+# the 8-query one, and on some CPUs (this project's 2-core machines, 2026-11-25) the
+# features then differ in the last bits (measured: 3e-8 in vis.in).
 for part, value in features[1].items():
-    np.testing.assert_array_equal(features[4][part], value, err_msg=part)
+    np.testing.assert_allclose(features[4][part], value, rtol=0, atol=1e-6, err_msg=part)
 """
 
 MJX = """
