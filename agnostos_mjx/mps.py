@@ -30,9 +30,16 @@ GPUs, renumbered from 0, so the launcher's index would name the wrong device or 
 (NVIDIA's MPS documentation, "CUDA_VISIBLE_DEVICES").  After starting, a probe process
 creates a CUDA context through the daemon (ctypes on libcuda; skipped without libcuda), so
 a daemon that cannot serve is found before the N processes start.  Each daemon is stopped
-with ``echo quit | nvidia-cuda-mps-control`` when the run ends, fails or is interrupted
-(``quit`` lets connected clients finish first).  A daemon left running in those folders by
-a launcher that was killed is reused and then stopped.
+with ``echo quit | nvidia-cuda-mps-control`` when the run ends, fails or is interrupted;
+``quit`` lets connected clients finish and returns when the daemon has exited, so on Ctrl-C
+it is sent at once, without waiting.  A daemon left running in those folders by a launcher
+that was killed is reused and then stopped.
+
+Seen on a lent machine with 2 H100s (driver 580): ``control`` is a SOCK_SEQPACKET socket
+that accepts a connection; under a daemon started with CUDA_VISIBLE_DEVICES=1, a client
+with the variable unset, "0" or GPU 1's UUID got GPU 1 alone, and one with "1" got
+CUDA_ERROR_NO_DEVICE (100); JAX ran there; ``quit`` with a client still working took 6 s,
+until that client ended, which kept allocating memory meanwhile.
 """
 
 from __future__ import annotations
@@ -289,7 +296,7 @@ class Daemons:
 
     def stop(self) -> None:
         """Ask every running daemon to quit, without waiting (safe while clients run: the
-        daemon takes no new clients and exits once the connected ones have)."""
+        daemon takes no new clients and exits once the connected ones have ended)."""
         for k, daemon in list(self.running.items()):
             assert self.binary is not None
             try:
