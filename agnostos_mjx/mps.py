@@ -28,8 +28,9 @@ socket address moves to a short /tmp/agnostos-mps-* folder).  Its processes get 
 two variables and no CUDA_VISIBLE_DEVICES: an MPS server shows the clients only its own
 GPUs, renumbered from 0, so the launcher's index would name the wrong device or none
 (NVIDIA's MPS documentation, "CUDA_VISIBLE_DEVICES").  After starting, a probe process
-creates a CUDA context through the daemon (ctypes on libcuda; skipped without libcuda), so
-a daemon that cannot serve is found before the N processes start.  Each daemon is stopped
+creates a CUDA context through the daemon (ctypes on libcuda; skipped without libcuda) and
+the daemon must then list an MPS server (a client that cannot reach the daemon runs without
+MPS, silently), so a daemon that cannot serve is found before the N processes start.  Each daemon is stopped
 with ``echo quit | nvidia-cuda-mps-control`` when the run ends, fails or is interrupted;
 ``quit`` lets connected clients finish and returns when the daemon has exited, so on Ctrl-C
 it is sent at once, without waiting.  A daemon left running in those folders by a launcher
@@ -75,7 +76,7 @@ MEASURED = ("on an H100, 8 processes took 4.1 ms per physics step each (0.145 M 
             "world-steps/s together, slower than one process), 0.9 ms each (0.64 M "
             "world-steps/s) under CUDA MPS")
 # Creates a CUDA context in a client of the daemon of the environment: exit 1 and the CUDA
-# error when that fails, 0 when it works or when there is no libcuda to try with.
+# error when that fails; "context ok" when it works; nothing when there is no libcuda.
 PROBE = r"""
 import ctypes, sys
 try:
@@ -91,6 +92,7 @@ if rc:
     print(f"CUDA error {rc} ({(name.value or b'?').decode()})")
     sys.exit(1)
 cuda.cuDevicePrimaryCtxRelease(dev)
+print("context ok")
 """
 
 
@@ -248,6 +250,7 @@ class Daemons:
             if answers(pipe):
                 log.info("reusing the MPS daemon left running in %s", pipe)
             else:
+                (pipe / "control").unlink(missing_ok=True)  # a dead daemon's socket
                 self._launch(daemon)
             self.running[k] = daemon
         for daemon in self.running.values():
@@ -290,6 +293,20 @@ class Daemons:
             raise MpsError(f"no CUDA context through the MPS daemon of GPU {daemon.gpu}: "
                            f"{said or f'exit {proc.returncode}'}"
                            + (f"; {daemon.log}/control.log: {tail}" if tail else ""))
+        if "context ok" not in proc.stdout:
+            log.info("no libcuda to check the MPS daemon of GPU %s with", daemon.gpu)
+            return
+        # A client that cannot reach the daemon runs without MPS, silently: the server the
+        # probe's context started (it outlives its clients) must be listed.
+        try:
+            listed = subprocess.run([self.binary or CONTROL], input="get_server_list\n",
+                                    env=daemon.env(self.environ), capture_output=True,
+                                    text=True, timeout=START_TIMEOUT_S).stdout.split()
+        except (OSError, subprocess.TimeoutExpired) as e:
+            raise MpsError(f"get_server_list of the MPS daemon of GPU {daemon.gpu}: {e}") from None
+        if not listed:
+            raise MpsError(f"a CUDA context came up without the MPS daemon of GPU {daemon.gpu} "
+                           f"(pipe {daemon.pipe}): the processes could not reach it")
 
     def of(self, k: int | None) -> Daemon | None:
         return None if k is None else self.running.get(k)

@@ -35,6 +35,8 @@ with open({record!r}, "a") as f:
     f.write(json.dumps(record) + "\\n")
 if sys.argv[1:] == ["-d"]:
     (Path(os.environ["CUDA_MPS_PIPE_DIRECTORY"]) / "control").touch()
+if record["stdin"] == "get_server_list\\n":
+    print(os.environ.get("FAKE_SERVERS", "4242"))
 """
 
 CHILD = """
@@ -153,14 +155,14 @@ def test_one_daemon_per_shared_gpu_started_and_stopped(mode: str, machine, tmp_p
     assert code == 0
     made = calls(record)
     starts = [c for c in made if c["argv"] == ["-d"]]
-    stops = [c for c in made if c["argv"] == []]
+    stops = [c for c in made if c["stdin"] == "quit\n"]
     mps_dir = out.resolve() / "mps"
     assert [(c["CUDA_VISIBLE_DEVICES"], c["CUDA_MPS_PIPE_DIRECTORY"], c["CUDA_MPS_LOG_DIRECTORY"])
             for c in starts] == [(str(k), str(mps_dir / f"gpu{k}" / "pipe"),
                                   str(mps_dir / f"gpu{k}" / "log")) for k in (0, 1)]
     assert sorted(c["CUDA_MPS_PIPE_DIRECTORY"] for c in stops) == sorted(
         c["CUDA_MPS_PIPE_DIRECTORY"] for c in starts)
-    assert all(c["stdin"] == "quit\n" for c in stops)
+    assert len(made) == 4
     ended = max(p.stat().st_mtime for p in out.glob("env-*.json"))
     assert min(c["time"] for c in stops) >= ended - 1.0
     assert [e["CUDA_VISIBLE_DEVICES"] for e in envs] == [None, None, "2", "3", None, None]
@@ -251,6 +253,27 @@ def test_auto_falls_back_with_one_warning(machine, tmp_path: Path,
     assert len(warnings) == 1 and "CUDA error 805" in warnings[0]
 
 
+@pytest.mark.parametrize("servers", ["4242", ""])
+def test_the_probe_must_reach_the_daemon(servers: str, machine, tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch,
+                                         caplog: pytest.LogCaptureFixture) -> None:
+    """After the probe's CUDA context the daemon must list an MPS server: else the context
+    came up without MPS (a client that cannot reach the daemon runs without it)."""
+    record = machine(1)
+    monkeypatch.setattr(mps, "PROBE", "print('context ok')")
+    monkeypatch.setenv("FAKE_SERVERS", servers)
+    code, out, envs = run(tmp_path, 2, "auto", monkeypatch)
+    assert code == 0
+    assert [c["stdin"] for c in calls(record)] == ["", "get_server_list\n", "quit\n"]
+    pipe = str(out.resolve() / "mps" / "pipe")
+    assert [e["CUDA_MPS_PIPE_DIRECTORY"] for e in envs] == [pipe if servers else None] * 2
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    if servers:
+        assert not warnings
+    else:
+        assert len(warnings) == 1 and "could not reach it" in warnings[0]
+
+
 def test_a_running_daemon_is_used(machine, tmp_path: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """A daemon answering on $CUDA_MPS_PIPE_DIRECTORY is used, not a second one started; a
@@ -298,7 +321,7 @@ def test_interrupt_stops_the_daemons(sig: int, machine, tmp_path: Path) -> None:
     assert parent.returncode == 130, err
     made = calls(record)
     assert [c["argv"] for c in made].count(["-d"]) == 2
-    assert sorted(c["CUDA_MPS_PIPE_DIRECTORY"] for c in made if c["argv"] == []) == [
+    assert sorted(c["CUDA_MPS_PIPE_DIRECTORY"] for c in made if c["stdin"] == "quit\n") == [
         str(out.resolve() / "mps" / f"gpu{k}" / "pipe") for k in (0, 1)]
 
 

@@ -179,7 +179,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         for p in procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        daemons.stop()  # now: a second Ctrl-C may end this process before the finally
+        daemons.stop()  # at once: eval's InterruptGuard may end this process before finally
         for p in procs:
             try:
                 p.wait(timeout=60)
@@ -193,7 +193,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
             f.close()
         daemons.close()
         if main_thread:
-            signal.signal(signal.SIGTERM, old_term)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if old_term is None else old_term)
     failed = [(i, p.returncode) for i, p in enumerate(procs) if p.returncode != 0]
     shown: set[str] = set()  # a usage error fails every process alike: say it once
     for i, code in failed:
