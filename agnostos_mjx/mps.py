@@ -40,7 +40,11 @@ Seen on a lent machine with 2 H100s (driver 580): ``control`` is a SOCK_SEQPACKE
 that accepts a connection; under a daemon started with CUDA_VISIBLE_DEVICES=1, a client
 with the variable unset, "0" or GPU 1's UUID got GPU 1 alone, and one with "1" got
 CUDA_ERROR_NO_DEVICE (100); JAX ran there; ``quit`` with a client still working took 6 s,
-until that client ended, which kept allocating memory meanwhile.
+until that client ended, which kept allocating memory meanwhile.  This module there (its
+code run by a small driver, not through the eval command): 4 processes on 2 GPUs ran as
+MPS clients (nvidia-smi: M+C) on GPUs 0, 1, 0, 1, one daemon per GPU; with
+CUDA_VISIBLE_DEVICES=1, 3 processes on GPU 1; a 120-character --out moved the pipe folder to
+/tmp (removed afterwards); every daemon quit at the end.
 """
 
 from __future__ import annotations
