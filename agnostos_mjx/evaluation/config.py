@@ -19,6 +19,7 @@ from typing import Any
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
+from agnostos_mjx.mps import MODES as MPS_MODES
 from agnostos_mjx.physics import BACKENDS
 
 VARIATION_MODES = ("protocol", "all", "zero")
@@ -168,6 +169,13 @@ class EvalConfig:
            "in --out/proc-I.log), then merge: with warp at batch 75 the GPU is mostly idle "
            "(H100 main job: 407 s as 8 processes; see agnostos_mjx/evaluation/processes.py)",
         group=SCALE, type=positive_int, metavar="N")
+    mps: str = option(
+        "auto", "CUDA MPS for --local-processes: for each GPU that several processes share, "
+                "auto starts a private MPS daemon (pipe and log folders in --out/mps) and "
+                "stops it at exit, unless one already runs, and warns once if it cannot; on: "
+                "the same, but exit 2 if it cannot; off: none, the processes time-slice the "
+                "GPU (8 on one H100: 4x slower than under MPS). With several GPUs process I "
+                "runs on GPU I mod G; no effect without a GPU", group=SCALE, choices=MPS_MODES)
     merge: bool = option(
         False, "only merge --out/proc-*/episodes.jsonl into --out's results files "
                "(episodes.jsonl, results.json/.csv/.md/.png)", group=SCALE)

@@ -8,9 +8,30 @@ Why: with MJX-Warp at the protocol's batch of 75 a physics step leaves the GPU m
 (its cost is latency, not work), so tasks run side by side: on one H100 the main job took
 407 s as 8 processes with warm caches, where physics alone bounds one process at >= 170 s
 and a cold single process took 985 s (eval/reports/gpu_h100_session14).  Each
-process gets ``0.6 / N`` of the GPU's memory for JAX unless ``--gpu-mem-fraction`` says
-otherwise (Warp allocates its CUDA graphs outside JAX's pool; 0.9 / 8 ran out).
-Ctrl-C stops every process; the same command with ``--resume`` continues each.
+process gets ``0.6 / K`` of its GPU's memory for JAX, K being the most processes on one GPU,
+unless ``--gpu-mem-fraction`` says otherwise (Warp allocates its CUDA graphs outside JAX's
+pool; 0.9 / 8 ran out).
+
+GPU placement: with G > 1 GPUs visible (the entries of CUDA_VISIBLE_DEVICES, else the
+GPUs ``nvidia-smi -L`` lists), process I runs on GPU I % G alone (round-robin): its
+CUDA_VISIBLE_DEVICES is that one entry, so CUDA_VISIBLE_DEVICES=0,1,2,3 and N = 6 put
+processes 0..5 on GPUs 0, 1, 2, 3, 0, 1.  With one GPU or none the processes keep this
+process's environment, as before.
+
+CUDA MPS (``--mps``, agnostos_mjx/mps.py): processes sharing a GPU without MPS time-slice
+it (8 on one H100: 4.1 ms per physics step each, slower together than one process; 0.9 ms
+each under MPS).  For each GPU that two or more processes share, ``auto`` (the default)
+and ``on`` start a private MPS control daemon for the run (pipe and log folders
+``--out/mps/pipe|log``, or ``--out/mps/gpu<K>/pipe|log`` with several GPUs), give its
+processes CUDA_MPS_PIPE_DIRECTORY / CUDA_MPS_LOG_DIRECTORY (and no CUDA_VISIBLE_DEVICES:
+the daemon, started with its GPU's, shows them that GPU alone), and stop it when the run
+ends, fails, is interrupted (Ctrl-C, SIGTERM) or cannot start.  A daemon that already
+answers on $CUDA_MPS_PIPE_DIRECTORY (default /tmp/nvidia-mps) is used instead.  When MPS
+cannot start, ``auto`` warns once and runs without it, ``on`` exits with 2; ``off`` starts
+none and warns once that the processes will time-slice.  Without a GPU --mps does nothing
+and the log says so once (``on``: exit 2).
+
+Ctrl-C (or SIGTERM) stops every process; the same command with ``--resume`` continues each.
 """
 
 from __future__ import annotations
@@ -20,10 +41,12 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from agnostos_mjx import mps
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import merge_main
@@ -65,29 +88,84 @@ def main(cfg: EvalConfig, argv: Sequence[str]) -> int:
         print("error: --local-processes starts its own processes; drop --num-processes, "
               "--process-id and --coordinator", file=sys.stderr)
         return 2
-    return run(argv, cfg.local_processes, Path(cfg.out), cfg.quiet, cfg.gpu_mem_fraction)
+    return run(argv, cfg.local_processes, Path(cfg.out), cfg.quiet, cfg.gpu_mem_fraction,
+               mps_mode=cfg.mps)
+
+
+def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
+              daemons: mps.Daemons) -> tuple[list[dict[str, str]], int]:
+    """Each process's environment (GPU placement and MPS, see the module docstring) and
+    the most processes that share one GPU; starts `daemons`.  mps.MpsError: --mps on and
+    MPS cannot run."""
+    gpus, source = mps.visible_gpus(environ)
+    if not gpus:
+        if mode == "on":
+            raise mps.MpsError(f"no GPU visible ({source})")
+        log.info("no GPU visible (%s): --mps has no effect", source)
+        return [dict(environ) for _ in range(n)], n
+    where = mps.placement(n, len(gpus))
+    if len(gpus) > 1:
+        log.info("%d processes on %d GPUs (%s), process I on GPU I %% %d: "
+                 "CUDA_VISIBLE_DEVICES %s", n, len(gpus), source, len(gpus),
+                 ", ".join(gpus[k] for k in where if k is not None))
+    busy = mps.shared(where)
+    sharing = sum(1 for k in where if k in busy)
+    if not busy:
+        log.info("each process has a GPU of its own: no CUDA MPS needed")
+    elif (pipe := mps.running_daemon(environ)) is not None:
+        log.info("a CUDA MPS daemon answers in %s already: the processes use it", pipe)
+    elif mode == "off":
+        log.warning("--mps off: %s", mps.time_slice_warning(sharing, len(busy)))
+    else:
+        try:
+            daemons.start(out, gpus, busy)
+        except mps.MpsError as e:
+            daemons.close()
+            if mode == "on":
+                raise
+            log.warning("--mps auto: CUDA MPS could not be started (%s); %s", e,
+                        mps.time_slice_warning(sharing, len(busy)))
+    one = len(gpus) > 1  # one GPU each: say which; else the launcher's environment
+    envs = [mps.child_env(environ, gpus[k] if one and k is not None else None,
+                          daemons.of(k)) for k in where]
+    return envs, max(where.count(k) for k in set(where))
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: float | None,
-        poll_s: float = 5.0) -> int:
-    """Start the N processes, wait for them, merge; the exit code (130 if interrupted)."""
-    child = _without(argv, "--local-processes")
-    if memory_fraction is None and not os.environ.get("AGNOSTOS_GPU_MEM_FRACTION"):
-        child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / n:.4f}"]
+        poll_s: float = 5.0, mps_mode: str = "auto",
+        command: Sequence[str] | None = None) -> int:
+    """Start the N processes, wait for them, merge; the exit code (130 if interrupted, 2 if
+    --mps on cannot start MPS).  `command` replaces ``python -m agnostos_mjx.eval`` (tests).
+    SIGTERM is handled as Ctrl-C."""
     out.mkdir(parents=True, exist_ok=True)
     package_root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ,
            "PYTHONPATH": os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
+    command = list(command or [sys.executable, "-m", "agnostos_mjx.eval"])
+    daemons = mps.Daemons(env)
     procs: list[subprocess.Popen] = []
     logs = []
+    main_thread = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     t0 = time.perf_counter()
     try:
+        try:
+            envs, per_gpu = gpu_setup(n, out, mps_mode, env, daemons)
+        except mps.MpsError as e:
+            print(f"error: --mps {mps_mode}: {e}", file=sys.stderr)
+            return 2
+        child = _without(_without(argv, "--local-processes"), "--mps")
+        if memory_fraction is None and not os.environ.get("AGNOSTOS_GPU_MEM_FRACTION"):
+            child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
         for i in range(n):
             logs.append((out / f"proc-{i}.log").open("w"))
             procs.append(subprocess.Popen(
-                [sys.executable, "-m", "agnostos_mjx.eval", *child, "--quiet",
-                 "--num-processes", str(n), "--process-id", str(i)],
-                stdout=logs[-1], stderr=subprocess.STDOUT, env=env,
+                [*command, *child, "--quiet", "--num-processes", str(n), "--process-id", str(i)],
+                stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
                 start_new_session=True))  # Ctrl-C reaches them once, forwarded below
         log.info("%d processes started; logs in %s/proc-I.log", n, out)
         last = -1
@@ -101,6 +179,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         for p in procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
+        daemons.stop()  # at once: eval's InterruptGuard may end this process before finally
         for p in procs:
             try:
                 p.wait(timeout=60)
@@ -112,6 +191,9 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     finally:
         for f in logs:
             f.close()
+        daemons.close()
+        if main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if old_term is None else old_term)
     failed = [(i, p.returncode) for i, p in enumerate(procs) if p.returncode != 0]
     shown: set[str] = set()  # a usage error fails every process alike: say it once
     for i, code in failed:
