@@ -165,9 +165,10 @@ class EvalConfig:
               "(one JAX cluster; sharding stays on each host's local devices); without it "
               "the processes run independently", group=SCALE, metavar="HOST:PORT")
     local_processes: int = option(
-        1, "run as N processes on this machine (each every N-th task, sharing its GPU; logs "
-           "in --out/proc-I.log), then merge: with warp at batch 75 the GPU is mostly idle "
-           "(H100 main job: 407 s as 8 processes; see agnostos_mjx/evaluation/processes.py)",
+        1, "run as N processes on this machine (each every N-th task; with G GPUs process I "
+           "on GPU I mod G, see --mps; logs in --out/proc-I.log), then merge: with warp at "
+           "batch 75 the GPU is mostly idle (H100 main job: 407 s as 8 processes without MPS; "
+           "see agnostos_mjx/evaluation/processes.py)",
         group=SCALE, type=positive_int, metavar="N")
     mps: str = option(
         "auto", "CUDA MPS for --local-processes: for each GPU that several processes share, "
