@@ -469,3 +469,41 @@ def test_real_lerobot_reads_both_versions(tmp_path, variable) -> None:
                     np.testing.assert_array_equal(d["action"][i, k], ours[i + k]["action"])
         assert {f"action/{q}" for q in lay.QUANTILE_KEYS} <= set(d["stats"]) or \
             variable == "AGNOSTOS_LEROBOT21_PYTHON"  # v2.1 aggregates min..count only
+
+
+def test_reader_takes_lerobots_converted_layout(tmp_path) -> None:
+    """What LeRobot's v2.1->v3.0 converter writes (a per-feature "fps" in info.json,
+    variable-length lists for vectors; eval/reports/lerobot_interop) reads as our own
+    v3.0 export does; a vector of the wrong length is refused."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from agnostos_mjx.data.lerobot_read import LeRobotFormatError, read_lerobot
+
+    staging = tmp_path / "staging"
+    _stage(staging, "open_drawer", 0, 3)
+    out = tmp_path / "ds"
+    lr.assemble(out, staging, TASKS, 1, lr.Layout("v3.0"))
+    ours = read_lerobot(out)
+    info_path = out / "meta/info.json"
+    info = json.loads(info_path.read_text())
+    for ft in info["features"].values():
+        ft["fps"] = info["fps"]
+    info_path.write_text(json.dumps(info))
+    data = next((out / "data").glob("*/*.parquet"))
+    table = pq.read_table(data)
+    for key in ("observation.state", "action"):
+        i = table.column_names.index(key)
+        table = table.set_column(i, key, table.column(key).cast(pa.list_(pa.float32())))
+    pq.write_table(table, data)
+    converted = read_lerobot(out)
+    assert len(ours["frames"]) == len(converted["frames"]) == 3
+    for a, b in zip(ours["frames"], converted["frames"]):
+        np.testing.assert_array_equal(a["observation.state"], b["observation.state"])
+        np.testing.assert_array_equal(a["action"], b["action"])
+    rows = table.column("action").to_pylist()
+    rows[0] = rows[0][:-1]
+    i = table.column_names.index("action")
+    pq.write_table(table.set_column(i, "action", pa.array(rows, pa.list_(pa.float32()))), data)
+    with pytest.raises(LeRobotFormatError, match="action of shape"):
+        read_lerobot(out)

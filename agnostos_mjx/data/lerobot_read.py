@@ -36,9 +36,11 @@ def _check_column(key: str, ft: dict, column) -> None:
             "bytes", "path"}
     elif list(ft["shape"]) == [1]:
         ok = str(t) == _ARROW_DTYPES.get(ft["dtype"], ft["dtype"])
-    else:
-        ok = (pa.types.is_fixed_size_list(t) and t.list_size == ft["shape"][0]
-              and str(t.value_type) == _ARROW_DTYPES.get(ft["dtype"], ft["dtype"]))
+    else:  # fixed-size lists as we write them; LeRobot's v2.1->v3.0 converter writes
+        # variable-length lists (their lengths are checked row by row below)
+        ok = ((pa.types.is_fixed_size_list(t) and t.list_size == ft["shape"][0])
+              or pa.types.is_list(t) or pa.types.is_large_list(t)) \
+            and str(t.value_type) == _ARROW_DTYPES.get(ft["dtype"], ft["dtype"])
     if not ok:
         raise LeRobotFormatError(f"column {key!r} has type {t}, not the feature {ft}")
     names = ft.get("names")
@@ -99,7 +101,8 @@ def read_lerobot(root: Path, decode: bool = True) -> dict:
         raise LeRobotFormatError(f"codebase_version {version!r}: only v3.0 and v2.1 are read")
     feats = info["features"]
     for key, ft in DEFAULT_FEATURES.items():
-        if feats.get(key) != ft:
+        # Keys beyond LeRobot's own (the converter adds a per-feature "fps") are ignored.
+        if {k: v for k, v in feats.get(key, {}).items() if k in ft} != ft:
             raise LeRobotFormatError(f"feature {key!r} is {feats.get(key)}, not LeRobot's {ft}")
     stats = json.loads((root / "meta/stats.json").read_text())
     tasks, episodes = _meta(root, info)
@@ -120,6 +123,9 @@ def read_lerobot(root: Path, decode: bool = True) -> dict:
                     row[key] = _decode_png(row[key]) if decode else row[key]["bytes"]
                 elif list(ft["shape"]) != [1]:
                     row[key] = np.asarray(row[key], ft["dtype"])
+                    if row[key].shape != tuple(ft["shape"]):
+                        raise LeRobotFormatError(f"{path}: {key} of shape {row[key].shape}, "
+                                                 f"not the feature's {ft['shape']}")
             row["task"] = tasks[row["task_index"]]
             frames.append(row)
     if [f["index"] for f in frames] != list(range(len(frames))):
