@@ -148,3 +148,29 @@ def test_several_steps_per_iteration_change_nothing():
     assert (one.sim_steps > 0).any()
     for a, b_ in zip(jax.tree.leaves(one), jax.tree.leaves(three), strict=True):
         np.testing.assert_array_equal(a, b_)
+
+
+def test_planner_choice():
+    """`--planner`: auto is the numpy planner on a CPU-only machine (the recorded results),
+    the jitted float32 planner runs the same episodes next to native physics (same outcomes
+    on an easy task; the paths differ by float32 rounding), and a bad name is refused."""
+    from agnostos_mjx.runtime.env import resolve_planner
+
+    assert resolve_planner("auto") == ("host" if jax.default_backend() == "cpu" else "device")
+    with pytest.raises(ValueError, match="unknown planner"):
+        resolve_planner("gpu")
+    b = 3
+    outcomes = {}
+    for planner in ("host", "device"):
+        ep = Episodes(get_task("lamp_on"), "native", planner=planner)
+        assert ep.planner == planner
+        env, _ = _run(ep, ep.reset(_keys(b), np.zeros(b, np.int32)),
+                      _expert_steps(ep, ep.reset(_keys(b), np.zeros(b, np.int32))), False)
+        outcomes[planner] = np.asarray(env.outcome)
+    np.testing.assert_array_equal(outcomes["host"], outcomes["device"])
+    assert (outcomes["host"] == Outcome.SUCCESS).all()
+
+
+def _expert_steps(ep: Episodes, env) -> list[KeyActions]:
+    expert = ep.expert_actions(env)
+    return [jax.tree.map(lambda x, k=k: x[:, k], expert) for k in range(expert.pos.shape[1])]

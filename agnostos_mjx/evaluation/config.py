@@ -131,6 +131,11 @@ class EvalConfig:
         "auto", "physics backend (auto: MJX-warp on a CUDA GPU for batches of >= 4096 worlds, "
                 "else native MuJoCo on all CPU threads, which is faster below that and "
                 "bit-reproducible)", choices=BACKENDS)
+    planner: str = option(
+        "auto", "where key actions are planned (IK + path of every world): device = one "
+                "jitted program shared by all tasks, on the GPU when there is one (auto there); "
+                "host = numpy float64 (auto on a CPU-only machine, bit for bit the recorded "
+                "CPU results)", choices=("auto", "host", "device"))
     variations: str = option(
         "protocol", "protocol: unseen tasks use variation 0, seen tasks sample one per "
                     "episode; all: sample for every task; zero: always 0; N: always N",

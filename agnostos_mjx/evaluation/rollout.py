@@ -59,7 +59,7 @@ def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]]
     from agnostos_mjx.video import EpisodeVideos
 
     t0 = time.perf_counter()
-    runner = Episodes(task, cfg.backend)
+    runner = Episodes(task, cfg.backend, planner=cfg.planner)
     videos = EpisodeVideos.for_task(cfg, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)

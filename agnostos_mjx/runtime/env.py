@@ -39,6 +39,21 @@ ATTACH_CENTER = np.array([0.0, 0.0, -0.018])
 ATTACH_HALF = np.array([0.01, 0.05, 0.0275])
 
 
+PLANNERS = ("auto", "host", "device")
+
+
+def resolve_planner(name: str) -> str:
+    """`auto`: `device` when JAX has an accelerator, else `host`.  `device`: the jitted
+    float32 planner (one program for every task, off the host's Python loop); `host`: numpy
+    float64 (the 2-core CPU path, bit for bit as before).  The two can pick different IK
+    solutions near a limit, so a run's records say which (`Episodes.planner`)."""
+    if name not in PLANNERS:
+        raise ValueError(f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}")
+    if name == "auto":
+        return "device" if jax.default_backend() != "cpu" else "host"
+    return name
+
+
 class Episodes:
     """Runs batches of episodes of one task on one backend."""
 
@@ -46,7 +61,8 @@ class Episodes:
     # frames of demonstrations.
     record_qpos: bool = False
 
-    def __init__(self, task: Task, backend: str = "auto", threads: int | None = None):
+    def __init__(self, task: Task, backend: str = "auto", threads: int | None = None,
+                 planner: str = "auto"):
         self.task = task
         self.scene: SceneModel = build_scene(task)
         self.backend_name = resolve_backend(backend)
@@ -66,11 +82,13 @@ class Episodes:
         self._jit_init_cond = jax.jit(jax.vmap(self._init_conditions))
         self._jit_expert = jax.jit(jax.vmap(task.expert))
         self._jit_conditions = jax.jit(jax.vmap(scan_conditions(self._condition_step)))
-        # Planning runs where the physics runs: jitted on an accelerator next to MJX, plain
-        # numpy next to native MuJoCo (see control.py).  The device program's planner is one
-        # program for every task of a run (control.jit_for_robot).
+        # Planning (IK and the Cartesian path of every world) is one compiled program shared
+        # by every task of a run (control.jit_for_robot) wherever there is an accelerator,
+        # for native MuJoCo too; on a CPU-only machine it is plain numpy (float64), which
+        # is faster there and what the recorded results were made with (see resolve_planner).
         self.on_mjx = self.backend_name != "native"
-        on_device = self.on_mjx and jax.default_backend() != "cpu"
+        self.planner = resolve_planner(planner)
+        on_device = self.planner == "device"
         self._device_plan = control.jit_for_robot(control.plan_arm, self.kin)
         self._plan = self._device_plan if on_device else (
             lambda q, p, r: control.plan_arm(self.kin, q, p, r))

@@ -106,19 +106,23 @@ class HostPhases:
         return xpos, xquat
 
 
+WARP_STEPS_PER_ITERATION = 16
+
+
 def steps_per_iteration(backend_name: str) -> int:
     """Physics steps per iteration of a device phase's while loop.
 
     Each iteration ends with the host reading the loop's condition from the device, so the
     host cannot queue the next step before the device has finished this one: on MJX-Warp,
     whose step is a Python FFI callback (~1 ms of host time for ~1 ms of GPU time at batch
-    75), host and device then take turns instead of overlapping.  Unrolling a few steps
-    lets them overlap; on MJX-jax a step is a large program, and unrolling would multiply
-    its compile time.  ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
+    75), host and device then take turns instead of overlapping.  K steps per iteration
+    (a counted inner loop) let them overlap; a world that ends mid-iteration idles for at
+    most K - 1 masked steps.  On MJX-jax (CPU tests) one step per iteration keeps the
+    program small.  ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
     override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
     if override:
         return max(1, int(override))
-    return 4 if backend_name == "warp" else 1
+    return WARP_STEPS_PER_ITERATION if backend_name == "warp" else 1
 
 
 class DevicePhases:
@@ -152,10 +156,13 @@ class DevicePhases:
         def body(c: tuple) -> tuple:
             # Several masked steps per iteration: a step of a world past its end is undone
             # by `freeze`, so this changes no result, only how often the loop's condition
-            # makes the host wait for the device (see steps_per_iteration).
-            for _ in range(self.steps_per_iteration):
-                c = one_step(c)
-            return c
+            # makes the host wait for the device (see steps_per_iteration).  An inner loop
+            # of known trip count, not an unrolled one: the step is traced (and compiled)
+            # once whatever K, and XLA runs a counted loop without asking the host.
+            k = self.steps_per_iteration
+            if k == 1:
+                return one_step(c)
+            return jax.lax.fori_loop(0, k, lambda _, c: one_step(c), c)
 
         init = (jnp.int32(0), d, state.data, state.carry, none, none, steps > 0)
         _, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, init)

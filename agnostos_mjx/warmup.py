@@ -1,0 +1,138 @@
+"""Warm a machine's caches before a run, so that the run itself starts warm.
+
+    python -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8
+
+On a fresh GPU machine the first MJX-Warp step of a scene builds Warp's CUDA kernels
+(~110 s for the first scene, ~15 s for each further `nv`: the solver's kernels are
+specialised per scene size; mjx_notes.md), and every process of a `--local-processes`
+run would build the same kernels at once.  Warp keeps built kernels on disk and JAX keeps
+compiled programs in its persistent cache (agnostos_mjx.enable_compilation_cache), so
+this command does each build once: the first task alone (the kernels every scene shares),
+then one task per distinct scene size in parallel processes (`--jobs`), each running
+what a run runs: reset and settle, one key action of the expert, and on warp one rendered
+frame.  A second run on the same machine finds everything built.  Programs that call Warp
+through JAX's FFI are compiled again in every process (JAX does not cache them); those
+take seconds once the kernels exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from agnostos_mjx.cli import HelpFormatter
+from agnostos_mjx.evaluation.config import positive_int
+
+log = logging.getLogger("agnostos_mjx.warmup")
+
+
+def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dict:
+    """Run what an evaluation runs for one task once: reset (settle steps), the expert's
+    first key action, and on warp one rendered frame.  Returns the stage timings (s)."""
+    import jax
+    import numpy as np
+
+    from agnostos_mjx.observation import ObservationSpec
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    t0 = time.perf_counter()
+    episodes = Episodes(get_task(name), backend, planner=planner)
+    keys = jax.random.split(jax.random.PRNGKey(0), batch)
+    env = episodes.reset(keys, np.zeros(batch, np.int32))
+    t1 = time.perf_counter()
+    first = jax.tree.map(lambda x: x[:, 0], episodes.expert_actions(env))
+    env, _ = episodes.step(env, first)
+    t2 = time.perf_counter()
+    if episodes.backend_name == "warp":
+        episodes.observe(env, ObservationSpec(cameras=("front",), width=64, height=64))
+    t3 = time.perf_counter()
+    episodes.close()
+    return {"task": name, "backend": episodes.backend_name, "nv": int(episodes.scene.model.nv),
+            "reset_s": round(t1 - t0, 2), "key_action_s": round(t2 - t1, 2),
+            "render_s": round(t3 - t2, 2), "wall_s": round(t3 - t0, 2)}
+
+
+def one_per_size(names: list[str]) -> list[str]:
+    """The first task of each distinct scene size (`nv`): Warp's kernels are specialised per
+    size, so the others reuse what that one builds."""
+    from agnostos_mjx.tasks import get_task
+    from agnostos_mjx.world import build_scene
+
+    seen: dict[int, str] = {}
+    for name in names:
+        seen.setdefault(int(build_scene(get_task(name)).model.nv), name)
+    return list(seen.values())
+
+
+def _worker(name: str, args: argparse.Namespace) -> dict:
+    """warm_task in its own process (its GPU memory and Warp context go away with it)."""
+    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name,
+           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = "\n".join(proc.stderr.splitlines()[-15:])
+        return {"task": name, "error": f"exit {proc.returncode}", "stderr_tail": tail}
+    return json.loads(lines[-1])
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.warmup", description=__doc__,
+                                formatter_class=HelpFormatter)
+    p.add_argument("--tasks", default="unseen",
+                   help="task names and/or splits (seen, unseen, unseen_level1, unseen_level2, "
+                        "all), as eval takes them")
+    p.add_argument("--backend", default="warp", choices=("native", "jax", "warp"),
+                   help="the backend the run will use (native has no kernels to build: only "
+                        "JAX's reset and planner programs are cached)")
+    p.add_argument("--batch", type=positive_int, default=75,
+                   help="worlds per batch, as the run's --batch (JAX caches programs per shape)")
+    p.add_argument("--planner", default="auto", choices=("auto", "host", "device"),
+                   help="as eval's --planner")
+    p.add_argument("--jobs", type=positive_int, default=8,
+                   help="processes building at once after the first task")
+    p.add_argument("--every-task", action="store_true",
+                   help="warm every task, not one per scene size (fills JAX's cache for each "
+                        "task's reset programs too)")
+    p.add_argument("--worker", metavar="TASK", help=argparse.SUPPRESS)
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.worker:
+        print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner)))
+        return 0
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    from agnostos_mjx.tasks import parse_tasks
+
+    try:
+        names = [task.name for task in parse_tasks(args.tasks)]
+    except (KeyError, ValueError) as err:
+        print(f"warmup: {err.args[0] if err.args else err}", file=sys.stderr)
+        return 2
+    todo = names if args.every_task else one_per_size(names)
+    t0 = time.perf_counter()
+    results = [_worker(todo[0], args)]  # alone: it builds the kernels every scene shares
+    log.info("warmup: %s", results[0])
+    with ThreadPoolExecutor(args.jobs) as pool:
+        for result in pool.map(lambda n: _worker(n, args), todo[1:]):
+            log.info("warmup: %s", result)
+            results.append(result)
+    failed = [r for r in results if "error" in r]
+    log.info("warmup: %d of %d tasks warmed in %.1f s%s", len(results) - len(failed),
+             len(todo), time.perf_counter() - t0,
+             f"; failed: {', '.join(r['task'] for r in failed)}" if failed else "")
+    for r in failed:
+        log.error("%s: %s\n%s", r["task"], r["error"], r["stderr_tail"])
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
