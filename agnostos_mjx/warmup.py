@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import subprocess
 import sys
 import time
@@ -74,7 +75,11 @@ def _worker(name: str, args: argparse.Namespace) -> dict:
     """warm_task in its own process (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name,
            "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
+    env = dict(os.environ)
+    if not any(v in env for v in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION")):
+        env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
     if proc.returncode != 0 or not lines:
         tail = "\n".join(proc.stderr.splitlines()[-15:])

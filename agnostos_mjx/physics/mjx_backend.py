@@ -65,19 +65,21 @@ class DevicePhysics:
 class MjxBackend:
     def __init__(self, model: mujoco.MjModel, impl: str = "jax",
                  contacts_per_world: int = 64, constraints_per_world: int = 256,
-                 graph_mode: str = "WARP_STAGED"):
+                 graph_mode: str = "WARP"):
         self.name = f"mjx-{impl}"
         self.impl = impl
         self.model = model
         options = {}
         if impl == "warp":
-            # Warp's default graph mode replays a CUDA graph only for matching
-            # buffer addresses; per-step controls change them every step, which
-            # forced a recapture per step (83k env-steps/s at batch 1024 on an
-            # H200) and, measured with tools/warp_variants.py, returned stale
-            # sensor data at batch 1024.  The staged mode copies into fixed
-            # buffers: 500k env-steps/s at batch 1024 with correct data.
-            # AGNOSTOS_WARP_GRAPH_MODE overrides it for measurements (tools/gpu_session14.sh).
+            # Graph mode WARP: Warp captures each FFI call's CUDA graph once per set of buffer
+            # addresses and replays it.  Inside the device key action (a while loop of K
+            # steps, runtime/phase.py) XLA keeps the loop's buffers in place, so the graphs
+            # are replayed: 1.5x-1.8x faster per key action than WARP_STAGED (which copies
+            # through fixed staging buffers) with the same outcomes at 75 and 1,024 worlds
+            # (tools/warp_phase_ab.py, H100, eval/reports/gpu_h100_floor).  The stale sensor
+            # data once seen with WARP at 1,024 worlds (tools/warp_variants.py: one jit call
+            # per physics step, so new buffers every step) did not recur there: 1,024 of
+            # 1,024 outcomes equal WARP_STAGED's.  AGNOSTOS_WARP_GRAPH_MODE overrides it.
             from mujoco.mjx.warp import types as warp_types
 
             graph_mode = os.environ.get("AGNOSTOS_WARP_GRAPH_MODE", graph_mode)
