@@ -15,10 +15,10 @@ BACKENDS = ("auto", "native", "jax", "warp")
 # 256, 1.42x at 512, 2.25x at 1,024 and 6.87x at 4,096; but warp compiles ~10 s of programs per
 # task (native: none), so for a task's few batches native finishes first below ~4,096 worlds
 # (1,024 x 3 seeds: ~11.5 s native vs ~5 s + 10 s warp).  Native is also bit-reproducible,
-# which warp's atomics are not.  Four physics steps per loop iteration (key_action.py) made
-# warp's batch of 75 1.39x (lamp_on) and 1.44x (stack_blocks) faster since
-# (eval/reports/gpu_h100_session14), about native's speed at 75 worlds: not enough to
-# repay the compiles either.
+# which warp's atomics are not.  Since then warp's key action runs 1.5x-1.8x faster (graph mode
+# WARP, 16 steps per loop iteration) and the main job is fastest as 8 warp processes under MPS
+# (274 s vs native's 786 s single-process, eval/reports/gpu_h100_floor): that is a choice of
+# --local-processes, not of a batch, so `auto` still looks at the batch alone.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
