@@ -156,7 +156,8 @@ def lerobot_features(opts: EnvOptions) -> dict[str, tuple[str, tuple[int, ...], 
 
 def resolve_tasks(spec: str) -> dict[str, list[str]]:
     """``--env.task``: a suite (seen, level1, level2, unseen = both levels), task names,
-    or a comma-separated mix -> {suite: [task names]} in benchmark order; a clear
+    or a comma-separated mix -> {suite: [task names]} in the order named (a suite in
+    benchmark order), each once; a clear
     ValueError for anything else."""
     from agnostos_mjx.tasks import get_task, list_tasks
 
@@ -364,7 +365,10 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         from agnostos_mjx.runtime.outcome import Outcome
 
         before = np.asarray(self._state.done).copy()
-        self._state = self._step_fn(self._state, rows, ~resetting & ~before)
+        fresh = self._state
+        self._state = self._step_fn(fresh, rows, ~resetting & ~before)
+        if resetting.any():  # the runtime ends a world without an action: keep them fresh
+            self._state = _where_rows(resetting, fresh.to_host(), self._state.to_host())
         outcome = np.asarray(self._state.outcome)
         ended = np.asarray(self._state.done) & ~before & ~resetting
         truncated = ended & (outcome == Outcome.MAX_STEPS)
@@ -378,12 +382,11 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
             for i in np.nonzero(ended)[0]:
                 final[i] = {"pixels": {c: v[i] for c, v in final_obs["pixels"].items()},
                             "agent_pos": final_obs["agent_pos"][i]}
+            final_info = {**info, "_is_success": ended.copy()}
             self._autoreset(ended)
             info = self._info(np.zeros(self.num_envs, bool))
-            info.update({"final_obs": final, "_final_obs": ended,
-                         "final_info": {**self._info(success, final_outcome=outcome),
-                                        "_is_success": ended.copy()},
-                         "_final_info": ended})
+            info.update({"final_obs": final, "_final_obs": ended, "final_info": final_info,
+                         "_final_info": ended.copy()})
         else:
             self._needs_reset = ended
         return self._observe(), reward, terminated, truncated, info
@@ -421,8 +424,8 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
                           "agent_pos": np.asarray(state, np.float32)}
         return self._last_obs
 
-    def _info(self, success: np.ndarray, final_outcome: np.ndarray | None = None) -> dict:
-        outcome = np.asarray(self._state.outcome if final_outcome is None else final_outcome)
+    def _info(self, success: np.ndarray) -> dict:
+        outcome = np.asarray(self._state.outcome)
         return {"is_success": np.asarray(success, bool).copy(),
                 "outcome": outcome.astype(np.int64),
                 "key_actions": np.asarray(self._state.key_actions, np.int64).copy(),

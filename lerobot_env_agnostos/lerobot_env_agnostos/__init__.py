@@ -12,6 +12,7 @@ from agnostos_mjx.gym_env import AgnostosVectorEnv, EnvOptions, make_suites, res
 __all__ = ["AgnostosVectorEnv", "EnvOptions", "make_suites", "resolve_tasks"]
 
 if importlib.util.find_spec("lerobot") is not None:
-    from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
+    # importing it registers env type 'agnostos' with LeRobot's EnvConfig
+    from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig  # noqa: F401
 
     __all__.append("AgnostosEnvConfig")
