@@ -61,6 +61,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from agnostos_mjx.control import ACTION_BOUNDS
+from agnostos_mjx.data.lerobot import KEYFRAME_FPS  # the export's nominal rate; videos play at it
 from agnostos_mjx.data.lerobot_layout import (
     IMAGE_PREFIX,
     STATE_NAMES,
@@ -77,10 +78,10 @@ from agnostos_mjx.tasks.base import KeyActions, Split
 SUITES: dict[str, Split] = {"seen": Split.SEEN, "level1": Split.LEVEL1, "level2": Split.LEVEL2}
 CONTROL_MODES = ("keyaction", "dense")
 AUTORESET_MODES = {"next_step": AutoresetMode.NEXT_STEP, "same_step": AutoresetMode.SAME_STEP}
-KEYFRAME_FPS = 10  # the export's nominal keyframe rate (data/lerobot.py); videos play at it
 # Each rotation's value range (the action space's bounds; the planner judges the rest).
 ROTATION_BOUNDS = {"quat": 1.0, "euler": np.pi, "axis_angle": np.pi, "rot6d": 1.0}
-# What lerobot-eval's rollout passes in reset options to mark a new rollout (ignored here).
+# Reset options: explicit scenes, and the flag lerobot-eval's rollout passes to mark a new
+# rollout (for its FreezeAfterEpisodeEnd wrapper; ignored here).
 KNOWN_OPTIONS = {"episode_keys", "variations", "lerobot_new_rollout"}
 
 
@@ -102,8 +103,8 @@ class EnvOptions:
     autoreset_mode: str = "next_step"
 
     def __post_init__(self) -> None:
-        cams = tuple(c.strip() for c in self.cameras if c.strip()) if not isinstance(
-            self.cameras, str) else tuple(c.strip() for c in self.cameras.split(",") if c.strip())
+        names = self.cameras.split(",") if isinstance(self.cameras, str) else self.cameras
+        cams = tuple(c.strip() for c in names if c.strip())  # "front,wrist" from a CLI too
         object.__setattr__(self, "cameras", cams)
         bad = [c for c in cams if c not in CAMERAS]
         if bad or not cams or len(set(cams)) != len(cams):

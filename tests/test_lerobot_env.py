@@ -34,10 +34,14 @@ PLUGIN = REPO / "lerobot_env_agnostos"
 SMALL = dict(cameras=("front",), size=32)
 
 
-@functools.cache
 def _env(task: str, n: int = 2, **options) -> AgnostosVectorEnv:
-    """One env per task and options for the module (building a scene costs seconds)."""
-    return AgnostosVectorEnv(task, n, **{**SMALL, **options})
+    """One env per task, size and options for the module (building a scene costs seconds)."""
+    return _cached(task, n, EnvOptions(**{**SMALL, **options}))
+
+
+@functools.cache
+def _cached(task: str, n: int, options: EnvOptions) -> AgnostosVectorEnv:
+    return AgnostosVectorEnv(task, n, options)
 
 
 def _replay(env: AgnostosVectorEnv, seed) -> tuple[np.ndarray, np.ndarray, list]:
@@ -79,7 +83,7 @@ def test_expert_rows_replay_to_success(task, rotation) -> None:
 
 def test_gymnasium_checks_and_determinism() -> None:
     """gymnasium's env checks that apply to a vector env, and same seed -> same data."""
-    env = _env("push_buttons", 1)
+    env = _env("lamp_on", 1)
     assert env.observation_space == gym.vector.utils.batch_space(env.single_observation_space, 1)
     assert env.action_space == gym.vector.utils.batch_space(env.single_action_space, 1)
     env_checker.check_space_limit(env.single_observation_space, "observation")
@@ -155,6 +159,7 @@ def test_autoreset(mode) -> None:
         obs, reward, term, trunc, info = results[first]
         assert not (term[w] or trunc[w] or info["is_success"][w]) and reward[w] == 0
         assert info["episode"][w] == w + 2 and info["key_actions"][w] == 0
+        assert info["outcome"][w] == Outcome.RUNNING  # the new episode runs
         np.testing.assert_array_equal(obs["pixels"]["front"][w], fresh_obs["pixels"]["front"][0])
 
 
