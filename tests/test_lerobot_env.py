@@ -273,3 +273,32 @@ def test_bad_calls_are_clear_errors() -> None:
     _, _, term, _, info = env.step(bad)
     assert term[0] and info["outcome"][0] == Outcome.NO_ACTION and not term[1]
     env.close()
+
+
+def test_real_lerobot_rollout_through_the_plugin(tmp_path) -> None:
+    """Opt-in, with AGNOSTOS_LEROBOT_BIN = bin/ of a venv with lerobot >= 0.6, agnostos-mjx
+    and the plug-in installed: LeRobot discovers the plug-in, ``make_env`` builds its
+    envs and LeRobot's own ``rollout()`` counts every expert-replay episode of 3 seen tasks
+    a success in both autoreset modes (eval/reports/lerobot_interop/train_eval.py's step 4;
+    that script also runs lerobot-train and lerobot-eval)."""
+    import json
+    import os
+    import subprocess
+
+    bin_ = os.environ.get("AGNOSTOS_LEROBOT_BIN")
+    if not bin_:
+        pytest.skip("set AGNOSTOS_LEROBOT_BIN to bin/ of a venv with lerobot >= 0.6 and the "
+                    "plug-in")
+    sys.path.insert(0, str(REPO / "eval/reports/lerobot_interop"))
+    try:
+        import train_eval
+    finally:
+        sys.path.remove(str(REPO / "eval/reports/lerobot_interop"))
+    side = tmp_path / "side.py"
+    side.write_text(f"TASKS = {train_eval.REPLAY_TASKS!r}\n" + train_eval.SIDE)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf")}
+    subprocess.run([str(Path(bin_) / "python"), str(side), str(tmp_path / "out.json")],
+                   check=True, env=env, timeout=900, capture_output=True)
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert out["known_env_types_has_agnostos"]
+    assert len(out["replay"]) == 6 and all(all(r["successes"]) for r in out["replay"])
