@@ -71,6 +71,7 @@ from agnostos_mjx.data.lerobot_layout import (
     state_vector,
 )
 from agnostos_mjx.data.rotations import check_rotation
+from agnostos_mjx.evaluation.config import VARIATION_MODES
 from agnostos_mjx.observation import CAMERAS
 from agnostos_mjx.tasks.base import KeyActions, Split
 
@@ -96,7 +97,7 @@ class EnvOptions:
     rotation: str = "quat"
     control_mode: str = "keyaction"
     backend: str = "native"
-    variations: str = "protocol"  # as the evaluator's --variations
+    variations: str = "protocol"  # as the evaluator's --variations (protocol|all|zero|N)
     protocol_seed: int = 0
     render_camera: str = "front"
     render_size: int | None = None  # default: size
@@ -129,9 +130,9 @@ class EnvOptions:
         if self.autoreset_mode not in AUTORESET_MODES:
             raise ValueError(f"unknown autoreset_mode {self.autoreset_mode!r}; choose from "
                              f"{', '.join(AUTORESET_MODES)}")
-        if self.variations not in ("protocol", "zero") and not self.variations.isdigit():
-            raise ValueError(f"variations must be protocol, zero or a variation number, "
-                             f"got {self.variations!r}")
+        if self.variations not in VARIATION_MODES and not self.variations.isdigit():
+            raise ValueError(f"variations must be one of {', '.join(VARIATION_MODES)} or a "
+                             f"variation number, got {self.variations!r}")
         if not isinstance(self.protocol_seed, int) or self.protocol_seed < 0:
             raise ValueError(f"protocol_seed must be an integer >= 0, got {self.protocol_seed!r}")
 

@@ -249,6 +249,7 @@ def test_suites_features_and_plugin_package() -> None:
     (lambda: EnvOptions(autoreset_mode="never"), "unknown autoreset_mode"),
     (lambda: EnvOptions(size=0), "size must be"),
     (lambda: AgnostosVectorEnv("lamp_on", 1, variations="7"), "variations 7"),
+    (lambda: EnvOptions(variations="some"), "variations must be one of protocol, all"),
 ])
 def test_bad_options_are_clear_errors(call, match) -> None:
     with pytest.raises(ValueError, match=match):
