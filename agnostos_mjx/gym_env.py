@@ -1,0 +1,465 @@
+"""Our batched worlds as a ``gymnasium.vector.VectorEnv``: what LeRobot's ``lerobot-eval``
+steps (through the ``lerobot_env_agnostos`` plug-in, which only registers the env type) and
+what any gymnasium-speaking policy loop can drive.  Needs gymnasium (>= 1.1), not lerobot
+or torch.
+
+One VectorEnv = ``num_envs`` worlds of one task, run as one batched ``Episodes`` (native
+MuJoCo by default, ``backend`` as the evaluator's).  Its rows speak the LeRobot export's
+layout (data/lerobot_layout.py), for the same ``cameras``, ``size``, ``state`` and
+``rotation`` as the export's flags:
+
+* observation ``{"pixels": {camera: uint8 (n, H, W, 3)}, "agent_pos": float32 (n, D)}``,
+  which LeRobot's ``preprocess_observation`` turns into exactly the export's keys,
+  ``observation.images.<camera>`` and ``observation.state`` (``lerobot_features`` names
+  the mapping); the images and the state come from the same renderer and ``state_vector``
+  as the export's frames;
+* action float32 (n, D): one key action per world, the export's ``action`` row: the
+  absolute world-frame tip target x y z, its orientation in ``rotation``, the gripper's open
+  amount in [0, 1] (read by the policy-server adapter's ``parse_rows``, so the rotation
+  conventions are the adapter's and the export's).  A row that is no key action (not
+  finite, a zero quaternion) ends that world's episode as ``no_action``.
+
+``control_mode``: ``keyaction`` (one step = one key action through the planner, as the
+AGNOSTOS protocol and X-ICM's harness run policies; ``_max_episode_steps`` = the task's 25
+key actions).  ``dense`` is refused until the runtime has a dense control step.
+
+Episodes follow the evaluation protocol (evaluation/protocol.py): gymnasium seed ``g`` of a
+world is episode ``g`` of protocol seed ``protocol_seed``, scene key ``fold_in(PRNGKey(
+protocol_seed), g)`` and its protocol variation, so ``reset(seed=0)`` on 25 worlds is the
+evaluator's 25 episodes of that seed (``reset(seed=int)`` seeds world i with g + i, as
+gymnasium's vector envs do; a list gives each world's own).  ``reset()`` without a seed
+goes on to the next ``num_envs`` episodes, from 0 if never seeded: same calls, same
+episodes.  ``reset(options={"episode_keys": (n, 2) uint32, "variations": (n,)})`` starts
+explicit scenes instead (e.g. an exported demo's, data/generate.py ``demo_keys``).
+
+An episode ends ``terminated`` at its first success or a failure outcome (planner refusal,
+failure condition, no action) and ``truncated`` after the budget of key actions;
+``info["is_success"]`` says which ended in success, ``info["outcome"]`` the
+``runtime.outcome.Outcome`` code.  Autoreset (gymnasium 1.x, ``metadata["autoreset_mode"]``):
+``next_step`` (default, gymnasium's own default and what lerobot-eval's rollout reads:
+``info["is_success"]`` at the ending step; the step after it resets that world and ignores
+its action) or ``same_step`` (the ending step returns the new episode's observation, the
+ended one's in ``info["final_obs"]`` and its info in ``info["final_info"]``, as lerobot's
+own ``create_envs`` asks of gymnasium).  A reset world starts the next episode of its seed
+sequence: g + num_envs.
+
+``call(name)`` / ``get_attr(name)`` return one value per world, as gymnasium's vector envs
+do: ``task_description`` (each world's instruction, what lerobot-eval gives the policy as
+``task``), ``task`` (the task's name), ``_max_episode_steps``, ``render``.  ``render()``:
+each world's frame of ``render_camera`` (uint8 H x W x 3; lerobot-eval's videos).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+from agnostos_mjx.control import ACTION_BOUNDS
+from agnostos_mjx.data.lerobot import KEYFRAME_FPS  # the export's nominal rate; videos play at it
+from agnostos_mjx.data.lerobot_layout import (
+    IMAGE_PREFIX,
+    STATE_NAMES,
+    action_names,
+    action_vector,
+    check_state,
+    state_vector,
+)
+from agnostos_mjx.data.rotations import check_rotation
+from agnostos_mjx.evaluation.config import VARIATION_MODES
+from agnostos_mjx.observation import CAMERAS
+from agnostos_mjx.tasks.base import KeyActions, Split
+
+# LeRobot-facing suite names -> our splits (--env.task=level1 runs every level-1 task).
+SUITES: dict[str, Split] = {"seen": Split.SEEN, "level1": Split.LEVEL1, "level2": Split.LEVEL2}
+CONTROL_MODES = ("keyaction", "dense")
+AUTORESET_MODES = {"next_step": AutoresetMode.NEXT_STEP, "same_step": AutoresetMode.SAME_STEP}
+# Each rotation's value range (the action space's bounds; the planner judges the rest).
+ROTATION_BOUNDS = {"quat": 1.0, "euler": np.pi, "axis_angle": np.pi, "rot6d": 1.0}
+# Reset options: explicit scenes, and the flag lerobot-eval's rollout passes to mark a new
+# rollout (for its FreezeAfterEpisodeEnd wrapper; ignored here).
+KNOWN_OPTIONS = {"episode_keys", "variations", "lerobot_new_rollout"}
+
+
+@dataclass(frozen=True)
+class EnvOptions:
+    """How the env's rows look and run; the layout flags are the LeRobot export's (its
+    defaults: RLBench's five cameras at 224 px, rlbench state, quaternion actions)."""
+
+    cameras: tuple[str, ...] = CAMERAS
+    size: int = 224
+    state: str = "rlbench"
+    rotation: str = "quat"
+    control_mode: str = "keyaction"
+    backend: str = "native"
+    variations: str = "protocol"  # as the evaluator's --variations (protocol|all|zero|N)
+    protocol_seed: int = 0
+    render_camera: str = "front"
+    render_size: int | None = None  # default: size
+    autoreset_mode: str = "next_step"
+
+    def __post_init__(self) -> None:
+        names = self.cameras.split(",") if isinstance(self.cameras, str) else self.cameras
+        cams = tuple(c.strip() for c in names if c.strip())  # "front,wrist" from a CLI too
+        object.__setattr__(self, "cameras", cams)
+        bad = [c for c in cams if c not in CAMERAS]
+        if bad or not cams or len(set(cams)) != len(cams):
+            raise ValueError(f"cameras must be distinct names among {', '.join(CAMERAS)}; "
+                             f"got {','.join(cams) or 'none'}")
+        if self.render_camera not in CAMERAS:
+            raise ValueError(f"render_camera must be one of {', '.join(CAMERAS)}, "
+                             f"got {self.render_camera!r}")
+        for name in ("size", "render_size"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be a positive number of pixels, got {value!r}")
+        check_state(self.state)
+        check_rotation(self.rotation)
+        if self.control_mode not in CONTROL_MODES:
+            raise ValueError(f"unknown control_mode {self.control_mode!r}; choose from "
+                             f"{', '.join(CONTROL_MODES)}")
+        if self.control_mode == "dense":
+            raise ValueError("control_mode 'dense' needs the runtime's dense control step, "
+                             "which is not part of this build yet; use control_mode "
+                             "'keyaction'")
+        if self.autoreset_mode not in AUTORESET_MODES:
+            raise ValueError(f"unknown autoreset_mode {self.autoreset_mode!r}; choose from "
+                             f"{', '.join(AUTORESET_MODES)}")
+        if self.variations not in VARIATION_MODES and not self.variations.isdigit():
+            raise ValueError(f"variations must be one of {', '.join(VARIATION_MODES)} or a "
+                             f"variation number, got {self.variations!r}")
+        if not isinstance(self.protocol_seed, int) or self.protocol_seed < 0:
+            raise ValueError(f"protocol_seed must be an integer >= 0, got {self.protocol_seed!r}")
+
+    @property
+    def action_dim(self) -> int:
+        return len(action_names(self.rotation))
+
+    @property
+    def state_dim(self) -> int:
+        return len(STATE_NAMES[self.state])
+
+
+def lerobot_features(opts: EnvOptions) -> dict[str, tuple[str, tuple[int, ...], str]]:
+    """Per raw env key: (LeRobot feature type ACTION / STATE / VISUAL, shape, the policy
+    key LeRobot maps it to): the plug-in's ``features`` and ``features_map``, so the
+    policy sees the export's keys."""
+    out = {"action": ("ACTION", (opts.action_dim,), "action"),
+           "agent_pos": ("STATE", (opts.state_dim,), "observation.state")}
+    for cam in opts.cameras:
+        out[f"pixels/{cam}"] = ("VISUAL", (opts.size, opts.size, 3), IMAGE_PREFIX + cam)
+    return out
+
+
+def resolve_tasks(spec: str) -> dict[str, list[str]]:
+    """``--env.task``: a suite (seen, level1, level2, unseen = both levels), task names,
+    or a comma-separated mix -> {suite: [task names]} in the order named (a suite in
+    benchmark order), each once; a clear
+    ValueError for anything else."""
+    from agnostos_mjx.tasks import get_task, list_tasks
+
+    if not isinstance(spec, str) or not spec.strip():
+        raise ValueError(f"task must name a task or a suite ({', '.join(SUITES)}, unseen)")
+    suite_of = {split: name for name, split in SUITES.items()}
+    out: dict[str, list[str]] = {}
+    for part in (p.strip() for p in spec.split(",") if p.strip()):
+        if part == "unseen":
+            names = list_tasks(Split.LEVEL1) + list_tasks(Split.LEVEL2)
+        elif part in SUITES:
+            names = list_tasks(SUITES[part])
+        else:
+            try:
+                names = [get_task(part).name]
+            except KeyError as e:
+                raise ValueError(f"unknown task or suite {part!r}: suites are "
+                                 f"{', '.join(SUITES)}, unseen; {e.args[0]}") from None
+        for name in names:
+            suite = suite_of[get_task(name).split]
+            if name not in out.setdefault(suite, []):
+                out[suite].append(name)
+    return out
+
+
+def make_suites(task: str, num_envs: int, **options: Any) -> dict[str, dict[int, AgnostosVectorEnv]]:
+    """``{suite: {task_id: VectorEnv}}`` (what LeRobot's ``EnvConfig.create_envs``
+    returns): one env of `num_envs` worlds per task; each builds its scene at first use,
+    so naming a whole suite costs nothing until it runs."""
+    opts = EnvOptions(**options)
+    return {suite: {i: AgnostosVectorEnv(name, num_envs, opts) for i, name in enumerate(names)}
+            for suite, names in resolve_tasks(task).items()}
+
+
+def _where_rows(mask: np.ndarray, new: Any, old: Any) -> Any:
+    """Per world: `new`'s rows where `mask`, else `old`'s (a pytree of (B, ...) leaves)."""
+    import jax
+
+    def pick(a, b):
+        a, b = np.asarray(a), np.asarray(b)
+        return np.where(mask.reshape(-1, *([1] * (a.ndim - 1))), a, b)
+
+    return jax.tree.map(pick, new, old)
+
+
+class AgnostosVectorEnv(gym.vector.VectorEnv):
+    """`num_envs` worlds of one task (module docstring)."""
+
+    def __init__(self, task: str, num_envs: int = 1, options: EnvOptions | None = None,
+                 **kwargs: Any) -> None:
+        from agnostos_mjx.tasks import get_task
+
+        if options is not None and kwargs:
+            raise ValueError("give EnvOptions or keyword options, not both")
+        self.options = opts = options or EnvOptions(**kwargs)
+        try:
+            self._task = get_task(task)
+        except KeyError as e:
+            raise ValueError(e.args[0]) from None
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if opts.variations.isdigit() and int(opts.variations) >= self._task.num_variations:
+            raise ValueError(f"variations {opts.variations}: {task} has variations "
+                             f"0..{self._task.num_variations - 1}")
+        self.num_envs = num_envs
+        self.task = self._task.name
+        self._max_episode_steps = self._task.max_key_actions
+        self.render_mode = "rgb_array"
+        self.metadata = {"render_modes": ["rgb_array"], "render_fps": KEYFRAME_FPS,
+                         "autoreset_mode": AUTORESET_MODES[opts.autoreset_mode]}
+        pixels = gym.spaces.Dict({c: gym.spaces.Box(0, 255, (opts.size, opts.size, 3), np.uint8)
+                                  for c in opts.cameras})
+        self.single_observation_space = gym.spaces.Dict({
+            "pixels": pixels,
+            "agent_pos": gym.spaces.Box(-np.inf, np.inf, (opts.state_dim,), np.float32)})
+        rot = ROTATION_BOUNDS[opts.rotation]
+        nrot = opts.action_dim - 4
+        low = np.array([*ACTION_BOUNDS[0], *[-rot] * nrot, 0.0], np.float32)
+        high = np.array([*ACTION_BOUNDS[1], *[rot] * nrot, 1.0], np.float32)
+        self.single_action_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._step_fn = {"keyaction": self._key_action_step}[opts.control_mode]
+        self._episodes = None  # the batched runner, built at the first reset
+        self._state = None
+        self._episode: np.ndarray | None = None  # each world's protocol episode number
+        self._needs_reset = np.zeros(num_envs, bool)
+        self._instructions: tuple[str, ...] = ("",) * num_envs
+        self._last_obs: dict | None = None
+
+    # ---- what lerobot-eval reads ----------------------------------------------------------
+    @property
+    def task_description(self) -> tuple[str, ...]:
+        """Each world's instruction (its variation's first description)."""
+        return self._instructions
+
+    @property
+    def runner(self):
+        """The batched ``Episodes`` (built on first use)."""
+        if self._episodes is None:
+            from agnostos_mjx.runtime.env import Episodes
+
+            self._episodes = Episodes(self._task, self.options.backend)
+        return self._episodes
+
+    def get_attr(self, name: str) -> tuple:
+        """One value per world (gymnasium's vector API)."""
+        if name == "task_description":
+            return tuple(self._instructions)
+        return (getattr(self, name),) * self.num_envs
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple:
+        """Call `name` (or read it, when not callable); one result per world."""
+        if name == "render":
+            return self.render()
+        if name == "task_description":
+            return tuple(self._instructions)
+        value = getattr(self, name)
+        if callable(value):
+            value = value(*args, **kwargs)
+        return (value,) * self.num_envs
+
+    # ---- reset ---------------------------------------------------------------------------
+    def reset(self, *, seed: int | Sequence[int] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[dict, dict]:
+        options = dict(options or {})
+        unknown = set(options) - KNOWN_OPTIONS
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; known: "
+                             f"episode_keys, variations")
+        if seed is not None and not isinstance(seed, (int, np.integer)) and \
+                len(seed) != self.num_envs:
+            raise ValueError(f"seed: one integer or {self.num_envs} integers, got {len(seed)}")
+        super().reset(seed=None if seed is None else int(np.ravel(seed)[0]))
+        if "episode_keys" in options:
+            keys = np.asarray(options["episode_keys"], np.uint32)
+            if keys.shape != (self.num_envs, 2):
+                raise ValueError(f"episode_keys: shape ({self.num_envs}, 2), got {keys.shape}")
+            variations = np.asarray(options.get("variations", np.zeros(self.num_envs)), np.int32)
+            self._episode = np.full(self.num_envs, -1, np.int64)
+            state = self.runner.reset(keys, variations.reshape(self.num_envs))
+        else:
+            if "variations" in options:
+                raise ValueError("reset option variations goes with episode_keys")
+            self._episode = self._seeded(seed)
+            state = self._reset_episodes(self._episode)
+        self._state = state
+        self._needs_reset[:] = False
+        self._set_instructions(np.ones(self.num_envs, bool))
+        obs = self._observe()
+        return obs, self._info(np.zeros(self.num_envs, bool))
+
+    def _seeded(self, seed) -> np.ndarray:
+        if seed is None:
+            start = (np.arange(self.num_envs) if self._episode is None or (self._episode < 0).any()
+                     else self._episode + self.num_envs)
+            return np.asarray(start, np.int64)
+        seeds = np.asarray(seed, np.int64)
+        seeds = seeds + np.arange(self.num_envs) if seeds.ndim == 0 else seeds.reshape(-1)
+        if (seeds < 0).any() or (seeds >= 2**32).any():
+            raise ValueError(f"seeds must lie in 0..2**32-1, got {seeds.tolist()}")
+        return seeds
+
+    def _reset_episodes(self, episodes: np.ndarray):
+        """Every world reset to its protocol episode (`episodes`, one per world)."""
+        from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
+
+        task = self._task
+        keys = episode_keys(np.full(self.num_envs, self.options.protocol_seed), episodes)
+        variations = episode_variations(keys, task.num_variations, task.split.value,
+                                        self.options.variations)
+        return self.runner.reset(keys, variations)
+
+    def _set_instructions(self, worlds: np.ndarray) -> None:
+        variations = np.asarray(self._state.variation)
+        self._instructions = tuple(
+            self._task.descriptions(int(variations[i]))[0] if worlds[i] else old
+            for i, old in enumerate(self._instructions))
+
+    def _autoreset(self, worlds: np.ndarray) -> None:
+        """Start the next episode of each of `worlds`' seed sequence (the others keep
+        theirs): the whole batch is reset, so every world's scene stays a function of its
+        episode alone, and the chosen rows are kept."""
+        nxt = np.where(worlds, self._episode + self.num_envs, self._episode)
+        if (self._episode < 0).any():  # explicit scenes: go on with the protocol's
+            nxt = np.where(self._episode < 0, np.arange(self.num_envs), nxt)
+        fresh = self._reset_episodes(nxt)
+        self._state = _where_rows(worlds, fresh, self._state.to_host())
+        self._episode = np.where(worlds, nxt, self._episode)
+        self._set_instructions(worlds)
+
+    # ---- step ----------------------------------------------------------------------------
+    def step(self, actions: np.ndarray):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        rows = np.asarray(actions, np.float64)
+        want = (self.num_envs, self.options.action_dim)
+        if rows.shape != want:
+            raise ValueError(f"actions: shape {want} (x y z, {self.options.rotation}, gripper "
+                             f"per world), got {rows.shape}")
+        resetting = self._needs_reset.copy()
+        if resetting.any():  # next_step autoreset: these worlds' actions are ignored
+            self._autoreset(resetting)
+            self._needs_reset[:] = False
+        from agnostos_mjx.runtime.outcome import Outcome
+
+        before = np.asarray(self._state.done).copy()
+        fresh = self._state
+        self._state = self._step_fn(fresh, rows, ~resetting & ~before)
+        if resetting.any():  # the runtime ends a world without an action: keep them fresh
+            self._state = _where_rows(resetting, fresh.to_host(), self._state.to_host())
+        outcome = np.asarray(self._state.outcome)
+        ended = np.asarray(self._state.done) & ~before & ~resetting
+        truncated = ended & (outcome == Outcome.MAX_STEPS)
+        terminated = ended & ~truncated
+        success = ended & (outcome == Outcome.SUCCESS)
+        reward = success.astype(np.float64)
+        info = self._info(success)
+        if self.options.autoreset_mode == "same_step" and ended.any():
+            final_obs = self._observe()
+            final = np.full(self.num_envs, None, object)
+            for i in np.nonzero(ended)[0]:
+                final[i] = {"pixels": {c: v[i] for c, v in final_obs["pixels"].items()},
+                            "agent_pos": final_obs["agent_pos"][i]}
+            final_info = {**info, "_is_success": ended.copy()}
+            self._autoreset(ended)
+            info = self._info(np.zeros(self.num_envs, bool))
+            info.update({"final_obs": final, "_final_obs": ended, "final_info": final_info,
+                         "_final_info": ended.copy()})
+        else:
+            self._needs_reset = ended
+        return self._observe(), reward, terminated, truncated, info
+
+    def _key_action_step(self, state, rows: np.ndarray, running: np.ndarray):
+        """One key action per running world from the export-layout rows."""
+        from agnostos_mjx.remote.adapter import Adapter, BadAnswer, parse_rows
+
+        adapter = Adapter(action_key=None, rotation=self.options.rotation)
+        n = self.num_envs
+        pos, quat = np.zeros((n, 3), np.float32), np.tile([1.0, 0, 0, 0], (n, 1))
+        grip, valid = np.ones(n, np.float32), running.copy()
+        for i in np.nonzero(running)[0]:
+            try:
+                p, q, g = parse_rows(adapter, rows[i])[0]
+            except BadAnswer:
+                valid[i] = False  # the world ends as no_action
+                continue
+            pos[i], quat[i], grip[i] = p, q, g
+        acts = KeyActions(pos=pos, quat=quat.astype(np.float32), gripper=grip, valid=valid)
+        return self.runner.step(state, acts)[0]
+
+    # ---- observation ---------------------------------------------------------------------
+    def _observe(self) -> dict:
+        from agnostos_mjx.observation import ObservationSpec
+
+        opts = self.options
+        spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size)
+        obs = self.runner.observe(self._state, spec)
+        state = state_vector(opts.state, np.asarray(obs.gripper_pose, np.float32),
+                             np.asarray(obs.gripper_open, np.float32),
+                             np.asarray(obs.gripper_joint_positions, np.float32))
+        self._last_obs = {"pixels": {c: np.asarray(obs.cameras[c].rgb, np.uint8)
+                                     for c in opts.cameras},
+                          "agent_pos": np.asarray(state, np.float32)}
+        return self._last_obs
+
+    def _info(self, success: np.ndarray) -> dict:
+        outcome = np.asarray(self._state.outcome)
+        return {"is_success": np.asarray(success, bool).copy(),
+                "outcome": outcome.astype(np.int64),
+                "key_actions": np.asarray(self._state.key_actions, np.int64).copy(),
+                "episode": np.asarray(self._episode, np.int64).copy()}
+
+    def expert_actions(self) -> tuple[np.ndarray, np.ndarray]:
+        """The task's expert key actions for the current scenes as the export writes them
+        (its ``action`` rows, (n, K, D)) and which are real (n, K): a replayable
+        reference for the action layout."""
+        if self._state is None:
+            raise RuntimeError("call reset() before expert_actions()")
+        acts = self.runner.expert_actions(self._state)
+        quat = np.asarray(acts.quat, np.float64)[..., [1, 2, 3, 0]]
+        pose = np.concatenate([np.asarray(acts.pos, np.float64), quat], -1)
+        n, k = pose.shape[:2]
+        rows = action_vector(self.options.rotation, pose.reshape(n * k, 7),
+                             np.asarray(acts.gripper).reshape(n * k))
+        return rows.reshape(n, k, -1), np.asarray(acts.valid, bool)
+
+    def render(self) -> tuple[np.ndarray, ...]:
+        """Each world's frame of ``render_camera`` (uint8 H x W x 3), for videos."""
+        if self._state is None:
+            raise RuntimeError("call reset() before render()")
+        opts = self.options
+        size = opts.render_size or opts.size
+        if opts.render_camera in opts.cameras and size == opts.size and self._last_obs:
+            frames = self._last_obs["pixels"][opts.render_camera]
+        else:
+            frames = self.runner.render(self._state, opts.render_camera, size, size)
+        return tuple(np.asarray(frames, np.uint8))
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if self._episodes is not None:
+            self._episodes.close()
+            self._episodes = None

@@ -1,0 +1,63 @@
+"""LeRobot's ``EnvConfig`` of type ``agnostos`` (``--env.type=agnostos``): its fields are
+agnostos_mjx.gym_env.EnvOptions' (the LeRobot export's layout flags and how episodes run),
+``features`` / ``features_map`` name the export's keys, and ``create_envs`` returns
+``{suite: {task_id: AgnostosVectorEnv}}``.  Checked against lerobot 0.6.1's
+src/lerobot/envs/configs.py (EnvConfig, create_envs) and scripts/lerobot_eval.py (rollout)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+
+from agnostos_mjx.gym_env import EnvOptions, lerobot_features, make_suites, resolve_tasks
+from agnostos_mjx.observation import CAMERAS
+
+
+@EnvConfig.register_subclass("agnostos")
+@dataclass
+class AgnostosEnvConfig(EnvConfig):
+    """``task``: a task, a suite (seen, level1, level2, unseen) or a comma-separated mix.
+    ``cameras`` (comma-separated), ``size``, ``state``, ``rotation``: the export's flags of
+    the training data.  The rest: agnostos_mjx.gym_env's module docstring."""
+
+    task: str | None = "unseen"
+    fps: int = 10  # the export's nominal keyframe rate
+    cameras: str = ",".join(CAMERAS)
+    size: int = 224
+    state: str = "rlbench"
+    rotation: str = "quat"
+    control_mode: str = "keyaction"
+    backend: str = "native"
+    variations: str = "protocol"
+    protocol_seed: int = 0
+    render_camera: str = "front"
+    render_size: int | None = None
+    autoreset_mode: str = "next_step"
+    features: dict[str, PolicyFeature] = field(default_factory=dict)
+    features_map: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        opts = EnvOptions(**self.gym_kwargs)  # a ValueError names a bad option
+        resolve_tasks(self.task or "")
+        for key, (kind, shape, policy_key) in lerobot_features(opts).items():
+            self.features[key] = PolicyFeature(type=FeatureType[kind], shape=shape)
+            self.features_map[key] = policy_key
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_env_agnostos"
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {"cameras": self.cameras, "size": self.size, "state": self.state,
+                "rotation": self.rotation, "control_mode": self.control_mode,
+                "backend": self.backend, "variations": self.variations,
+                "protocol_seed": self.protocol_seed, "render_camera": self.render_camera,
+                "render_size": self.render_size, "autoreset_mode": self.autoreset_mode}
+
+    def create_envs(self, n_envs: int, use_async_envs: bool = False) -> dict:
+        """One VectorEnv of `n_envs` worlds per task.  `use_async_envs` is moot: the worlds
+        of a task already run as one batch in this process (native MuJoCo's threads)."""
+        return make_suites(self.task or "", n_envs, **self.gym_kwargs)

@@ -1,0 +1,305 @@
+"""The gymnasium VectorEnv behind the LeRobot plug-in (agnostos_mjx/gym_env.py): gymnasium's
+own checks where they apply to a vector env, determinism, autoreset, the LeRobot export's
+keys and rows (an exported demo replays through it frame for frame), the expert's key
+actions replayed on 3 seen tasks, and clear errors.  No lerobot, no torch (the real
+lerobot-eval run: eval/reports/lerobot_interop/train_eval.py)."""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+gym = pytest.importorskip("gymnasium")
+
+from gymnasium.utils import env_checker  # noqa: E402
+
+from agnostos_mjx.data import lerobot_layout as layout  # noqa: E402
+from agnostos_mjx.gym_env import (  # noqa: E402
+    AgnostosVectorEnv,
+    EnvOptions,
+    lerobot_features,
+    make_suites,
+    resolve_tasks,
+)
+from agnostos_mjx.runtime.outcome import Outcome  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+PLUGIN = REPO / "lerobot_env_agnostos"
+SMALL = dict(cameras=("front",), size=32)
+
+
+def _env(task: str, n: int = 2, **options) -> AgnostosVectorEnv:
+    """One env per task, size and options for the module (building a scene costs seconds)."""
+    return _cached(task, n, EnvOptions(**{**SMALL, **options}))
+
+
+@functools.cache
+def _cached(task: str, n: int, options: EnvOptions) -> AgnostosVectorEnv:
+    return AgnostosVectorEnv(task, n, options)
+
+
+def _replay(env: AgnostosVectorEnv, seed) -> tuple[np.ndarray, np.ndarray, list]:
+    """Reset, then step every world with its expert's rows until all episodes ended;
+    returns (success, steps taken, the step results)."""
+    env.reset(seed=seed)
+    rows, valid = env.expert_actions()
+    ended, success = np.zeros(env.num_envs, bool), np.zeros(env.num_envs, bool)
+    steps = np.zeros(env.num_envs, int)
+    results = []
+    for k in range(rows.shape[1]):
+        assert valid[~ended, k].all(), "the expert ran out of actions before the episode ended"
+        out = env.step(rows[:, k])
+        results.append(out)
+        _, reward, term, trunc, info = out
+        now = (term | trunc) & ~ended
+        won = info["final_info"]["is_success"] if "final_info" in info else info["is_success"]
+        success |= now & won  # as lerobot-eval's rollout reads it
+        np.testing.assert_array_equal(reward, ((term | trunc) & won).astype(float))
+        steps[now] = k + 1
+        ended |= now
+        if ended.all():
+            break
+    return success, steps, results
+
+
+@pytest.mark.parametrize("task,rotation", [("push_buttons", "quat"), ("turn_tap", "euler"),
+                                           ("open_drawer", "rot6d")])
+def test_expert_rows_replay_to_success(task, rotation) -> None:
+    """The expert's key actions, as the export writes them (its rotation), executed one
+    per step: every world succeeds, within the 25-step budget, terminated not truncated."""
+    env = _env(task, rotation=rotation)
+    success, steps, results = _replay(env, seed=0)
+    assert success.all() and (steps <= env._max_episode_steps).all()
+    assert env.call("_max_episode_steps") == (25, 25)
+    last = results[-1]
+    assert not last[3].any()  # truncated
+
+
+def test_gymnasium_checks_and_determinism() -> None:
+    """gymnasium's env checks that apply to a vector env, and same seed -> same data."""
+    env = _env("lamp_on", 1)
+    assert env.observation_space == gym.vector.utils.batch_space(env.single_observation_space, 1)
+    assert env.action_space == gym.vector.utils.batch_space(env.single_action_space, 1)
+    env_checker.check_space_limit(env.single_observation_space, "observation")
+    env_checker.check_space_limit(env.single_action_space, "action")
+    env_checker.check_reset_seed_determinism(env)
+    env_checker.check_reset_options(env)
+    env_checker.check_returned_data_not_reused(env)
+    # the checkers skip the equivalences for envs without a spec: assert them here
+    a, _ = env.reset(seed=5)
+    b, _ = env.reset(seed=5)
+    c, _ = env.reset(seed=6)
+    assert env_checker.data_equivalence(a, b, exact=True)
+    assert not env_checker.data_equivalence(a, c)
+    # random actions (mostly unreachable targets): valid data, the same for the same seed
+    env.action_space.seed(3)
+    actions = [env.action_space.sample() for _ in range(2)]
+    runs = []
+    for _ in range(2):
+        env.reset(seed=7)
+        runs.append([env.step(act) for act in actions])
+    assert env_checker.data_equivalence(runs[0], runs[1], exact=True)
+    for obs, reward, term, trunc, info in runs[0]:
+        assert obs in env.observation_space
+        assert reward.dtype == np.float64 and term.dtype == trunc.dtype == bool
+        assert info["is_success"].shape == (1,) and info["is_success"].dtype == bool
+
+
+def test_reset_follows_the_protocol() -> None:
+    """Seed g of a world is the protocol's episode g; reset() goes on to the next ones."""
+    from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
+
+    env = _env("push_buttons")
+    obs, info = env.reset(seed=[4, 9])
+    np.testing.assert_array_equal(info["episode"], [4, 9])
+    keys = episode_keys(np.array([0, 0]), np.array([4, 9]))
+    want = episode_variations(keys, env._task.num_variations, "seen", "protocol")
+    np.testing.assert_array_equal(env._state.variation, want)
+    assert env.call("task_description") == tuple(env._task.descriptions(int(v))[0]
+                                                 for v in want)
+    _, info = env.reset()
+    np.testing.assert_array_equal(info["episode"], [6, 11])
+    _, info = env.reset(seed=3)  # an int seeds world i with 3 + i, as gymnasium does
+    np.testing.assert_array_equal(info["episode"], [3, 4])
+    frames = env.render()
+    assert len(frames) == 2 and frames[0].shape == (32, 32, 3) and frames[0].dtype == np.uint8
+    np.testing.assert_array_equal(frames[1], env._last_obs["pixels"]["front"][1])
+
+
+@pytest.mark.parametrize("mode", ["next_step", "same_step"])
+def test_autoreset(mode) -> None:
+    """A world whose episode ended starts the next one of its seed sequence (g + n): on
+    the next step, its action ignored (next_step), or at once with the ended episode's
+    observation and info in final_obs / final_info (same_step)."""
+    env = _env("push_buttons", autoreset_mode=mode)
+    assert env.metadata["autoreset_mode"].name == mode.upper()
+    _, steps, results = _replay(env, seed=0)
+    first = int(steps.min())  # push_buttons' variations take different numbers of actions
+    w = int(np.argmin(steps))
+    assert steps.max() > first
+    obs, _, term, _, info = results[first - 1]
+    ended_info = info["final_info"] if mode == "same_step" else info
+    assert term[w] and ended_info["episode"][w] == w and ended_info["key_actions"][w] == first
+    assert ended_info["outcome"][w] == Outcome.SUCCESS
+    fresh_obs, _ = env.reset(seed=[w + 2, w + 2])  # the episode the world went on to
+    if mode == "same_step":
+        assert info["final_info"]["is_success"][w] and info["_final_obs"][w]
+        assert not info["is_success"][w] and info["key_actions"][w] == 0
+        assert info["episode"][w] == w + 2
+        assert info["final_obs"][w]["agent_pos"].shape == (8,)
+        np.testing.assert_array_equal(obs["agent_pos"][w], fresh_obs["agent_pos"][0])
+    else:
+        assert info["is_success"][w]
+        obs, reward, term, trunc, info = results[first]
+        assert not (term[w] or trunc[w] or info["is_success"][w]) and reward[w] == 0
+        assert info["episode"][w] == w + 2 and info["key_actions"][w] == 0
+        assert info["outcome"][w] == Outcome.RUNNING  # the new episode runs
+        np.testing.assert_array_equal(obs["pixels"]["front"][w], fresh_obs["pixels"]["front"][0])
+
+
+@pytest.mark.parametrize("state,rotation", [("rlbench", "quat"), ("xicm", "euler")])
+def test_an_exported_demo_replays_frame_for_frame(tmp_path, state, rotation) -> None:
+    """The export (32 px, front camera): the env started on the demo's scene observes the
+    demo's first frame (keys, image, state), and stepping the dataset's action rows
+    reproduces every later frame until the task succeeds."""
+    from agnostos_mjx.data import export as ex
+    from agnostos_mjx.data.generate import demo_keys
+    from agnostos_mjx.data.lerobot import read_lerobot
+
+    out = tmp_path / "ds"
+    assert ex.main(["--format", "lerobot", "--out", str(out), "--tasks", "push_buttons",
+                    "--demos", "1", "--cameras", "front", "--size", "32", "--batch", "1",
+                    "--state", state, "--rotation", rotation, "--quiet"]) == 0
+    data = read_lerobot(out)
+    frames = data["frames"]
+    feats = {k: v for k, v in data["info"]["features"].items()
+             if k.startswith("observation") or k == "action"}
+    opts = EnvOptions(state=state, rotation=rotation, **SMALL)
+    mapped = {policy: shape for _, shape, policy in lerobot_features(opts).values()}
+    assert mapped == {k: tuple(v["shape"]) for k, v in feats.items()}
+    env = _env("push_buttons", 1, state=state, rotation=rotation)
+    task = env._task
+    obs, _ = env.reset(options={"episode_keys": np.asarray(demo_keys(0, task.name, [0], [0])),
+                                "variations": [0 % task.num_variations]})
+    assert env.task_description[0] == frames[0]["task"]
+    # rlbench's state is the observed pose as it is: equal bits.  xicm's Euler angles come
+    # from numpy's vectorised trigonometry, whose last bit can depend on how many rows one
+    # call converts (the export converts an episode at once, the env a batch of worlds).
+    tol = 0.0 if state == "rlbench" else 1e-9
+    steps = 0
+    for frame in frames:
+        np.testing.assert_array_equal(obs["pixels"]["front"][0],
+                                      frame["observation.images.front"])
+        np.testing.assert_allclose(obs["agent_pos"][0], frame["observation.state"], rtol=0,
+                                   atol=tol)
+        obs, _, term, trunc, info = env.step(frame["action"][None])
+        steps += 1
+        if term[0] or trunc[0]:
+            break
+    assert info["is_success"][0] and steps == len(frames) - 1
+
+
+def test_suites_features_and_plugin_package() -> None:
+    """--env.task names, the LeRobot feature map (the export's keys), and the plug-in's
+    distribution: Name lerobot_env_agnostos, importable without lerobot."""
+    suites = resolve_tasks("level1")
+    assert list(suites) == ["level1"] and len(suites["level1"]) == 13
+    mixed = resolve_tasks("lamp_on, push_buttons,seen")
+    assert mixed["seen"][:2] == ["push_buttons", "open_drawer"] and len(mixed["seen"]) == 18
+    assert sum(map(len, resolve_tasks("unseen").values())) == 23
+    envs = make_suites("lamp_on,turn_tap", 3, **SMALL)
+    assert {s: {i: e.task for i, e in d.items()} for s, d in envs.items()} == {
+        "level1": {0: "lamp_on"}, "seen": {0: "turn_tap"}}
+    assert envs["seen"][0].num_envs == 3 and envs["seen"][0]._episodes is None  # lazy
+    opts = EnvOptions(cameras="front,wrist", size=64, state="libero", rotation="axis_angle")
+    feats = lerobot_features(opts)
+    export = layout.features(opts.cameras, 64, 64, "libero", "axis_angle")
+    assert {p: s for _, s, p in feats.values()} == {
+        k: tuple(v["shape"]) for k, v in export.items() if k not in layout.DEFAULT_FEATURES}
+    assert feats["pixels/wrist"][2] == "observation.images.wrist"
+    meta = tomllib.loads((PLUGIN / "pyproject.toml").read_text())["project"]
+    assert meta["name"] == "lerobot_env_agnostos"
+    assert {"agnostos-mjx", "gymnasium>=1.1"} <= set(meta["dependencies"])
+    if importlib.util.find_spec("lerobot") is None:
+        sys.path.insert(0, str(PLUGIN))
+        try:
+            import lerobot_env_agnostos
+        finally:
+            sys.path.remove(str(PLUGIN))
+        assert lerobot_env_agnostos.AgnostosVectorEnv is AgnostosVectorEnv
+        assert not hasattr(lerobot_env_agnostos, "AgnostosEnvConfig")
+
+
+@pytest.mark.parametrize("call,match", [
+    (lambda: AgnostosVectorEnv("no_such_task", 1), "unknown task 'no_such_task'"),
+    (lambda: resolve_tasks("level3"), "unknown task or suite 'level3'.*level1"),
+    (lambda: make_suites("", 1), "must name a task or a suite"),
+    (lambda: AgnostosVectorEnv("lamp_on", 0), "num_envs"),
+    (lambda: EnvOptions(control_mode="dense"), "control_mode 'dense'.*keyaction"),
+    (lambda: EnvOptions(control_mode="joint"), "unknown control_mode"),
+    (lambda: EnvOptions(cameras="front,top"), "cameras must be"),
+    (lambda: EnvOptions(rotation="matrix"), "unknown rotation"),
+    (lambda: EnvOptions(state="joints"), "unknown state layout"),
+    (lambda: EnvOptions(autoreset_mode="never"), "unknown autoreset_mode"),
+    (lambda: EnvOptions(size=0), "size must be"),
+    (lambda: AgnostosVectorEnv("lamp_on", 1, variations="7"), "variations 7"),
+    (lambda: EnvOptions(variations="some"), "variations must be one of protocol, all"),
+])
+def test_bad_options_are_clear_errors(call, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_bad_calls_are_clear_errors() -> None:
+    env = AgnostosVectorEnv("lamp_on", 2, **SMALL)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros((2, 8)))
+    with pytest.raises(ValueError, match="seed: one integer or 2"):
+        env.reset(seed=[1, 2, 3])
+    with pytest.raises(ValueError, match="unknown reset options"):
+        env.reset(options={"scene": 1})
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"actions: shape \(2, 8\)"):
+        env.step(np.zeros((2, 7)))
+    # a row that is no key action ends that world as no_action; the other goes on
+    rows, _ = env.expert_actions()
+    bad = rows[:, 0].copy()
+    bad[0, :] = np.nan
+    _, _, term, _, info = env.step(bad)
+    assert term[0] and info["outcome"][0] == Outcome.NO_ACTION and not term[1]
+    env.close()
+
+
+def test_real_lerobot_rollout_through_the_plugin(tmp_path) -> None:
+    """Opt-in, with AGNOSTOS_LEROBOT_BIN = bin/ of a venv with lerobot >= 0.6, agnostos-mjx
+    and the plug-in installed: LeRobot discovers the plug-in, ``make_env`` builds its
+    envs and LeRobot's own ``rollout()`` counts every expert-replay episode of 3 seen tasks
+    a success in both autoreset modes (eval/reports/lerobot_interop/train_eval.py's step 4;
+    that script also runs lerobot-train and lerobot-eval)."""
+    import json
+    import os
+    import subprocess
+
+    bin_ = os.environ.get("AGNOSTOS_LEROBOT_BIN")
+    if not bin_:
+        pytest.skip("set AGNOSTOS_LEROBOT_BIN to bin/ of a venv with lerobot >= 0.6 and the "
+                    "plug-in")
+    sys.path.insert(0, str(REPO / "eval/reports/lerobot_interop"))
+    try:
+        import train_eval
+    finally:
+        sys.path.remove(str(REPO / "eval/reports/lerobot_interop"))
+    side = tmp_path / "side.py"
+    side.write_text(f"TASKS = {train_eval.REPLAY_TASKS!r}\n" + train_eval.SIDE)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf")}
+    subprocess.run([str(Path(bin_) / "python"), str(side), str(tmp_path / "out.json")],
+                   check=True, env=env, timeout=900, capture_output=True)
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert out["known_env_types_has_agnostos"]
+    assert len(out["replay"]) == 6 and all(all(r["successes"]) for r in out["replay"])
