@@ -210,6 +210,7 @@ _REGISTRY: dict[str, str | Callable[..., Policy]] = {
     "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
     "remote": "agnostos_mjx.remote.client:RemotePolicy",
     "openvla": "agnostos_mjx.remote.client:OpenVLAPolicy",
+    "reference-vla": "agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
 }
 
 

@@ -1,0 +1,85 @@
+"""The reference in-domain VLA as an evaluator policy: ``--policy reference-vla
+--policy-arg checkpoint=RUN`` (a run directory of ``python -m agnostos_mjx.train.vla``).
+
+It declares the observation its checkpoint was trained on (the cameras and image size
+in the checkpoint's metadata; RGB and point clouds), and at every step predicts each
+world's next key action from the fused point cloud, the gripper state, the number of key
+actions taken so far and the instruction: the tip position, X-ICM's Euler bins
+(decoded as textualise.euler_bins_to_quat) and open/closed.  Every action is valid: an
+episode ends on success, failure or the task's key-action limit.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from agnostos_mjx.observation import ObservationSpec
+from agnostos_mjx.tasks.base import KeyActions
+
+if TYPE_CHECKING:
+    from agnostos_mjx.observation import RLBenchObservation
+
+
+class ReferenceVLAPolicy:
+    """A trained reference VLA (vla/model.py) behind the policy interface."""
+
+    name = "reference-vla"
+
+    def __init__(self, checkpoint: str | None = None, renderer: str = "auto") -> None:
+        if not checkpoint:
+            raise ValueError("reference-vla needs its run directory: --policy-arg "
+                             "checkpoint=RUN (python -m agnostos_mjx.train.vla --out RUN)")
+        import jax
+        from flax import nnx
+
+        from agnostos_mjx.dynamics.checkpoint import CheckpointError
+        from agnostos_mjx.vla.checkpoint import load
+        from agnostos_mjx.vla.model import predict
+        from agnostos_mjx.vla.views import render_views
+
+        try:
+            model, self.meta = load(checkpoint)
+        except CheckpointError as err:
+            raise ValueError(str(err)) from None
+        obs = self.meta["observation"]
+        self.cameras = tuple(obs["cameras"])
+        self.observation_spec = ObservationSpec(
+            cameras=self.cameras, height=obs["size"], width=obs["size"],
+            modalities=("rgb", "point_cloud"), renderer=renderer)
+        self.cfg = model.cfg
+        graphdef, params = nnx.split(model)
+        size = self.cfg.view_size
+
+        @jax.jit
+        def forward(params, points, rgb, gripper, ids, mask, gripper_open, step):
+            views = render_views(points, rgb, gripper, size)
+            return predict(nnx.merge(graphdef, params), views, ids, mask, gripper_open, step)
+
+        self._forward, self._params = forward, params
+        self.steps = np.zeros(0, np.int32)
+
+    def reset(self, episodes, env, instructions: list[str]) -> None:
+        from agnostos_mjx.dynamics.text import tokenize
+
+        self.ids, self.mask = tokenize(list(instructions), self.cfg.text_len)
+        self.steps = np.zeros(len(instructions), np.int32)
+
+    def act(self, episodes, env, observation: RLBenchObservation | None = None) -> KeyActions:
+        from agnostos_mjx.textualise import euler_bins_to_quat
+
+        if observation is None:
+            raise ValueError("reference-vla acts on observations (its observation_spec)")
+        b = observation.batch
+        cams = [observation.cameras[c] for c in self.cameras]
+        points = np.concatenate([np.asarray(c.point_cloud).reshape(b, -1, 3) for c in cams], 1)
+        rgb = np.concatenate([np.asarray(c.rgb).reshape(b, -1, 3) for c in cams], 1)
+        pos, bins, grip = self._forward(
+            self._params, points.astype(np.float16).astype(np.float32), rgb,  # as stored
+            np.asarray(observation.gripper_pose[:, :3], np.float32), self.ids[:b],
+            self.mask[:b], np.asarray(observation.gripper_open, np.float32), self.steps[:b])
+        self.steps = self.steps + 1
+        return KeyActions(pos=np.asarray(pos, np.float32),
+                          quat=euler_bins_to_quat(np.asarray(bins)).astype(np.float32),
+                          gripper=np.asarray(grip, np.float32), valid=np.ones(b, bool))
