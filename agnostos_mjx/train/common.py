@@ -72,12 +72,15 @@ def train(
     meta: dict[str, Any],
     sample: Callable[[nnx.Module, int], None] | None = None,
     progress: bool = True,
+    max_seconds: float | None = None,
 ) -> nnx.Module:
     """Train the module `build()` makes for `cfg.steps` steps and return it.
 
     `get_batch(indices)` gathers a batch of host arrays (passed to the jitted step
     as arguments, so the data set is never baked into the compiled program);
-    `loss_fn(model, batch, key)` scores it.  Resumes from `out/checkpoints` when it
+    `loss_fn(model, batch, key)` scores it.  `max_seconds` stops the run early (with a
+    checkpoint and a sample) once that much wall time has passed: a fixed time budget
+    without changing the schedule; rerunning resumes.  Resumes from `out/checkpoints` when it
     holds a step, after checking that its kind and model config equal `meta`'s."""
     out.mkdir(parents=True, exist_ok=True)
     tx = optimizer(cfg)
@@ -109,19 +112,26 @@ def train(
             )
             losses.append(loss)
             done = step + 1
-            if done % cfg.log_every == 0 or done == cfg.steps:
+            out_of_time = max_seconds is not None and time.perf_counter() - t0 > max_seconds
+            if out_of_time:
+                print(f"stopping at step {done} of {cfg.steps}: --max-seconds {max_seconds:g} "
+                      f"reached; rerun to resume", file=sys.stderr)
+            last = done == cfg.steps or out_of_time
+            if done % cfg.log_every == 0 or last:
                 mean = float(np.mean(jax.device_get(losses)))
                 losses = []
                 rec = {"step": done, "loss": mean, "seconds": round(time.perf_counter() - t0, 2)}
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
                 bar.update(done, mean)
-            if done % cfg.ckpt_every == 0 or done == cfg.steps:
+            if done % cfg.ckpt_every == 0 or last:
                 ckpts.save(done, {"params": params, "opt_state": opt_state}, meta)
             if sample is not None and (
-                (cfg.sample_every and done % cfg.sample_every == 0) or done == cfg.steps
+                (cfg.sample_every and done % cfg.sample_every == 0) or last
             ):
                 sample(nnx.merge(graphdef, params), done)
+            if out_of_time:
+                break
     bar.close()
     return nnx.merge(graphdef, params)
 

@@ -33,7 +33,14 @@ from agnostos_mjx.dynamics.text import tokenize
 from agnostos_mjx.textualise import quat_to_euler_bins
 from agnostos_mjx.train.common import run_parser, train
 from agnostos_mjx.vla.checkpoint import run_meta
-from agnostos_mjx.vla.model import VLA_DEFAULT, VLA_QUICK, ReferenceVLA, VLAConfig, predict, vla_loss
+from agnostos_mjx.vla.model import (
+    VLA_DEFAULT,
+    VLA_QUICK,
+    ReferenceVLA,
+    VLAConfig,
+    predict,
+    vla_loss,
+)
 from agnostos_mjx.vla.views import render_views
 
 # ~23 epochs of the 100-demo seen data (13.9 k keyframes) at batch 32.
@@ -151,8 +158,9 @@ def heldout_metrics(model: ReferenceVLA, data: KeyframeData, held: np.ndarray,
 
 
 def train_vla(data: KeyframeData, cfg: VLAConfig, tcfg: TrainConfig, out: Path,
-              augment: float = 0.1, progress: bool = True) -> ReferenceVLA:
-    """Train (or resume) a reference VLA run in `out`."""
+              augment: float = 0.1, progress: bool = True,
+              max_seconds: float | None = None) -> ReferenceVLA:
+    """Train (or resume) a reference VLA run in `out` (stopping early after `max_seconds`)."""
     train_idx, held_idx = data.split(tcfg.holdout_every)
     if len(train_idx) == 0:
         raise ValueError("no training samples: every demo is held out")
@@ -180,7 +188,7 @@ def train_vla(data: KeyframeData, cfg: VLAConfig, tcfg: TrainConfig, out: Path,
             "augment": augment, "samples": {"train": int(len(train_idx)),
                                             "heldout": int(len(held_idx))}}
     return train(lambda: ReferenceVLA(cfg, rngs=nnx.Rngs(tcfg.seed)), loss_fn, get_batch,
-                 len(train_idx), tcfg, out, meta, sample, progress)
+                 len(train_idx), tcfg, out, meta, sample, progress, max_seconds)
 
 
 def parser():
@@ -193,6 +201,9 @@ def parser():
     p.add_argument("--demos", type=int, default=2, help="--quick without --data: demos per task")
     p.add_argument("--augment", type=float, default=0.1,
                    help="random scene translation per sample, +- metres per axis (0: none)")
+    p.add_argument("--max-seconds", type=float,
+                   help="stop early (checkpoint saved) after this many seconds of training; "
+                   "the schedule stays that of --steps, and a rerun resumes")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_flags(p, "vla", VLA_DEFAULT, VLA_QUICK)
     add_flags(p, "train", TRAIN_DEFAULT, TRAIN_QUICK)
@@ -225,7 +236,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--data {data_dir}: no such directory")
     try:
         data = KeyframeData(data_dir, cfg.text_len, tasks)
-        train_vla(data, cfg, tcfg, args.out, args.augment, progress=not args.no_progress)
+        train_vla(data, cfg, tcfg, args.out, args.augment, not args.no_progress,
+                  args.max_seconds)
     except ValueError as err:
         print(f"train.vla: {err}", file=sys.stderr)
         return 2

@@ -21,6 +21,7 @@ the settings; a rerun with the same settings skips finished chunks.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -70,22 +71,30 @@ class DataConfig:
         return self.out / f"{task}_{start:05d}.npz"
 
 
+@functools.cache
+def _episodes(task_name: str, threads: int | None):
+    """One native runner per task and process: a worker that gets several chunks of a task
+    builds its scene and compiles once."""
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    return Episodes(get_task(task_name), "native", threads=threads)
+
+
 def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
                    threads: int | None = None) -> dict:
     """Run the expert on demos start..stop-1 of one task and save their keyframe samples."""
     from agnostos_mjx.data.expert_frames import episode_observations
     from agnostos_mjx.data.generate import demo_keys
     from agnostos_mjx.observation import ObservationSpec
-    from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.outcome import Outcome
-    from agnostos_mjx.tasks import get_task
 
     t0 = time.perf_counter()
     path = cfg.chunk_path(task_name, start)
     if path.exists():
         return {"task": task_name, "start": start, "skipped": True, "seconds": 0.0}
-    task = get_task(task_name)
-    episodes = Episodes(task, "native", threads=threads)
+    episodes = _episodes(task_name, threads)
+    task = episodes.task
     spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
                            modalities=("rgb", "point_cloud"), renderer="cpu")
     todo = list(range(start, stop))

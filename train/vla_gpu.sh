@@ -1,0 +1,75 @@
+#!/bin/bash
+# The reference VLA (issue 28) on one lent GPU host, after `bash tools/gpu_setup.sh 0`
+# (mujoco & co in /tmp/site; native physics only, no warp needed):
+#   bash train/vla_gpu.sh train     keyframe data of the 18 seen tasks (16 processes), training
+#                                   on the GPU, then a quick seen-task check (1 seed x 5 episodes);
+#                                   rerun to resume: finished data chunks and checkpoints are kept
+#   bash train/vla_gpu.sh eval      the protocol: seen, then unseen tasks, 3 seeds x 25 episodes,
+#                                   with the paper's in-domain rows (--compare)
+#   bash train/vla_gpu.sh collect   logs, curves, results (and the checkpoint if it is small)
+# Settings (environment): VLA_DEMOS (100 per task), VLA_CAMERAS, VLA_SIZE (64 px), VLA_STEPS
+# (10000), VLA_BATCH (32), VLA_EVAL_BATCH (75), VLA_BACKEND (native), VLA_PROCS (eval
+# processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
+# VLA_TINY=1: 2 tasks x 2 demos, the --quick model and 2 episodes per task (the script's
+# logic on a CPU, e.g. `OUT=/tmp/o VLA_TINY=1 bash train/vla_gpu.sh train`).
+# Everything is logged to $OUT/vla_<stage>.log with the wall time of each stage.
+set -eo pipefail
+: "${OUT:?set OUT (the folder that comes back)}"
+ROOT=${VLA_ROOT:-/tmp/agnostos}
+DATA=$ROOT/vla_data RUN=$ROOT/vla_run
+export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH} MUJOCO_GL=${MUJOCO_GL:-egl}
+[ -f /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json ] && \
+  export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+export AGNOSTOS_JAX_CACHE=${AGNOSTOS_JAX_CACHE:-$ROOT/jax_cache}
+PY=${PYTHON:-python3}
+mkdir -p "$ROOT" "$OUT"
+if [ -n "$VLA_TINY" ]; then
+  TASKS=turn_tap,push_buttons UNSEEN=lamp_on DEMOS=2 EPISODES=2 SEEDS=0 QUICK=--quick
+  WORKERS=2 CHUNK=1 CAMERAS=front,overhead SIZE=32 STEPS=${VLA_STEPS:-20}
+else
+  TASKS=seen UNSEEN=unseen DEMOS=${VLA_DEMOS:-100} EPISODES=25 SEEDS=0,1,2 QUICK=
+  WORKERS=16 CHUNK=10 CAMERAS=${VLA_CAMERAS:-front,left_shoulder,right_shoulder,wrist}
+  SIZE=${VLA_SIZE:-64} STEPS=${VLA_STEPS:-10000}
+fi
+BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
+PROCS=${VLA_PROCS:-4}
+
+stage() {  # stage NAME COMMAND...: run, log to $OUT/vla_NAME.log, print the wall time
+  local name=$1 t0=$SECONDS; shift
+  echo "== $name: $*" | tee -a "$OUT/vla_$name.log"
+  "$@" 2>&1 | grep --line-buffered -v "solver iterations\|warn_overflow\|linesearch\|Failed to import" \
+    | tee -a "$OUT/vla_$name.log" | tail -25
+  echo "== $name: wall $((SECONDS - t0)) s" | tee -a "$OUT/vla_$name.log" "$OUT/vla_timings.txt"
+}
+
+evaluate() {  # evaluate SPLIT LABEL EPISODES SEEDS [PROCS]
+  local procs=(); [ "${5:-1}" -gt 1 ] && procs=(--local-processes "$5")
+  stage "eval_$2" $PY -m agnostos_mjx.eval --policy reference-vla \
+    --policy-arg checkpoint="$RUN" --tasks "$1" --episodes "$3" --seeds "$4" \
+    --batch "$EVAL_BATCH" --backend "$BACKEND" --resume --quiet "${procs[@]}" \
+    --compare RVT2 --out "$ROOT/vla_eval_$2"
+  mkdir -p "$OUT/eval_$2"
+  cp "$ROOT/vla_eval_$2"/results.{md,csv,json,png} "$OUT/eval_$2/" 2>/dev/null || true
+}
+
+case "$1" in
+  train)
+    stage data $PY -m agnostos_mjx.train.vla_data --out "$DATA" --tasks "$TASKS" \
+      --demos "$DEMOS" --cameras "$CAMERAS" --size "$SIZE" --chunk "$CHUNK" --workers "$WORKERS"
+    stage train $PY -m agnostos_mjx.train.vla $QUICK --data "$DATA" --out "$RUN" \
+      --steps "$STEPS" --batch-size "$BATCH" --no-progress $VLA_EXTRA
+    cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
+    if [ -n "$VLA_TINY" ]; then evaluate "$TASKS" quick "$EPISODES" 0
+    else evaluate "$TASKS" quick 5 0; fi ;;
+  eval)
+    evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS"
+    evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
+  collect)
+    cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
+    size=$(du -sm "$RUN/checkpoints" | cut -f1)
+    if [ "$size" -le "${VLA_SHIP_MB:-40}" ]; then
+      tar -C "$RUN" -czf "$OUT/vla_run.tgz" checkpoints config.json log.jsonl
+    else echo "checkpoint is $size MB: not copied (VLA_SHIP_MB)"; fi
+    cat "$OUT/vla_timings.txt" 2>/dev/null || true ;;
+  *) echo "usage: bash train/vla_gpu.sh train|eval|collect" >&2; exit 2 ;;
+esac
