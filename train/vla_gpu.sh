@@ -2,8 +2,11 @@
 # The reference VLA (issue 28) on one lent GPU host, after `bash tools/gpu_setup.sh 0`
 # (mujoco & co in /tmp/site; native physics only, no warp needed):
 #   bash train/vla_gpu.sh train     keyframe data of the 18 seen tasks (16 processes), training
-#                                   on the GPU, then a quick seen-task check (1 seed x 5 episodes);
-#                                   rerun to resume: finished data chunks and checkpoints are kept
+#                                   on the GPU until VLA_STEPS or the call's time budget
+#                                   (VLA_CALL_S, 570 s, minus the data's time and a reserve),
+#                                   then a quick check on 3 seen tasks x 5 episodes (VLA_QUICK_TASKS,
+#                                   empty: none); rerun to resume: finished data chunks and
+#                                   checkpoints are kept
 #   bash train/vla_gpu.sh eval      the protocol: seen, then unseen tasks, 3 seeds x 25 episodes,
 #                                   with the paper's in-domain rows (--compare)
 #   bash train/vla_gpu.sh collect   logs, curves, results (and the checkpoint if it is small)
@@ -32,7 +35,8 @@ else
   SIZE=${VLA_SIZE:-64} STEPS=${VLA_STEPS:-10000}
 fi
 BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
-PROCS=${VLA_PROCS:-4}
+PROCS=${VLA_PROCS:-4} CALL_S=${VLA_CALL_S:-570}
+QUICK_TASKS=${VLA_QUICK_TASKS-open_drawer,push_buttons,turn_tap}
 
 stage() {  # stage NAME COMMAND...: run, log to $OUT/vla_NAME.log, print the wall time
   local name=$1 t0=$SECONDS; shift
@@ -56,11 +60,14 @@ case "$1" in
   train)
     stage data $PY -m agnostos_mjx.train.vla_data --out "$DATA" --tasks "$TASKS" \
       --demos "$DEMOS" --cameras "$CAMERAS" --size "$SIZE" --chunk "$CHUNK" --workers "$WORKERS"
+    # What is left of the call after loading, compiling, the last checkpoint and the check.
+    reserve=$((60 + (${#QUICK_TASKS} > 0 ? 90 : 0)))
+    left=$((CALL_S - SECONDS - reserve)); [ $left -lt 30 ] && left=30
     stage train $PY -m agnostos_mjx.train.vla $QUICK --data "$DATA" --out "$RUN" \
-      --steps "$STEPS" --batch-size "$BATCH" --no-progress $VLA_EXTRA
+      --steps "$STEPS" --batch-size "$BATCH" --max-seconds $left --no-progress $VLA_EXTRA
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
     if [ -n "$VLA_TINY" ]; then evaluate "$TASKS" quick "$EPISODES" 0
-    else evaluate "$TASKS" quick 5 0; fi ;;
+    elif [ -n "$QUICK_TASKS" ]; then evaluate "$QUICK_TASKS" quick 5 0; fi ;;
   eval)
     evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS"
     evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
