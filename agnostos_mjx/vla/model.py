@@ -13,23 +13,21 @@ pooled under those heatmaps and over everything, X-ICM's 72 Euler bins per axis
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from agnostos_mjx.dynamics.config import TextConfig
+from agnostos_mjx.dynamics.config import (
+    TextConfig,
+    _f,  # a field with its --flag help
+)
 from agnostos_mjx.dynamics.text import Block, TextEncoder
 from agnostos_mjx.vla.views import CHANNELS, VIEWS, decode_position, target_heatmaps
 
 ROT_BINS = 72  # X-ICM's 5-degree Euler bins (textualise.quat_to_euler_bins)
 MAX_STEPS = 25  # key-action index embedding (tasks.base.MAX_KEY_ACTIONS)
-
-
-def _f(default: Any, help: str) -> Any:
-    return field(default=default, metadata={"help": help})
 
 
 @dataclass(frozen=True)
