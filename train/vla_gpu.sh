@@ -10,7 +10,7 @@
 #   bash train/vla_gpu.sh eval      the protocol: seen, then unseen tasks, 3 seeds x 25 episodes,
 #                                   with the paper's in-domain rows (--compare)
 #   bash train/vla_gpu.sh collect   logs, curves, results (and the checkpoint if it is small)
-# Settings (environment): VLA_DEMOS (100 per task), VLA_CAMERAS, VLA_SIZE (64 px), VLA_STEPS
+# Settings (environment): VLA_DEMOS (100 per task), VLA_CAMERAS, VLA_SIZE (96 px), VLA_STEPS
 # (10000), VLA_BATCH (32), VLA_EVAL_BATCH (75), VLA_BACKEND (native), VLA_PROCS (eval
 # processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
 # VLA_TINY=1: 2 tasks x 2 demos, the --quick model and 2 episodes per task (the script's
@@ -32,7 +32,7 @@ if [ -n "$VLA_TINY" ]; then
 else
   TASKS=seen UNSEEN=unseen DEMOS=${VLA_DEMOS:-100} EPISODES=25 SEEDS=0,1,2 QUICK=
   WORKERS=16 CHUNK=10 CAMERAS=${VLA_CAMERAS:-front,left_shoulder,right_shoulder,wrist}
-  SIZE=${VLA_SIZE:-64} STEPS=${VLA_STEPS:-10000}
+  SIZE=${VLA_SIZE:-96} STEPS=${VLA_STEPS:-10000}
 fi
 BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
 PROCS=${VLA_PROCS:-4} CALL_S=${VLA_CALL_S:-570}

@@ -41,7 +41,7 @@ class DataConfig:
     tasks: tuple[str, ...]
     demos: int = 100
     cameras: tuple[str, ...] = DEFAULT_CAMERAS
-    size: int = 64
+    size: int = 96
     seed: int = 0
     chunk: int = 25  # demos per job (and per batch of worlds)
     max_attempts: int = 10
@@ -199,7 +199,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--tasks", default="seen", help="task names and/or split names")
     p.add_argument("--demos", type=int, default=100, help="demos per task")
     p.add_argument("--cameras", default=",".join(DEFAULT_CAMERAS))
-    p.add_argument("--size", type=int, default=64, help="image side in pixels")
+    p.add_argument("--size", type=int, default=96, help="image side in pixels")
     p.add_argument("--seed", type=int, default=0, help="demo seed (the bank's and export's)")
     p.add_argument("--chunk", type=int, default=25, help="demos per job")
     p.add_argument("--workers", type=int, default=1, help="processes")

@@ -34,8 +34,8 @@ MAX_STEPS = 25  # key-action index embedding (tasks.base.MAX_KEY_ACTIONS)
 class VLAConfig:
     """Sizes of the reference VLA (every field is a --vla-<field> flag)."""
 
-    view_size: int = _f(64, "pixels per side of each virtual view (the cube is 1 m)")
-    patch: int = _f(4, "patch side in view pixels (tokens per view: (view_size / patch)^2)")
+    view_size: int = _f(96, "pixels per side of each virtual view (the cube is 1 m)")
+    patch: int = _f(6, "patch side in view pixels (tokens per view: (view_size / patch)^2)")
     width: int = _f(256, "transformer width")
     depth: int = _f(6, "transformer layers")
     heads: int = _f(8, "attention heads")
