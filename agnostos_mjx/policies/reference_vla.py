@@ -5,7 +5,7 @@ It declares the observation its checkpoint was trained on (the cameras and image
 in the checkpoint's metadata; RGB and point clouds), and at every step predicts each
 world's next key action from the fused point cloud, the gripper state, the number of key
 actions taken so far and the instruction: the tip position, X-ICM's Euler bins
-(decoded as textualise.euler_bins_to_quat) and open/closed.  Every action is valid: an
+(decoded as textualise.euler_bins_to_quat) and the gripper's open amount (0, 0.1, ..., 1).  Every action is valid: an
 episode ends on success, failure or the task's key-action limit.
 """
 

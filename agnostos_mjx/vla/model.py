@@ -8,7 +8,7 @@ index).  The views are cut into patches; patches of all views, the text tokens a
 proprioception token go through one transformer.  Output: per view a heatmap over its
 pixels (the next key action's position: views.decode_position), and from the tokens
 pooled under those heatmaps and over everything, X-ICM's 72 Euler bins per axis
-(textualise.quat_to_euler_bins) and the gripper's open/close.
+(textualise.quat_to_euler_bins) and the gripper's open amount (11 bins: 0, 0.1, ..., 1).
 """
 
 from __future__ import annotations
@@ -27,6 +27,10 @@ from agnostos_mjx.dynamics.text import Block, TextEncoder
 from agnostos_mjx.vla.views import CHANNELS, VIEWS, decode_position, target_heatmaps
 
 ROT_BINS = 72  # X-ICM's 5-degree Euler bins (textualise.quat_to_euler_bins)
+# The gripper's open amount in steps of 0.1: the experts use 1 (open), 0 (grasp) and
+# in-between amounts to push (push_buttons 0.1, slide_block_to_color_target 0.5), which an
+# open/close flag would lose.
+GRIP_BINS = 11
 MAX_STEPS = 25  # key-action index embedding (tasks.base.MAX_KEY_ACTIONS)
 
 
@@ -65,7 +69,7 @@ VLA_QUICK = VLAConfig(view_size=16, patch=4, width=32, depth=1, heads=2, text_wi
 
 class ReferenceVLA(nnx.Module):
     """views (B, 3, S, S, C), text ids/mask (B, L), gripper_open (B,), step (B,) ->
-    heatmap logits (B, 3, S, S), rotation logits (B, 3, 72), gripper logits (B, 2)."""
+    heatmap logits (B, 3, S, S), rotation logits (B, 3, 72), gripper logits (B, 11)."""
 
     def __init__(self, cfg: VLAConfig, *, rngs: nnx.Rngs):
         self.cfg = cfg
@@ -86,7 +90,7 @@ class ReferenceVLA(nnx.Module):
         self.refine1 = nnx.Conv(16 + 32, 32, (3, 3), rngs=rngs)
         self.refine2 = nnx.Conv(32, 1, (3, 3), rngs=rngs)
         self.head = nnx.Sequential(nnx.Linear(4 * d, 2 * d, rngs=rngs), nnx.gelu,
-                                   nnx.Linear(2 * d, 3 * ROT_BINS + 2, rngs=rngs))
+                                   nnx.Linear(2 * d, 3 * ROT_BINS + GRIP_BINS, rngs=rngs))
 
     def __call__(self, views: jax.Array, ids: jax.Array, mask: jax.Array,
                  gripper_open: jax.Array, step: jax.Array) -> tuple[jax.Array, ...]:
@@ -137,9 +141,14 @@ def vla_loss(model: ReferenceVLA, batch: dict[str, jax.Array]) -> tuple[jax.Arra
     return loss, {"pos": pos_loss, "rot": rot_loss, "grip": grip_loss}
 
 
+def gripper_bins(amount: jax.Array) -> jax.Array:
+    """Open amounts in [0, 1] -> the nearest of the GRIP_BINS levels (int32)."""
+    return jnp.clip(jnp.round(amount * (GRIP_BINS - 1)), 0, GRIP_BINS - 1).astype(jnp.int32)
+
+
 def predict(model: ReferenceVLA, views: jax.Array, ids: jax.Array, mask: jax.Array,
             gripper_open: jax.Array, step: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """World position (B, 3), Euler bins (B, 3) int32 and gripper open (B,) bool."""
+    """World position (B, 3), Euler bins (B, 3) int32 and the gripper's open amount (B,)."""
     logits, rot, grip = model(views, ids, mask, gripper_open, step)
     return (decode_position(logits), jnp.argmax(rot, -1).astype(jnp.int32),
-            jnp.argmax(grip, -1) == 1)
+            jnp.argmax(grip, -1).astype(jnp.float32) / (GRIP_BINS - 1))

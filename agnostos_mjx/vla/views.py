@@ -104,10 +104,11 @@ def target_heatmaps(pos: jax.Array, size: int, sigma: float = 1.5) -> jax.Array:
     return jax.vmap(one)(unit)
 
 
-def decode_position(logits: jax.Array) -> jax.Array:
+def decode_position(logits: jax.Array, radius: int = 3) -> jax.Array:
     """Per-view heatmap logits (B, 3, S, S) -> world positions (B, 3): the cell of the
     S^3 grid whose projections score highest (sum of the views' log-probabilities), refined
-    by a soft-argmax over its 3x3x3 neighbourhood."""
+    by a soft-argmax over the cells within `radius` of it (the training targets' Gaussians
+    decode to within 0.06 mm at S = 96 with radius 3; 2.7 mm with radius 1)."""
     b, _, s, _ = logits.shape
     logp = jax.nn.log_softmax(logits.reshape(b, 3, -1), -1).reshape(b, 3, s, s)
     top, front, side = logp[:, 0], logp[:, 1], logp[:, 2]  # (x,y), (z,y), (z,x)
@@ -116,9 +117,12 @@ def decode_position(logits: jax.Array) -> jax.Array:
              + jnp.swapaxes(side, 1, 2)[:, :, None, :])
     flat = jnp.argmax(score.reshape(b, -1), -1)
     cell = jnp.stack(jnp.unravel_index(flat, (s, s, s)), -1)  # (B, 3) x, y, z
-    offsets = jnp.stack(jnp.meshgrid(*[jnp.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    near = jnp.clip(cell[:, None, :] + offsets[None], 0, s - 1)  # (B, 27, 3)
+    steps = jnp.arange(-radius, radius + 1)
+    offsets = jnp.stack(jnp.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3)
+    near = cell[:, None, :] + offsets[None]  # (B, (2r+1)^3, 3)
+    inside = jnp.all((near >= 0) & (near < s), -1)  # cells past the cube's faces count not
+    near = jnp.clip(near, 0, s - 1)
     local = score[jnp.arange(b)[:, None], near[..., 0], near[..., 1], near[..., 2]]
-    w = jax.nn.softmax(local, -1)
+    w = jax.nn.softmax(jnp.where(inside, local, -jnp.inf), -1)
     refined = (w[..., None] * (near.astype(jnp.float32) + 0.5)).sum(1) / s
     return denormalise(refined)
