@@ -45,8 +45,10 @@ def test_heatmaps_decode_to_their_target():
 
 def test_quick_train_reload_evaluate(tmp_path):
     """The smoke path: a tiny model trained for a few steps on 2 tasks (data generated on
-    the fly), saved, reloaded as the policy and evaluated on 2 episodes; rerunning the
-    training command resumes instead of starting over."""
+    the fly), saved, reloaded as the policy (from the run and from its float16 export) and
+    evaluated on 2 episodes; rerunning the training command resumes instead of starting
+    over."""
+    from agnostos_mjx.dynamics.text import tokenize
     from agnostos_mjx.eval import main as eval_main
     from agnostos_mjx.policies import make_policy
     from agnostos_mjx.train import vla
@@ -62,9 +64,23 @@ def test_quick_train_reload_evaluate(tmp_path):
     assert vla.main(argv) == 0  # resumes at step 20: nothing more to do
     assert len((run / "log.jsonl").read_text().splitlines()) == 4
 
-    policy = make_policy("reference-vla", checkpoint=str(run))
-    assert policy.observation_spec.cameras == ("front", "overhead")
-    assert policy.observation_spec.height == 32
+    # The float16 export loads as the run does and predicts the same actions.
+    exported = tmp_path / "export"
+    assert vla.main(["--out", str(run), "--export", str(exported)]) == 0
+    policies = [make_policy("reference-vla", checkpoint=str(p)) for p in (run, exported)]
+    for policy in policies:
+        assert policy.observation_spec.cameras == ("front", "overhead")
+        assert policy.observation_spec.height == 32
+    rng = np.random.default_rng(0)
+    args = (rng.uniform([-0.3, -0.5, 0.7], [0.7, 0.5, 1.2], (2, 64, 3)).astype(np.float32),
+            rng.integers(0, 255, (2, 64, 3)).astype(np.uint8),
+            np.array([[0.2, 0.0, 1.1], [0.3, 0.1, 1.0]], np.float32),
+            *tokenize(["push the button", "turn tap"], policies[0].cfg.text_len),
+            np.ones(2, np.float32), np.zeros(2, np.int32))
+    (pos_a, rot_a, grip_a), (pos_b, rot_b, grip_b) = (
+        p._forward(p._params, *args) for p in policies)
+    np.testing.assert_allclose(pos_a, pos_b, atol=0.01)
+    assert (np.asarray(grip_a) == np.asarray(grip_b)).all()
 
     out = tmp_path / "eval"
     rc = eval_main(["--policy", "reference-vla", "--policy-arg", f"checkpoint={run}",
@@ -84,6 +100,7 @@ def test_usage_errors(tmp_path, capsys):
         make_policy("reference-vla")
     with pytest.raises(ValueError, match="no checkpoint"):
         make_policy("reference-vla", checkpoint=str(tmp_path / "missing"))
+    assert vla.main(["--out", str(tmp_path / "missing"), "--export", str(tmp_path / "x")]) == 2
     with pytest.raises(SystemExit) as e:
         vla.main(["--out", str(tmp_path / "r")])  # neither --data nor --quick
     assert e.value.code == 2

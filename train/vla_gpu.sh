@@ -7,9 +7,11 @@
 #                                   then a quick check on 3 seen tasks x 5 episodes (VLA_QUICK_TASKS,
 #                                   empty: none); rerun to resume: finished data chunks and
 #                                   checkpoints are kept
+#                                   and the float16 export (~13 MB) to $OUT/vla_export
 #   bash train/vla_gpu.sh eval      the protocol: seen, then unseen tasks, 3 seeds x 25 episodes,
-#                                   with the paper's in-domain rows (--compare)
-#   bash train/vla_gpu.sh collect   logs, curves, results (and the checkpoint if it is small)
+#                                   with the paper's RVT2 row (--compare); on a fresh machine
+#                                   carry the export back and set VLA_CHECKPOINT=its folder
+#   bash train/vla_gpu.sh collect   logs, curves, results and the export
 # Settings (environment): VLA_DEMOS (100 per task), VLA_CAMERAS, VLA_SIZE (96 px), VLA_STEPS
 # (10000), VLA_BATCH (32), VLA_EVAL_BATCH (75), VLA_BACKEND (native), VLA_PROCS (eval
 # processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
@@ -35,21 +37,25 @@ else
   SIZE=${VLA_SIZE:-96} STEPS=${VLA_STEPS:-10000}
 fi
 BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
-PROCS=${VLA_PROCS:-4} CALL_S=${VLA_CALL_S:-570}
+PROCS=${VLA_PROCS:-4} CALL_S=${VLA_CALL_S:-570} CKPT=${VLA_CHECKPOINT:-$RUN}
 QUICK_TASKS=${VLA_QUICK_TASKS-open_drawer,push_buttons,turn_tap}
 
 stage() {  # stage NAME COMMAND...: run, log to $OUT/vla_NAME.log, print the wall time
-  local name=$1 t0=$SECONDS; shift
+  local name=$1 t0=$SECONDS rc; shift
   echo "== $name: $*" | tee -a "$OUT/vla_$name.log"
+  set +e
   "$@" 2>&1 | grep --line-buffered -v "solver iterations\|warn_overflow\|linesearch\|Failed to import" \
     | tee -a "$OUT/vla_$name.log" | tail -25
-  echo "== $name: wall $((SECONDS - t0)) s" | tee -a "$OUT/vla_$name.log" "$OUT/vla_timings.txt"
+  rc=${PIPESTATUS[0]}
+  set -e
+  echo "== $name: exit $rc, wall $((SECONDS - t0)) s" | tee -a "$OUT/vla_$name.log" "$OUT/vla_timings.txt"
+  return "$rc"
 }
 
 evaluate() {  # evaluate SPLIT LABEL EPISODES SEEDS [PROCS]
   local procs=(); [ "${5:-1}" -gt 1 ] && procs=(--local-processes "$5")
   stage "eval_$2" $PY -m agnostos_mjx.eval --policy reference-vla \
-    --policy-arg checkpoint="$RUN" --tasks "$1" --episodes "$3" --seeds "$4" \
+    --policy-arg checkpoint="$CKPT" --tasks "$1" --episodes "$3" --seeds "$4" \
     --batch "$EVAL_BATCH" --backend "$BACKEND" --resume --quiet "${procs[@]}" \
     --compare RVT2 --out "$ROOT/vla_eval_$2"
   mkdir -p "$OUT/eval_$2"
@@ -64,19 +70,21 @@ case "$1" in
     reserve=$((60 + (${#QUICK_TASKS} > 0 ? 90 : 0)))
     left=$((CALL_S - SECONDS - reserve)); [ $left -lt 30 ] && left=30
     stage train $PY -m agnostos_mjx.train.vla $QUICK --data "$DATA" --out "$RUN" \
-      --steps "$STEPS" --batch-size "$BATCH" --max-seconds $left --no-progress $VLA_EXTRA
+      --steps "$STEPS" --batch-size "$BATCH" --max-seconds $left --no-progress \
+      --export "$OUT/vla_export" $VLA_EXTRA
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
     if [ -n "$VLA_TINY" ]; then evaluate "$TASKS" quick "$EPISODES" 0
     elif [ -n "$QUICK_TASKS" ]; then evaluate "$QUICK_TASKS" quick 5 0; fi ;;
   eval)
+    if [ ! -e "$CKPT" ]; then
+      echo "no checkpoint at $CKPT (a fresh machine?): carry the export that 'train' wrote to" \
+        "\$OUT/vla_export and set VLA_CHECKPOINT to its folder" >&2; exit 2
+    fi
     evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS"
     evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
   collect)
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
-    size=$(du -sm "$RUN/checkpoints" | cut -f1)
-    if [ "$size" -le "${VLA_SHIP_MB:-40}" ]; then
-      tar -C "$RUN" -czf "$OUT/vla_run.tgz" checkpoints config.json log.jsonl
-    else echo "checkpoint is $size MB: not copied (VLA_SHIP_MB)"; fi
+    [ -d "$OUT/vla_export" ] || $PY -m agnostos_mjx.train.vla --out "$RUN" --export "$OUT/vla_export"
     cat "$OUT/vla_timings.txt" 2>/dev/null || true ;;
   *) echo "usage: bash train/vla_gpu.sh train|eval|collect" >&2; exit 2 ;;
 esac

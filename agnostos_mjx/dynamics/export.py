@@ -48,18 +48,9 @@ def export(run: str | Path, out: str | Path, ae_run: str | Path | None = None) -
         **flatten(nnx.state(pipe.ae.encoder), "ae.encoder"),
         **flatten(nnx.state(pipe.model), "dynamics"),
     }
-    params = {}
-    for name, value in arrays.items():
-        value = np.asarray(value)
-        if np.issubdtype(value.dtype, np.floating):
-            peak = float(np.max(np.abs(value))) if value.size else 0.0
-            if not np.isfinite(peak) or peak > FLOAT16_MAX:
-                raise CheckpointError(f"{run}: {name} has |value| {peak:g}, not float16-safe")
-            value = value.astype(np.float16)
-        params[name] = value
-
+    params = float16_arrays(arrays, run)
     out.mkdir(parents=True, exist_ok=True)
-    _write_atomic(out / PARAMS_FILE, lambda f: np.savez_compressed(f, **params))
+    write_atomic(out / PARAMS_FILE, lambda f: np.savez_compressed(f, **params))
     info = {
         "format": FORMAT,
         "version": VERSION,
@@ -76,8 +67,23 @@ def export(run: str | Path, out: str | Path, ae_run: str | Path | None = None) -
         },
     }
     text = json.dumps(info, indent=2) + "\n"
-    _write_atomic(out / META_FILE, lambda f: f.write(text.encode()))
+    write_atomic(out / META_FILE, lambda f: f.write(text.encode()))
     return info
+
+
+def float16_arrays(arrays: dict[str, Any], where: str | Path) -> dict[str, np.ndarray]:
+    """Floating-point arrays as float16 (others unchanged); CheckpointError naming the
+    array if a value is not finite or too large for float16."""
+    params = {}
+    for name, value in arrays.items():
+        value = np.asarray(value)
+        if np.issubdtype(value.dtype, np.floating):
+            peak = float(np.max(np.abs(value))) if value.size else 0.0
+            if not np.isfinite(peak) or peak > FLOAT16_MAX:
+                raise CheckpointError(f"{where}: {name} has |value| {peak:g}, not float16-safe")
+            value = value.astype(np.float16)
+        params[name] = value
+    return params
 
 
 def load_export(path: str | Path, chunk: int | None = None, **sampling: Any) -> Pipeline:
@@ -86,7 +92,7 @@ def load_export(path: str | Path, chunk: int | None = None, **sampling: Any) -> 
     return Pipeline.from_export(path, chunk, **sampling)
 
 
-def _write_atomic(path: Path, write: Callable[[Any], None]) -> None:
+def write_atomic(path: Path, write: Callable[[Any], None]) -> None:
     """Write through `write(file)` to a temporary file beside `path`, then rename it."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:

@@ -205,6 +205,9 @@ def parser():
     p.add_argument("--max-seconds", type=float,
                    help="stop early (checkpoint saved) after this many seconds of training; "
                    "the schedule stays that of --steps, and a rerun resumes")
+    p.add_argument("--export", type=Path, metavar="DIR",
+                   help="write the float16 export of the run's latest checkpoint to DIR (after "
+                   "training; without --data and --quick: only that)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_flags(p, "vla", VLA_DEFAULT, VLA_QUICK)
     add_flags(p, "train", TRAIN_DEFAULT, TRAIN_QUICK)
@@ -224,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyError, ValueError) as err:
         p.error(str(err.args[0] if isinstance(err, KeyError) else err))
     data_dir = args.data
+    if data_dir is None and args.export is not None and not args.quick:
+        return _export(args.out, args.export)
     if data_dir is None:
         if not args.quick:
             p.error("give --data DIR (python -m agnostos_mjx.train.vla_data), or --quick")
@@ -245,6 +250,21 @@ def main(argv: list[str] | None = None) -> int:
     print(f"reference VLA run in {args.out}: {len(data)} keyframes of {len(data.tasks)} tasks; "
           f"evaluate with python -m agnostos_mjx.eval --policy reference-vla "
           f"--policy-arg checkpoint={args.out}")
+    return 0 if args.export is None else _export(args.out, args.export)
+
+
+def _export(run: Path, out: Path) -> int:
+    from agnostos_mjx.dynamics.checkpoint import CheckpointError
+    from agnostos_mjx.vla.checkpoint import export
+
+    try:
+        info = export(run, out)
+    except CheckpointError as err:
+        print(f"train.vla: {err}", file=sys.stderr)
+        return 2
+    size = sum(f.stat().st_size for f in out.iterdir()) / 1e6
+    print(f"export of {run} (step {info['source']['step']}, {info['parameters']:,} "
+          f"parameters) in {out}: {size:.1f} MB")
     return 0
 
 
