@@ -71,6 +71,7 @@ def test_quick_train_reload_evaluate(tmp_path):
     for policy in policies:
         assert policy.observation_spec.cameras == ("front", "overhead")
         assert policy.observation_spec.height == 32
+        assert policy.max_steps == policy.meta["max_key_actions"] <= 6  # the longest demo
     rng = np.random.default_rng(0)
     args = (rng.uniform([-0.3, -0.5, 0.7], [0.7, 0.5, 1.2], (2, 64, 3)).astype(np.float32),
             rng.integers(0, 255, (2, 64, 3)).astype(np.uint8),
@@ -89,6 +90,7 @@ def test_quick_train_reload_evaluate(tmp_path):
     assert rc == 0
     rows = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and {r["policy"] for r in rows} == {"reference-vla"}
+    assert all(r["key_actions"] <= policies[0].max_steps for r in rows)
 
 
 def test_usage_errors(tmp_path, capsys):

@@ -1,12 +1,16 @@
 """The reference in-domain VLA as an evaluator policy: ``--policy reference-vla
---policy-arg checkpoint=RUN`` (a run directory of ``python -m agnostos_mjx.train.vla``).
+--policy-arg checkpoint=RUN`` (a run directory of ``python -m agnostos_mjx.train.vla``, or
+its float16 export: vla/checkpoint.py).
 
 It declares the observation its checkpoint was trained on (the cameras and image size
 in the checkpoint's metadata; RGB and point clouds), and at every step predicts each
 world's next key action from the fused point cloud, the gripper state, the number of key
 actions taken so far and the instruction: the tip position, X-ICM's Euler bins
-(decoded as textualise.euler_bins_to_quat) and the gripper's open amount (0, 0.1, ..., 1).  Every action is valid: an
-episode ends on success, failure or the task's key-action limit.
+(decoded as textualise.euler_bins_to_quat) and the gripper's open amount (0, 0.1, ..., 1).
+It gives up (an invalid action: the episode ends as no_action) after as many key actions
+as the longest training demo had (``max_key_actions`` in the checkpoint; the key-action
+index embedding never saw more), so that a lost episode does not run to the task's limit of
+25; ``--policy-arg max_steps=25`` turns that off.
 """
 
 from __future__ import annotations
@@ -27,7 +31,8 @@ class ReferenceVLAPolicy:
 
     name = "reference-vla"
 
-    def __init__(self, checkpoint: str | None = None, renderer: str = "auto") -> None:
+    def __init__(self, checkpoint: str | None = None, renderer: str = "auto",
+                 max_steps: int | None = None) -> None:
         if not checkpoint:
             raise ValueError("reference-vla needs its run directory: --policy-arg "
                              "checkpoint=RUN (python -m agnostos_mjx.train.vla --out RUN)")
@@ -36,13 +41,16 @@ class ReferenceVLAPolicy:
 
         from agnostos_mjx.dynamics.checkpoint import CheckpointError
         from agnostos_mjx.vla.checkpoint import load
-        from agnostos_mjx.vla.model import predict
+        from agnostos_mjx.vla.model import MAX_STEPS, predict
         from agnostos_mjx.vla.views import render_views
 
         try:
             model, self.meta = load(checkpoint)
         except CheckpointError as err:
             raise ValueError(str(err)) from None
+        self.max_steps = int(max_steps or self.meta.get("max_key_actions") or MAX_STEPS)
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
         obs = self.meta["observation"]
         self.cameras = tuple(obs["cameras"])
         self.observation_spec = ObservationSpec(
@@ -79,7 +87,8 @@ class ReferenceVLAPolicy:
             self._params, points.astype(np.float16).astype(np.float32), rgb,  # as stored
             np.asarray(observation.gripper_pose[:, :3], np.float32), self.ids[:b],
             self.mask[:b], np.asarray(observation.gripper_open, np.float32), self.steps[:b])
+        valid = self.steps[:b] < self.max_steps
         self.steps = self.steps + 1
         return KeyActions(pos=np.asarray(pos, np.float32),
                           quat=euler_bins_to_quat(np.asarray(bins)).astype(np.float32),
-                          gripper=np.asarray(grip, np.float32), valid=np.ones(b, bool))
+                          gripper=np.asarray(grip, np.float32), valid=valid)

@@ -186,6 +186,7 @@ def train_vla(data: KeyframeData, cfg: VLAConfig, tcfg: TrainConfig, out: Path,
                                      for k, v in rec.items()), file=sys.stderr, flush=True)
 
     meta = {**run_meta(cfg, data.cameras, data.size), "tasks": data.tasks,
+            "max_key_actions": int(data.arrays["step"].max()) + 1,
             "augment": augment, "samples": {"train": int(len(train_idx)),
                                             "heldout": int(len(held_idx))}}
     return train(lambda: ReferenceVLA(cfg, rngs=nnx.Rngs(tcfg.seed)), loss_fn, get_batch,
