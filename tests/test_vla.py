@@ -43,7 +43,7 @@ def test_heatmaps_decode_to_their_target():
     assert float(far[..., 4].sum()) == 0.0
 
 
-def test_quick_train_reload_evaluate(tmp_path):
+def test_quick_train_reload_evaluate(tmp_path, capsys):
     """The smoke path: a tiny model trained for a few steps on 2 tasks (data generated on
     the fly), saved, reloaded as the policy (from the run and from its float16 export) and
     evaluated on 2 episodes; rerunning the training command resumes instead of starting
@@ -61,6 +61,8 @@ def test_quick_train_reload_evaluate(tmp_path):
     assert len(losses) == 4 and losses[-1] < losses[0]
     held = json.loads((run / "heldout.jsonl").read_text().splitlines()[-1])
     assert held["step"] == 20 and held["samples"] > 0 and 0 <= held["gripper"] <= 1
+    assert vla.main(["--out", str(run), "--curve"]) == 0
+    assert "| 20 |" in capsys.readouterr().out
     assert vla.main(argv) == 0  # resumes at step 20: nothing more to do
     assert len((run / "log.jsonl").read_text().splitlines()) == 4
 

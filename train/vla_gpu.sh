@@ -85,6 +85,7 @@ case "$1" in
   collect)
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
     [ -d "$OUT/vla_export" ] || $PY -m agnostos_mjx.train.vla --out "$RUN" --export "$OUT/vla_export"
+    $PY -m agnostos_mjx.train.vla --out "$RUN" --curve | tee "$OUT/curve.md"
     cat "$OUT/vla_timings.txt" 2>/dev/null || true ;;
   *) echo "usage: bash train/vla_gpu.sh train|eval|collect" >&2; exit 2 ;;
 esac

@@ -209,6 +209,9 @@ def parser():
     p.add_argument("--export", type=Path, metavar="DIR",
                    help="write the float16 export of the run's latest checkpoint to DIR (after "
                    "training; without --data and --quick: only that)")
+    p.add_argument("--curve", action="store_true",
+                   help="print the run's training curve (held-out accuracy and loss) as "
+                   "markdown and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_flags(p, "vla", VLA_DEFAULT, VLA_QUICK)
     add_flags(p, "train", TRAIN_DEFAULT, TRAIN_QUICK)
@@ -228,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyError, ValueError) as err:
         p.error(str(err.args[0] if isinstance(err, KeyError) else err))
     data_dir = args.data
+    if args.curve:
+        print(curve(args.out), end="")
+        return 0
     if data_dir is None and args.export is not None and not args.quick:
         return _export(args.out, args.export)
     if data_dir is None:
@@ -252,6 +258,26 @@ def main(argv: list[str] | None = None) -> int:
           f"evaluate with python -m agnostos_mjx.eval --policy reference-vla "
           f"--policy-arg checkpoint={args.out}")
     return 0 if args.export is None else _export(args.out, args.export)
+
+
+def curve(run: Path) -> str:
+    """The run's training curve as markdown: held-out keyframe accuracy at each sample
+    point beside the training loss logged at that step (log.jsonl, heldout.jsonl)."""
+    def rows(name: str) -> list[dict]:
+        path = run / name
+        return [json.loads(x) for x in path.read_text().splitlines() if x] if path.exists() else []
+
+    loss = {r["step"]: r for r in rows("log.jsonl")}
+    lines = ["| step | train loss | seconds | held-out pos err mean / median (cm) | within 1 / 2 cm "
+             "| rotation exact / within 1 bin | gripper |", "|---|---|---|---|---|---|---|"]
+    for h in rows("heldout.jsonl"):
+        r = loss.get(h["step"], {})
+        lines.append(
+            f"| {h['step']} | {r.get('loss', float('nan')):.3f} | {r.get('seconds', '')} | "
+            f"{100 * h['pos_err_mean']:.1f} / {100 * h['pos_err_median']:.1f} | "
+            f"{h['within_1cm']:.2f} / {h['within_2cm']:.2f} | {h['rot_exact']:.2f} / "
+            f"{h['rot_within_1bin']:.2f} | {h['gripper']:.2f} |")
+    return "\n".join(lines) + "\n"
 
 
 def _export(run: Path, out: Path) -> int:
