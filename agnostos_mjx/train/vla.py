@@ -60,7 +60,10 @@ class KeyframeData:
         files = sorted(Path(directory).glob("*_[0-9][0-9][0-9][0-9][0-9].npz"))
         if not files:
             raise ValueError(f"{directory}: no keyframe chunks (python -m agnostos_mjx.train.vla_data)")
-        manifest = json.loads((Path(directory) / "manifest.json").read_text())["settings"]
+        try:
+            manifest = json.loads((Path(directory) / "manifest.json").read_text())["settings"]
+        except (OSError, ValueError, KeyError) as err:
+            raise ValueError(f"{directory}: no readable manifest.json ({err})") from None
         self.cameras, self.size = tuple(manifest["cameras"]), int(manifest["size"])
         parts: dict[str, list] = {k: [] for k in (*_ARRAYS, "desc_start", "desc_count", "task")}
         texts: list[str] = []
