@@ -112,6 +112,11 @@ def test_usage_errors(tmp_path, capsys):
         vla.main(["--out", str(tmp_path / "r"), "--data", str(tmp_path / "none")])
     with pytest.raises(SystemExit):
         vla_data.main(["--out", str(tmp_path / "d"), "--cameras", "front,nose"])
+    other = tmp_path / "other"  # data made with other settings is not mixed in
+    other.mkdir()
+    (other / "manifest.json").write_text(json.dumps({"settings": {"size": 128}}))
+    assert vla_data.main(["--out", str(other), "--tasks", "turn_tap", "--demos", "1"]) == 2
+    assert "holds data made with" in capsys.readouterr().err
     empty = tmp_path / "empty"
     empty.mkdir()
     assert vla.main(["--out", str(tmp_path / "r"), "--data", str(empty)]) == 2
