@@ -13,8 +13,11 @@
 #                                   carry the export back and set VLA_CHECKPOINT=its folder
 #   bash train/vla_gpu.sh collect   logs, curves, results and the export
 # Settings (environment): VLA_DEMOS (100 per task), VLA_CAMERAS, VLA_SIZE (96 px), VLA_STEPS
-# (10000), VLA_BATCH (32), VLA_EVAL_BATCH (75), VLA_BACKEND (native), VLA_PROCS (eval
-# processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
+# (8000), VLA_BATCH (32), VLA_EPISODES (25) and VLA_SEEDS (0,1,2) of the evaluation,
+# VLA_EVAL_BATCH (75), VLA_BACKEND (native; warp: the GPU physics and renderer), VLA_PROCS
+# (eval processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
+# A training stopped by the call's budget (log: "stopping at step") resumes where it
+# stopped, on the same schedule, when `train` runs again on the same (warm) machine.
 # VLA_TINY=1: 2 tasks x 2 demos, the --quick model and 2 episodes per task (the script's
 # logic on a CPU, e.g. `OUT=/tmp/o VLA_TINY=1 bash train/vla_gpu.sh train`).
 # Everything is logged to $OUT/vla_<stage>.log with the wall time of each stage.
@@ -32,9 +35,10 @@ if [ -n "$VLA_TINY" ]; then
   TASKS=turn_tap,push_buttons UNSEEN=lamp_on DEMOS=2 EPISODES=2 SEEDS=0 QUICK=--quick
   WORKERS=2 CHUNK=1 CAMERAS=front,overhead SIZE=32 STEPS=${VLA_STEPS:-20}
 else
-  TASKS=seen UNSEEN=unseen DEMOS=${VLA_DEMOS:-100} EPISODES=25 SEEDS=0,1,2 QUICK=
+  TASKS=seen UNSEEN=unseen DEMOS=${VLA_DEMOS:-100} QUICK=
+  EPISODES=${VLA_EPISODES:-25} SEEDS=${VLA_SEEDS:-0,1,2}
   WORKERS=16 CHUNK=10 CAMERAS=${VLA_CAMERAS:-front,left_shoulder,right_shoulder,wrist}
-  SIZE=${VLA_SIZE:-96} STEPS=${VLA_STEPS:-10000}
+  SIZE=${VLA_SIZE:-96} STEPS=${VLA_STEPS:-8000}
 fi
 BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
 PROCS=${VLA_PROCS:-4} CALL_S=${VLA_CALL_S:-570} CKPT=${VLA_CHECKPOINT:-$RUN}

@@ -44,8 +44,8 @@ from agnostos_mjx.vla.model import (
 )
 from agnostos_mjx.vla.views import render_views
 
-# ~23 epochs of the 100-demo seen data (13.9 k keyframes) at batch 32.
-TRAIN_DEFAULT = TrainConfig(steps=10_000, batch_size=32, lr=3e-4, warmup=500, log_every=100,
+# ~20 epochs of the 100-demo seen data (12.5 k training keyframes) at batch 32.
+TRAIN_DEFAULT = TrainConfig(steps=8_000, batch_size=32, lr=3e-4, warmup=500, log_every=100,
                             sample_every=2_000, ckpt_every=2_000)
 TRAIN_QUICK = TrainConfig(steps=30, batch_size=8, lr=2e-3, warmup=0, log_every=5,
                           sample_every=0, ckpt_every=30)
