@@ -93,7 +93,11 @@ class ReferenceVLA(nnx.Module):
                                    nnx.Linear(2 * d, 3 * ROT_BINS + GRIP_BINS, rngs=rngs))
 
     def __call__(self, views: jax.Array, ids: jax.Array, mask: jax.Array,
-                 gripper_open: jax.Array, step: jax.Array) -> tuple[jax.Array, ...]:
+                 gripper_open: jax.Array, step: jax.Array,
+                 pool: jax.Array | None = None) -> tuple[jax.Array, ...]:
+        """`pool` (B, 3, S, S): where to pool the tokens for rotation and gripper; default
+        the predicted heatmaps (training passes the targets, as RVT-2 does, so that those
+        heads see the right place from the first step)."""
         b, v, s, _, _ = views.shape
         p, g = self.cfg.patch, self.grid
         stem = nnx.gelu(self.stem(views.reshape(b * v, s, s, CHANNELS)))  # (BV, S, S, 32)
@@ -116,8 +120,9 @@ class ReferenceVLA(nnx.Module):
         logits = self.refine2(h).reshape(b, v, s, s)
         # Rotation and gripper from the tokens pooled under each view's heatmap (no
         # gradient through the weights) and the proprioception token (it attends to all).
-        prob = jax.lax.stop_gradient(jax.nn.softmax(logits.reshape(b, v, -1), -1))
-        prob = prob.reshape(b, v, g, p, g, p).sum((3, 5))  # (B, V, g, g)
+        if pool is None:
+            pool = jax.nn.softmax(logits.reshape(b, v, -1), -1)
+        prob = jax.lax.stop_gradient(pool).reshape(b, v, g, p, g, p).sum((3, 5))  # (B,V,g,g)
         local = jnp.einsum("bvij,bvijd->bvd", prob, vis).reshape(b, -1)  # (B, 3D)
         out = self.head(jnp.concatenate([local, x[:, -1]], -1))
         rot = out[:, : 3 * ROT_BINS].reshape(b, 3, ROT_BINS)
@@ -127,10 +132,10 @@ class ReferenceVLA(nnx.Module):
 def vla_loss(model: ReferenceVLA, batch: dict[str, jax.Array]) -> tuple[jax.Array, dict]:
     """Heatmap cross-entropy (3 views, Gaussian targets) + rotation bins + gripper."""
     cfg = model.cfg
-    logits, rot, grip = model(batch["views"], batch["ids"], batch["mask"],
-                              batch["gripper_open"], batch["step"])
-    b = logits.shape[0]
     target = target_heatmaps(batch["target_pos"], cfg.view_size, cfg.sigma)
+    logits, rot, grip = model(batch["views"], batch["ids"], batch["mask"],
+                              batch["gripper_open"], batch["step"], pool=target)
+    b = logits.shape[0]
     logp = jax.nn.log_softmax(logits.reshape(b, 3, -1), -1)
     pos_loss = -(target.reshape(b, 3, -1) * logp).sum(-1).sum(-1).mean()
     rot_loss = -jnp.take_along_axis(jax.nn.log_softmax(rot, -1),
