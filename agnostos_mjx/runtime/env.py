@@ -18,6 +18,7 @@ from agnostos_mjx.control import PandaKinematics
 from agnostos_mjx.math3d import quat_conj, quat_rotate
 from agnostos_mjx.observables import Observation
 from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
+from agnostos_mjx.runtime.dense import DenseControl, dense_action
 from agnostos_mjx.runtime.key_action import StepSpec, key_action
 from agnostos_mjx.runtime.observe import Observer
 from agnostos_mjx.runtime.phase import (
@@ -95,6 +96,7 @@ class Episodes:
         self._reachable = control.jit_for_robot(control.reachable, self.kin) if on_device else (
             lambda *args: control.reachable(self.kin, *args))
         self._device_programs: dict = {}  # batch size -> jitted key action (compiled once each)
+        self._dense_ik = control.jit_for_robot(control.dense_ik, self.kin)
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
     # ---- pure pieces (vmapped above) -------------------------------------------------
@@ -293,6 +295,49 @@ class Episodes:
             self._device_programs[key] = jax.jit(
                 lambda s, a, p: key_action(self.spec, phases, s, a, p)[0])
         return self._device_programs[key]
+
+    # ---- one dense control step ---------------------------------------------------------
+    def step_dense(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
+                   record: bool = False) -> tuple[EnvState, tuple[StepResult, ...]]:
+        """Execute one control period (runtime/dense.py) toward each world's target:
+        pos (B, 3) tip position, quat (B, 4) wxyz, gripper (B,) open amount, valid (B,).
+        On the MJX backends one device program (unless `record`); native MuJoCo and
+        `record=True` run the same step on the host."""
+        if self.on_mjx and not record:
+            return self._dense_on_device(state, targets, ctl), ()
+        phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
+                            self.record_qpos)
+        q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
+        plan = control.dense_ik(self.kin, q0, np.asarray(targets.pos, q0.dtype),
+                                np.asarray(targets.quat, q0.dtype))
+        targets = jax.tree.map(np.asarray, targets)
+        return dense_action(self.spec, phases, ctl, state, targets, plan)
+
+    def _dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl
+                         ) -> EnvState:
+        """`step_dense` as one device program (the IK its own program, shared by every
+        task as the key action's plan is)."""
+        dev = state.to_device()
+        acts = KeyActions(jnp.asarray(targets.pos, jnp.float32),
+                          jnp.asarray(targets.quat, jnp.float32),
+                          jnp.asarray(targets.gripper, jnp.float32),
+                          jnp.asarray(targets.valid, bool))
+        n = state.batch
+        mesh = getattr(self.backend, "mesh", None)
+        if mesh is not None:
+            (dev, acts), n = sharding.shard((dev, acts), mesh)
+        key = ("dense", dev.batch, ctl)
+        if key not in self._device_programs:
+            phases = DevicePhases(self.backend.device_physics(dev.batch), self._condition_step,
+                                  steps_per_iteration(self.backend_name))
+            self._device_programs[key] = jax.jit(
+                lambda s, a, p: dense_action(self.spec, phases, ctl, s, a, p)[0])
+        from agnostos_mjx.physics.mjx_backend import gc_paused
+
+        plan = self._dense_ik(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+            new = jax.block_until_ready(self._device_programs[key](dev, acts, plan))
+        return sharding.unpad(new, n).to_host()
 
     # ---- observation ------------------------------------------------------------------
     def render(self, state: EnvState, camera: str = "front", width: int = 128,
