@@ -18,6 +18,7 @@ import numpy as np
 
 from agnostos_mjx.cli import Progress
 from agnostos_mjx.evaluation.config import EvalConfig
+from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
 from agnostos_mjx.policies.base import PolicyAdapter
 
@@ -88,8 +89,6 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
     `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
     from agnostos_mjx.runtime.outcome import Outcome
-
-    from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
 
     n = len(part)
     run_part = part + [part[-1]] * (size - n)

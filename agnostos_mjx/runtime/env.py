@@ -304,7 +304,7 @@ class Episodes:
         On the MJX backends one device program (unless `record`); native MuJoCo and
         `record=True` run the same step on the host."""
         if self.on_mjx and not record:
-            return self._dense_on_device(state, targets, ctl), ()
+            return self.dense_on_device(state, targets, ctl), ()
         phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
@@ -313,10 +313,11 @@ class Episodes:
         targets = jax.tree.map(np.asarray, targets)
         return dense_action(self.spec, phases, ctl, state, targets, plan)
 
-    def _dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl
-                         ) -> EnvState:
+    def dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
+                        physics=None) -> EnvState:
         """`step_dense` as one device program (the IK its own program, shared by every
-        task as the key action's plan is)."""
+        task as the key action's plan is); `physics`: the DevicePhysics to step (default:
+        this runner's MJX backend's)."""
         dev = state.to_device()
         acts = KeyActions(jnp.asarray(targets.pos, jnp.float32),
                           jnp.asarray(targets.quat, jnp.float32),
@@ -326,10 +327,10 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        key = ("dense", dev.batch, ctl)
+        key = ("dense", dev.batch, ctl, physics)
         if key not in self._device_programs:
-            phases = DevicePhases(self.backend.device_physics(dev.batch), self._condition_step,
-                                  steps_per_iteration(self.backend_name))
+            phases = DevicePhases(physics or self.backend.device_physics(dev.batch),
+                                  self._condition_step, steps_per_iteration(self.backend_name))
             self._device_programs[key] = jax.jit(
                 lambda s, a, p: dense_action(self.spec, phases, ctl, s, a, p)[0])
         from agnostos_mjx.physics.mjx_backend import gc_paused

@@ -1,0 +1,229 @@
+"""Dense control (runtime/dense.py, evaluation/dense.py, the dense-replay policy) on native
+MuJoCo at tiny batch: a replay of the expert's dense demo solves a seen task, relative rows
+equal absolute ones, chunks run K rows then ask again, outcomes of bad targets, the step
+budget, the device program against the host path, and the command line's errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import jax
+import numpy as np
+import pytest
+
+from agnostos_mjx import eval as ev
+from agnostos_mjx.evaluation.dense import DenseDriver, as_chunk
+from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
+from agnostos_mjx.runtime.dense import DenseControl
+from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.tasks.base import KeyActions
+from tests.conftest import episodes_for
+
+TASK = "turn_tap"  # a seen task with a short demo (3 key actions, about 90 control steps)
+
+
+def _reset(b: int):
+    ep = episodes_for(TASK)
+    keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.PRNGKey(0), e))(np.arange(b))
+    return ep, ep.reset(keys, np.arange(b, dtype=np.int32) % ep.task.num_variations)
+
+
+def _replay(ep, env, policy, ctl: DenseControl, steps: int | None = None, execute=None):
+    driver = DenseDriver(execute, policy.relative)
+    adapter = PolicyAdapter(policy)
+    for _ in range(steps or ctl.max_steps):
+        if env.done.all():
+            break
+        gen = driver.next(adapter, ep, env)
+        try:
+            while True:
+                next(gen)
+        except StopIteration as stop:
+            target = stop.value
+        env, _ = ep.step_dense(env, target, ctl)
+    return env, driver
+
+
+@pytest.fixture(scope="module")
+def replayed():
+    """Two worlds of turn_tap, the replay policy reset on them."""
+    ep, env = _reset(2)
+    policy = DenseReplayPolicy()
+    policy.reset(ep, env, ["", ""])
+    return ep, env, policy
+
+
+def test_replay_of_the_dense_demo_solves_a_seen_task(replayed) -> None:
+    ep, env, policy = replayed
+    ctl = DenseControl.at(20, ep.dt, ep.task.max_key_actions)
+    assert (ctl.period_steps, ctl.max_steps) == (10, 1000)
+    assert policy.demo_success.all()
+    out, driver = _replay(ep, env, policy, ctl)
+    assert [Outcome(int(o)) for o in out.outcome] == [Outcome.SUCCESS] * 2
+    # about one control step per demo frame (the replay lags the demo by a few)
+    assert (out.key_actions <= policy.frames + 5).all() and driver.queries == out.key_actions.max()
+    assert (out.sim_steps <= 10 * out.key_actions).all()
+
+
+def test_relative_rows_reach_the_same_targets_as_absolute_ones(replayed) -> None:
+    ep, env, policy = replayed
+    ctl = DenseControl(10, 1000)
+    absolute, _ = _replay(ep, env, policy, ctl, steps=25)
+    rel = DenseReplayPolicy(relative=True)
+    rel.pose, rel.gripper, rel.frames = policy.pose, policy.gripper, policy.frames
+    relative, _ = _replay(ep, env, rel, ctl, steps=25)
+    np.testing.assert_array_equal(relative.outcome, absolute.outcome)
+    np.testing.assert_array_equal(relative.key_actions, absolute.key_actions)
+    np.testing.assert_allclose(relative.data, absolute.data, atol=1e-6)
+
+
+def test_chunks_run_k_rows_open_loop_then_ask_again() -> None:
+    class Counting:
+        name, action_modes, calls = "counting", ("dense",), 0
+
+        def reset(self, *args) -> None:
+            pass
+
+        def act(self, episodes, env) -> KeyActions:
+            self.calls += 1
+            h = 5
+            pos = np.zeros((2, h, 3)) + 100 * self.calls + np.arange(h)[None, :, None]
+            return KeyActions(pos, np.tile([1.0, 0, 0, 0], (2, h, 1)), np.ones((2, h)),
+                              np.ones((2, h), bool))
+
+    policy = Counting()
+    driver, env = DenseDriver(3, False), SimpleNamespace(batch=2)
+    rows = []
+    for _ in range(7):
+        gen = driver.next(PolicyAdapter(policy), None, env)
+        with pytest.raises(StopIteration) as stop:
+            next(gen)
+        rows.append(stop.value.value.pos[0, 0])
+    assert policy.calls == driver.queries == 3
+    assert rows == [100, 101, 102, 200, 201, 202, 300]
+    with pytest.raises(ValueError, match=r"got pos \(2, 4\)"):
+        as_chunk(KeyActions(np.zeros((2, 4)), np.zeros((2, 4)), np.zeros(2), np.ones(2, bool)), 2)
+
+
+def test_a_chunked_replay_gives_the_one_row_replay(replayed) -> None:
+    """The replay's chunk rows follow the control steps executed, so any --execute
+    replays the same demo: the episodes end alike."""
+    ep, env, policy = replayed
+    ctl = DenseControl(10, 1000)
+    one, _ = _replay(ep, env, policy, ctl, steps=30)
+    chunked = DenseReplayPolicy(chunk=4)
+    chunked.pose, chunked.gripper, chunked.frames = policy.pose, policy.gripper, policy.frames
+    out, driver = _replay(ep, env, chunked, ctl, steps=30, execute=3)
+    assert driver.queries == 10
+    np.testing.assert_array_equal(out.data, one.data)
+
+
+def test_bad_targets_end_with_the_planner_verdicts_and_the_budget_with_max_steps() -> None:
+    ep, env = _reset(5)
+    obs = env.obs
+    pos = np.array(obs["tip.pos"], np.float64)
+    quat = np.array(obs["tip.quat"], np.float64)
+    pos[1] = (0.2, 0.0, 2.5)  # above the action bounds
+    pos[2, 0] = np.nan
+    pos[4] = (0.69, 0.49, 1.75)  # inside the bounds, out of the arm's reach
+    valid = np.array([True, True, True, False, True])
+    ctl = DenseControl(10, 2)
+    hold = KeyActions(pos, quat, np.ones(5), valid)
+    env, _ = ep.step_dense(env, hold, ctl)
+    assert [Outcome(int(o)) for o in env.outcome] == [
+        Outcome.RUNNING, Outcome.OUT_OF_WORKSPACE, Outcome.INVALID_ACTION, Outcome.NO_ACTION,
+        Outcome.UNREACHABLE]
+    assert env.key_actions.tolist() == [1, 0, 0, 0, 0]
+    assert env.sim_steps.tolist() == [10, 0, 0, 0, 0]
+    env, _ = ep.step_dense(env, hold, ctl)
+    assert Outcome(int(env.outcome[0])) == Outcome.MAX_STEPS and env.key_actions[0] == 2
+
+
+def test_the_gripper_moves_at_its_rate() -> None:
+    """The gripper moves at its rate (a full close in 0.18 s: 4 control periods of 50 ms)
+    and back when opened; nothing lies between the fingers, so nothing is grasped."""
+    ep, env = _reset(1)
+    obs = env.obs
+    pos, quat = np.asarray(obs["tip.pos"], np.float64), np.asarray(obs["tip.quat"], np.float64)
+    ctl = DenseControl(10, 100)
+    grips = []
+    for g in (0.0, 0.0, 0.0, 0.0, 1.0):
+        env, _ = ep.step_dense(env, KeyActions(pos, quat, np.array([g]), np.ones(1, bool)), ctl)
+        grips.append(round(float(env.gripper[0]) / 0.04, 4))
+    assert grips == [0.7222, 0.4444, 0.1667, 0.0, 0.2778]
+    assert not env.attached.any() and Outcome(int(env.outcome[0])) == Outcome.RUNNING
+
+
+def test_device_program_matches_host_path_on_native_physics(replayed) -> None:
+    """The dense step's device program (DevicePhases stepping MuJoCo's C physics through
+    host callbacks, IK in JAX) against the host path: same outcomes, poses within 1 cm."""
+    from agnostos_mjx.physics.callback import callback_physics
+
+    ep, env, policy = replayed
+    ctl = DenseControl(10, 1000)
+    host, _ = _replay(ep, env, policy, ctl, steps=40)
+    physics = callback_physics(ep.scene.model, 2)
+    dev = env
+    for _ in range(40):
+        dev = ep.dense_on_device(dev, policy.act(ep, dev), ctl, physics=physics)
+    np.testing.assert_array_equal(dev.outcome, host.outcome)
+    np.testing.assert_array_equal(dev.key_actions, host.key_actions)
+    for key in ("tip.pos", *(f"{f}.pos" for f in ep.task.observed_frames)):
+        if key in ep.scene.layout.names:
+            assert np.abs(np.asarray(dev.obs[key]) - np.asarray(host.obs[key])).max() < 0.01
+
+
+def test_the_replay_acts_on_the_export_frames() -> None:
+    """The replay's frames are the export's (data/expert_frames.py): the proprioception of
+    the rendered frames, bit for bit, at every K physics steps."""
+    from agnostos_mjx.data.expert_frames import episode_observations, proprio_frames
+    from agnostos_mjx.observation import ObservationSpec
+
+    ep, env = _reset(1)
+    spec = ObservationSpec(cameras=("front",), height=8, width=8, renderer="cpu")
+    _, rendered, keys = episode_observations(ep, env.replace(stop_at_success=False), spec, 10)
+    _, proprio, keys2 = proprio_frames(ep, env.replace(stop_at_success=False), 10)
+    assert keys == keys2 and len(rendered[0]) == len(proprio[0]) > 50
+    for a, b in zip(rendered[0], proprio[0]):
+        for field in ("gripper_pose", "gripper_open", "joint_positions"):
+            np.testing.assert_array_equal(a[field], b[field])
+
+
+def _one_line_error(capsys: pytest.CaptureFixture) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: ") and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--policy", "oracle", "--action-mode", "dense"],
+     "policy oracle acts in keyaction mode, not dense"),
+    (["--policy", "dense-replay"], "policy dense-replay acts in dense mode, not keyaction"),
+    (["--policy", "oracle", "--execute", "3"], "--execute only apply to --action-mode dense"),
+    (["--policy", "dense-replay", "--action-mode", "dense", "--policy-arg", "chunk=0"],
+     "chunk must be an integer >= 1"),
+])
+def test_cli_errors(args: list[str], expected: str, tmp_path: Path,
+                    capsys: pytest.CaptureFixture) -> None:
+    assert ev.main([*args, "--tasks", TASK, "--quiet", "--out", str(tmp_path / "r")]) == 2
+    assert expected in _one_line_error(capsys)
+    with pytest.raises(SystemExit) as exc:
+        ev.main(["--action-mode", "sparse"])
+    assert exc.value.code == 2 and "invalid choice: 'sparse'" in capsys.readouterr().err
+
+
+def test_cli_dense_replay_records_the_mode_and_budget(tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    assert ev.main(["--policy", "dense-replay", "--action-mode", "dense", "--tasks", TASK,
+                    "--seeds", "0", "--episodes", "1", "--batch", "1", "--backend", "native",
+                    "--policy-arg", "chunk=4", "--execute", "3", "--dense-steps", "500",
+                    "--quiet", "--out", str(out)]) == 0
+    (record,) = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
+    assert record["success"] and record["action_mode"] == "dense"
+    assert record["step_budget"] == 500 and record["control_hz"] == 20.0
+    assert record["policy_info"]["demo_success"]
+    config = json.loads((out / "results.json").read_text())["config"]
+    assert config["action_mode"] == "dense" and config["execute"] == 3
