@@ -25,8 +25,15 @@ import logging
 from dataclasses import dataclass
 
 from agnostos_mjx import control
-from agnostos_mjx.runtime.key_action import Phases, StepSpec, _phase, _with_welds
-from agnostos_mjx.runtime.outcome import STATUS_OUTCOME, Outcome, is_done
+from agnostos_mjx.runtime.key_action import (
+    Phases,
+    StepSpec,
+    _phase,
+    _with_welds,
+    begin_action,
+    end_action,
+)
+from agnostos_mjx.runtime.outcome import is_done
 from agnostos_mjx.runtime.state import EnvState, StepResult
 from agnostos_mjx.tasks.base import KeyActions
 
@@ -77,18 +84,8 @@ def dense_action(spec: StepSpec, phases: Phases, ctl: DenseControl, state: EnvSt
     finished worlds ignore theirs.  Returns the new state and the phase's per-step record."""
     xp = phases.xp
     stop = state.stop_at_success
-    running = state.outcome == Outcome.RUNNING
-    done = is_done(state.outcome, stop)
-    valid = xp.asarray(targets.valid, bool)
-    outcome = xp.where(~done & ~valid & running, Outcome.NO_ACTION, state.outcome)
-    active = ~done & valid
-
     q_goal, status = plan
-    bad = active & (status != control.Status.OK)
-    for code, reason in STATUS_OUTCOME.items():
-        outcome = xp.where(bad & (status == code), reason, outcome)
-    active = active & ~bad
-    state = state.replace(outcome=outcome, key_actions=state.key_actions + active)
+    state, active = begin_action(phases, state, targets.valid, status)
     records: list[StepResult] = []
 
     # The gripper: the finger target moves toward the commanded opening at the gripper's
@@ -115,10 +112,5 @@ def dense_action(spec: StepSpec, phases: Phases, ctl: DenseControl, state: EnvSt
     closed = active & (end < start - GRIPPER_TOL) & (xp.abs(end - goal) < GRIPPER_TOL) \
         & ~is_done(state.outcome, stop)
     state = state.replace(gripper=xp.where(active, end, state.gripper))
-    if spec.attach is not None:
-        hits = xp.asarray(spec.attach(state.data, state.attached))
-        state = _with_welds(spec, phases, state, state.attached | (hits & closed[:, None]))
-
-    over = (state.outcome == Outcome.RUNNING) & (state.key_actions >= ctl.max_steps)
-    return state.replace(outcome=xp.where(over, Outcome.MAX_STEPS, state.outcome)), tuple(records)
+    return end_action(spec, phases, state, closed, ctl.max_steps), tuple(records)
 

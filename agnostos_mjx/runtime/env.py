@@ -265,6 +265,19 @@ class Episodes:
         `physics`, `unroll`: see `device_program`."""
         from agnostos_mjx.physics.mjx_backend import gc_paused
 
+        dev, acts, n = self._on_device(state, actions)
+        program = self.device_program(dev.batch, physics, unroll)
+        # The plan is its own program, shared by every task (control.jit_for_robot): the
+        # IK is most of the compile time, and the robot is the same in every scene.
+        plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+            new = jax.block_until_ready(program(dev, acts, plan))
+        return sharding.unpad(new, n).to_host()
+
+    def _on_device(self, state: EnvState, actions: KeyActions
+                   ) -> tuple[EnvState, KeyActions, int]:
+        """(state, actions) as JAX arrays, split over the local devices where the backend
+        has several (sharding.py), and the batch's own size."""
         dev = state.to_device()
         acts = KeyActions(jnp.asarray(actions.pos, jnp.float32),
                           jnp.asarray(actions.quat, jnp.float32),
@@ -274,13 +287,7 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:  # worlds split over the local devices (sharding.py)
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        program = self.device_program(dev.batch, physics, unroll)
-        # The plan is its own program, shared by every task (control.jit_for_robot): the
-        # IK is most of the compile time, and the robot is the same in every scene.
-        plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
-        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
-            new = jax.block_until_ready(program(dev, acts, plan))
-        return sharding.unpad(new, n).to_host()
+        return dev, acts, n
 
     def device_program(self, batch: int, physics=None, unroll: int | None = None):
         """The jitted key action of a batch of `batch` worlds: (state, actions, plan) ->
@@ -318,15 +325,7 @@ class Episodes:
         """`step_dense` as one device program (the IK its own program, shared by every
         task as the key action's plan is); `physics`: the DevicePhysics to step (default:
         this runner's MJX backend's)."""
-        dev = state.to_device()
-        acts = KeyActions(jnp.asarray(targets.pos, jnp.float32),
-                          jnp.asarray(targets.quat, jnp.float32),
-                          jnp.asarray(targets.gripper, jnp.float32),
-                          jnp.asarray(targets.valid, bool))
-        n = state.batch
-        mesh = getattr(self.backend, "mesh", None)
-        if mesh is not None:
-            (dev, acts), n = sharding.shard((dev, acts), mesh)
+        dev, acts, n = self._on_device(state, targets)
         key = ("dense", dev.batch, ctl, physics)
         if key not in self._device_programs:
             phases = DevicePhases(physics or self.backend.device_physics(dev.batch),
