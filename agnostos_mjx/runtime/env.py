@@ -325,19 +325,25 @@ class Episodes:
         """`step_dense` as one device program (the IK its own program, shared by every
         task as the key action's plan is); `physics`: the DevicePhysics to step (default:
         this runner's MJX backend's)."""
+        from agnostos_mjx.physics.mjx_backend import gc_paused
+
         dev, acts, n = self._on_device(state, targets)
-        key = ("dense", dev.batch, ctl, physics)
+        program = self.dense_program(dev.batch, ctl, physics)
+        plan = self._dense_ik(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+            new = jax.block_until_ready(program(dev, acts, plan))
+        return sharding.unpad(new, n).to_host()
+
+    def dense_program(self, batch: int, ctl: DenseControl, physics=None):
+        """The jitted dense step of `batch` worlds: (state, targets, IK plan) -> state,
+        compiled once per batch size and control (as `device_program`)."""
+        key = ("dense", batch, ctl, physics)
         if key not in self._device_programs:
-            phases = DevicePhases(physics or self.backend.device_physics(dev.batch),
+            phases = DevicePhases(physics or self.backend.device_physics(batch),
                                   self._condition_step, steps_per_iteration(self.backend_name))
             self._device_programs[key] = jax.jit(
                 lambda s, a, p: dense_action(self.spec, phases, ctl, s, a, p)[0])
-        from agnostos_mjx.physics.mjx_backend import gc_paused
-
-        plan = self._dense_ik(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
-        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
-            new = jax.block_until_ready(self._device_programs[key](dev, acts, plan))
-        return sharding.unpad(new, n).to_host()
+        return self._device_programs[key]
 
     # ---- observation ------------------------------------------------------------------
     def render(self, state: EnvState, camera: str = "front", width: int = 128,
