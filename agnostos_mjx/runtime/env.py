@@ -96,7 +96,10 @@ class Episodes:
         self._reachable = control.jit_for_robot(control.reachable, self.kin) if on_device else (
             lambda *args: control.reachable(self.kin, *args))
         self._device_programs: dict = {}  # batch size -> jitted key action (compiled once each)
+        # Dense control's IK (runtime/dense.py), placed as the planner is.
         self._dense_ik = control.jit_for_robot(control.dense_ik, self.kin)
+        self._dense_plan = self._dense_ik if on_device else (
+            lambda q, p, r: control.dense_ik(self.kin, q, p, r))
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
     # ---- pure pieces (vmapped above) -------------------------------------------------
@@ -315,8 +318,8 @@ class Episodes:
         phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        plan = control.dense_ik(self.kin, q0, np.asarray(targets.pos, q0.dtype),
-                                np.asarray(targets.quat, q0.dtype))
+        plan = tuple(map(np.asarray, self._dense_plan(
+            q0, np.asarray(targets.pos, q0.dtype), np.asarray(targets.quat, q0.dtype))))
         targets = jax.tree.map(np.asarray, targets)
         return dense_action(self.spec, phases, ctl, state, targets, plan)
 
