@@ -77,11 +77,12 @@ class DenseControl:
         return cls(period, max_steps)
 
 
-def dense_action(spec: StepSpec, phases: Phases, ctl: DenseControl, state: EnvState,
-                 targets: KeyActions, plan: tuple) -> tuple[EnvState, tuple[StepResult, ...]]:
-    """Execute one control period per world toward `targets` (tip pose, gripper open
-    amount, valid), with `plan` = (joint goal (B, 7), status (B,)) from control.dense_ik;
-    finished worlds ignore theirs.  Returns the new state and the phase's per-step record."""
+def dense_action(spec: StepSpec, phases: Phases, state: EnvState, targets: KeyActions,
+                 plan: tuple, ctl: DenseControl) -> tuple[EnvState, tuple[StepResult, ...]]:
+    """Execute one control period (`ctl`) per world toward `targets` (tip pose, gripper
+    open amount, valid), with `plan` = (joint goal (B, 7), status (B,)) from
+    control.dense_ik; finished worlds ignore theirs.  Returns the new state and the
+    phase's per-step record."""
     xp = phases.xp
     stop = state.stop_at_success
     q_goal, status = plan

@@ -253,34 +253,37 @@ class Episodes:
         and native MuJoCo run the same key action on the host."""
         if self.on_mjx and not record:
             return self.step_on_device(state, actions), ()
+        return self._run_on_host(state, actions, self._plan,
+                                 lambda *args: key_action(self.spec, *args))
+
+    def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run
+                     ) -> tuple[EnvState, tuple[StepResult, ...]]:
+        """`run(phases, state, actions, plan)` on the host (HostPhases, numpy), the plan
+        `plan_fn(q, pos, quat)` from the current joints."""
         phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        plan = tuple(map(np.asarray, self._plan(
+        plan = tuple(map(np.asarray, plan_fn(
             q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype))))
         actions = jax.tree.map(np.asarray, actions)
-        return key_action(self.spec, phases, state, actions, plan)
+        return run(phases, state, actions, plan)
 
     def step_on_device(self, state: EnvState, actions: KeyActions, physics=None,
                        unroll: int | None = None) -> EnvState:
         """`step` as one device program; the physics state and condition carries stay on
         the device, the host receives the per-world bookkeeping and latest sensor row.
         `physics`, `unroll`: see `device_program`."""
+        return self._run_on_device(state, actions,
+                                   lambda b: self.device_program(b, physics, unroll),
+                                   self._device_plan)
+
+    def _run_on_device(self, state: EnvState, actions: KeyActions, program_for, plan_fn
+                       ) -> EnvState:
+        """`program_for(batch)(state, actions, plan_fn(q, pos, quat))` with state and
+        actions as JAX arrays, split over the local devices where the backend has several
+        (sharding.py); returns the host's view of the new state."""
         from agnostos_mjx.physics.mjx_backend import gc_paused
 
-        dev, acts, n = self._on_device(state, actions)
-        program = self.device_program(dev.batch, physics, unroll)
-        # The plan is its own program, shared by every task (control.jit_for_robot): the
-        # IK is most of the compile time, and the robot is the same in every scene.
-        plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
-        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
-            new = jax.block_until_ready(program(dev, acts, plan))
-        return sharding.unpad(new, n).to_host()
-
-    def _on_device(self, state: EnvState, actions: KeyActions
-                   ) -> tuple[EnvState, KeyActions, int]:
-        """(state, actions) as JAX arrays, split over the local devices where the backend
-        has several (sharding.py), and the batch's own size."""
         dev = state.to_device()
         acts = KeyActions(jnp.asarray(actions.pos, jnp.float32),
                           jnp.asarray(actions.quat, jnp.float32),
@@ -290,7 +293,13 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:  # worlds split over the local devices (sharding.py)
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        return dev, acts, n
+        program = program_for(dev.batch)
+        # The plan is its own program, shared by every task (control.jit_for_robot): the
+        # IK is most of the compile time, and the robot is the same in every scene.
+        plan = plan_fn(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+            new = jax.block_until_ready(program(dev, acts, plan))
+        return sharding.unpad(new, n).to_host()
 
     def device_program(self, batch: int, physics=None, unroll: int | None = None):
         """The jitted key action of a batch of `batch` worlds: (state, actions, plan) ->
@@ -315,27 +324,17 @@ class Episodes:
         `record=True` run the same step on the host."""
         if self.on_mjx and not record:
             return self.dense_on_device(state, targets, ctl), ()
-        phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
-                            self.record_qpos)
-        q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        plan = tuple(map(np.asarray, self._dense_plan(
-            q0, np.asarray(targets.pos, q0.dtype), np.asarray(targets.quat, q0.dtype))))
-        targets = jax.tree.map(np.asarray, targets)
-        return dense_action(self.spec, phases, ctl, state, targets, plan)
+        return self._run_on_host(state, targets, self._dense_plan,
+                                 lambda *args: dense_action(self.spec, *args, ctl))
 
     def dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
                         physics=None) -> EnvState:
         """`step_dense` as one device program (the IK its own program, shared by every
         task as the key action's plan is); `physics`: the DevicePhysics to step (default:
         this runner's MJX backend's)."""
-        from agnostos_mjx.physics.mjx_backend import gc_paused
-
-        dev, acts, n = self._on_device(state, targets)
-        program = self.dense_program(dev.batch, ctl, physics)
-        plan = self._dense_ik(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
-        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
-            new = jax.block_until_ready(program(dev, acts, plan))
-        return sharding.unpad(new, n).to_host()
+        return self._run_on_device(state, targets,
+                                   lambda b: self.dense_program(b, ctl, physics),
+                                   self._dense_ik)
 
     def dense_program(self, batch: int, ctl: DenseControl, physics=None):
         """The jitted dense step of `batch` worlds: (state, targets, IK plan) -> state,
@@ -345,7 +344,7 @@ class Episodes:
             phases = DevicePhases(physics or self.backend.device_physics(batch),
                                   self._condition_step, steps_per_iteration(self.backend_name))
             self._device_programs[key] = jax.jit(
-                lambda s, a, p: dense_action(self.spec, phases, ctl, s, a, p)[0])
+                lambda s, a, p: dense_action(self.spec, phases, s, a, p, ctl)[0])
         return self._device_programs[key]
 
     # ---- observation ------------------------------------------------------------------
