@@ -202,7 +202,7 @@ def _one_line_error(capsys: pytest.CaptureFixture) -> str:
     (["--policy", "oracle", "--action-mode", "dense"],
      "policy oracle acts in keyaction mode, not dense"),
     (["--policy", "dense-replay"], "policy dense-replay acts in dense mode, not keyaction"),
-    (["--policy", "oracle", "--execute", "3"], "--execute only apply to --action-mode dense"),
+    (["--policy", "oracle", "--execute", "3"], "--execute: only with --action-mode dense"),
     (["--policy", "dense-replay", "--action-mode", "dense", "--policy-arg", "chunk=0"],
      "chunk must be an integer >= 1"),
 ])

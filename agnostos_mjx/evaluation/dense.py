@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
 
+
 def check_action_mode(cfg: EvalConfig, policy: PolicyAdapter) -> None:
     """A UsageError unless the policy acts in cfg's action mode and the dense options are
     only given with ``--action-mode dense``."""
@@ -38,7 +39,7 @@ def check_action_mode(cfg: EvalConfig, policy: PolicyAdapter) -> None:
                                           ("--dense-steps", cfg.dense_steps),
                                           ("--execute", cfg.execute)) if value is not None]
         if given:
-            raise UsageError(f"{', '.join(given)} only apply to --action-mode dense")
+            raise UsageError(f"{', '.join(given)}: only with --action-mode dense")
     modes = policy.action_modes()
     if cfg.action_mode not in modes:
         raise UsageError(
