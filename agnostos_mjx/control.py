@@ -550,18 +550,36 @@ FINGER_SPEED = FINGER_OPEN / (0.6 * GRIPPER_TIME)  # m/s: the key action's full 
 
 def dense_ik(kin: PandaKinematics, q0, target_pos, target_quat):
     """The joint goal of one dense control step: damped least squares warm-started at the
-    current joints q0 (B, 7), no restarts and no path (a target a control period away is
-    near); returns (q (B, 7), status (B,)), q0 where the status is not OK.  Numpy stops
-    each world once it converges; JAX runs DENSE_IK_ITERS steps."""
+    current joints q0 (B, 7), no seeds elsewhere and no path (a target a control period
+    away is near); returns (q (B, 7), status (B,)), q0 where the status is not OK.
+
+    Targets are clipped into ACTION_BOUNDS, not refused: the arm's own trajectory between
+    key actions leaves the box (by 0.3 mm in a place_wine demo), so the dense export's
+    frames do too.  The plain step first (the experts' posture); where it stalls out of
+    tolerance, typically on a joint limit, the limit-aware restart step from the same warm
+    start.  Numpy stops each world once it converges; JAX runs DENSE_IK_ITERS steps of
+    both."""
     xp = array_module(q0, target_pos, target_quat)
-    target_pos, target_quat, finite, inside = _checked_targets(target_pos, target_quat)
+    target_pos, target_quat, finite, _ = _checked_targets(target_pos, target_quat)
+    target_pos = xp.clip(target_pos, xp.asarray(ACTION_BOUNDS[0]), xp.asarray(ACTION_BOUNDS[1]))
     if xp is np:
         n = len(q0)
-        q, pe, re = _descend_np(kin, np.asarray(q0, np.float64), np.arange(n), target_pos,
-                                target_quat, n, DENSE_IK_ITERS, restart=False)
+        q0 = np.asarray(q0, np.float64)
+        q, pe, re = _descend_np(kin, q0, np.arange(n), target_pos, target_quat, n,
+                                DENSE_IK_ITERS, restart=False)
+        todo = np.flatnonzero(~_ok(pe, re))
+        if todo.size:
+            q2, pe2, re2 = _descend_np(kin, q0[todo], np.arange(todo.size), target_pos[todo],
+                                       target_quat[todo], todo.size, DENSE_IK_ITERS,
+                                       restart=True)
+            q[todo], pe[todo], re[todo] = q2, pe2, re2
     else:
         q, pe, re = _ik_from(kin, q0, target_pos, target_quat, DENSE_IK_ITERS)
-    status = _status(finite, inside, _ok(pe, re))
+        q2, pe2, re2 = _ik_from(kin, q0, target_pos, target_quat, DENSE_IK_ITERS, restart=True)
+        retry = ~_ok(pe, re)
+        q = xp.where(retry[:, None], q2, q)
+        pe, re = xp.where(retry, pe2, pe), xp.where(retry, re2, re)
+    status = _status(finite, xp.ones_like(finite), _ok(pe, re))
     return xp.where((status == Status.OK)[:, None], q, q0), status
 
 

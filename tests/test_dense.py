@@ -126,7 +126,7 @@ def test_bad_targets_end_with_the_planner_verdicts_and_the_budget_with_max_steps
     obs = env.obs
     pos = np.array(obs["tip.pos"], np.float64)
     quat = np.array(obs["tip.quat"], np.float64)
-    pos[1] = (0.2, 0.0, 2.5)  # above the action bounds
+    pos[1, 0] -= 0.05  # a reachable step
     pos[2, 0] = np.nan
     pos[4] = (0.69, 0.49, 1.75)  # inside the bounds, out of the arm's reach
     valid = np.array([True, True, True, False, True])
@@ -134,12 +134,35 @@ def test_bad_targets_end_with_the_planner_verdicts_and_the_budget_with_max_steps
     hold = KeyActions(pos, quat, np.ones(5), valid)
     env, _ = ep.step_dense(env, hold, ctl)
     assert [Outcome(int(o)) for o in env.outcome] == [
-        Outcome.RUNNING, Outcome.OUT_OF_WORKSPACE, Outcome.INVALID_ACTION, Outcome.NO_ACTION,
+        Outcome.RUNNING, Outcome.RUNNING, Outcome.INVALID_ACTION, Outcome.NO_ACTION,
         Outcome.UNREACHABLE]
-    assert env.key_actions.tolist() == [1, 0, 0, 0, 0]
-    assert env.sim_steps.tolist() == [10, 0, 0, 0, 0]
+    assert env.key_actions.tolist() == [1, 1, 0, 0, 0]
+    assert env.sim_steps.tolist() == [10, 10, 0, 0, 0]
     env, _ = ep.step_dense(env, hold, ctl)
     assert Outcome(int(env.outcome[0])) == Outcome.MAX_STEPS and env.key_actions[0] == 2
+
+
+def test_dense_ik_clips_targets_into_the_bounds_and_gets_off_joint_limits() -> None:
+    """A target outside the action bounds is the clipped target (the demos' own frames
+    leave the box by fractions of a millimetre); a target the plain step stalls on at a
+    joint limit (a reach_and_drag demo frame, 5.4 mm off) is solved by the limit-aware
+    step from the same warm start."""
+    from agnostos_mjx import control
+
+    kin = episodes_for(TASK).kin
+    q0 = np.array([[0.06066866, -0.07606204, 0.08721349, -2.73897765, -1.67886055,
+                    3.20776158, -2.22980038]])
+    pos = np.array([[0.0795984, 0.13964653, 0.90512973]])
+    quat = np.array([[0.1317151, 0.51603287, 0.83179581, 0.15645108]])
+    q, status = control.dense_ik(kin, q0, pos, quat)
+    assert status.tolist() == [control.Status.OK] and q[0, 6] == pytest.approx(kin.lower[6])
+    _, pe, re = control._descend_np(kin, q0, np.arange(1), pos, quat / np.linalg.norm(quat),
+                                    1, control.DENSE_IK_ITERS, restart=False)
+    assert pe[0] > control.IK_POS_TOL  # the plain step alone stalls there
+    out = pos + [[0.0, 0.5, 0.0]]
+    clipped = np.clip(out, *map(np.array, control.ACTION_BOUNDS))
+    for a, b in zip(control.dense_ik(kin, q0, out, quat), control.dense_ik(kin, q0, clipped, quat)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_the_gripper_moves_at_its_rate() -> None:

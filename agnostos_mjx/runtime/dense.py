@@ -11,10 +11,11 @@ every backend over the same `Phases` boundary as runtime/key_action.py.
     ->  grasp attach when a closing command completes (RLBench's proximity test, as the
         key action attaches after its gripper phase)
     ->  outcomes: a world whose action is not valid ends with NO_ACTION; a non-finite target
-        INVALID_ACTION, one outside the action bounds OUT_OF_WORKSPACE, one the IK cannot
-        reach from the current joints UNREACHABLE (the key action's planner verdicts);
-        success / failure conditions checked at every physics step; MAX_STEPS once a world
-        has used the step budget (`DenseControl.max_steps` control steps).
+        INVALID_ACTION, one the IK cannot reach from the current joints UNREACHABLE (the
+        key action's planner verdicts; a target outside the action bounds is clipped into
+        them, see control.dense_ik, so OUT_OF_WORKSPACE does not occur); success / failure
+        conditions checked at every physics step; MAX_STEPS once a world has used the
+        step budget (`DenseControl.max_steps` control steps).
 
 The state's `key_actions` counts the control steps executed.
 """
