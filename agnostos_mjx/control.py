@@ -420,16 +420,33 @@ def _cartesian_np(kin: PandaKinematics, q0, p0, r0, target_pos, target_quat, tod
     return path, ok
 
 
-def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
-    """Plan the arm motion of B worlds (q0 (B, 7), targets (B, 3)/(B, 4)).
-    Returns (path (B, CART_SEGMENTS+1, 7), duration (B,) seconds, status (B,))."""
-    xp = array_module(q0, target_pos, target_quat)
+def _checked_targets(target_pos, target_quat):
+    """(pos, unit quat, finite, inside the bounds) of B targets: non-finite ones replaced by
+    a harmless pose (their status says INVALID_ACTION), quaternions normalised."""
+    xp = array_module(target_pos, target_quat)
     finite = xp.all(xp.isfinite(target_pos), -1) & xp.all(xp.isfinite(target_quat), -1)
     target_pos = xp.where(finite[:, None], target_pos, 0.0)
     norm = xp.linalg.norm(xp.where(finite[:, None], target_quat, 1.0), axis=-1, keepdims=True)
     target_quat = xp.where(finite[:, None] & (norm > 1e-6), target_quat / xp.maximum(norm, 1e-6),
                            xp.asarray([1.0, 0.0, 0.0, 0.0]))
-    inside = within_bounds(target_pos)
+    return target_pos, target_quat, finite, within_bounds(target_pos)
+
+
+def _status(finite, inside, solved):
+    """The planner's verdict per world (Status codes, int32)."""
+    xp = array_module(finite, inside, solved)
+    return xp.where(
+        ~finite, int(Status.INVALID_ACTION),
+        xp.where(~inside, int(Status.OUT_OF_WORKSPACE),
+                 xp.where(solved, int(Status.OK), int(Status.UNREACHABLE))),
+    ).astype(xp.int32)
+
+
+def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
+    """Plan the arm motion of B worlds (q0 (B, 7), targets (B, 3)/(B, 4)).
+    Returns (path (B, CART_SEGMENTS+1, 7), duration (B,) seconds, status (B,))."""
+    xp = array_module(q0, target_pos, target_quat)
+    target_pos, target_quat, finite, inside = _checked_targets(target_pos, target_quat)
     q_goal, ok_goal, _, _ = solve_ik(kin, q0, target_pos, target_quat)
 
     # Cartesian-linear path: chain IK along the straight line, warm-started.
@@ -452,11 +469,7 @@ def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
     joint_path = q0[:, None] + ts * (q_goal - q0)[:, None]
     path = xp.where(cart_ok[:, None, None], cart_path, joint_path)
 
-    status = xp.where(
-        ~finite, int(Status.INVALID_ACTION),
-        xp.where(~inside, int(Status.OUT_OF_WORKSPACE),
-                 xp.where(cart_ok | ok_goal, int(Status.OK), int(Status.UNREACHABLE))),
-    ).astype(xp.int32)
+    status = _status(finite, inside, cart_ok | ok_goal)
     dist = xp.linalg.norm(target_pos - p0, axis=-1)
     joint_dist = xp.max(xp.abs(xp.diff(path, axis=1)).sum(1), -1)
     duration = xp.maximum(MIN_MOVE_TIME, xp.maximum(dist / MAX_TIP_SPEED,
@@ -528,3 +541,51 @@ def reachable(kin: PandaKinematics, q, pos, quat, valid):
     else:
         carry, _ = jax.lax.scan(body, carry, xs)
     return carry[1]
+
+
+# ---- dense control (runtime/dense.py) -------------------------------------------------------
+DENSE_IK_ITERS = 100  # damped least squares steps from the warm start (numpy stops earlier)
+FINGER_SPEED = FINGER_OPEN / (0.6 * GRIPPER_TIME)  # m/s: the key action's full ramp, 0.18 s
+
+
+def dense_ik(kin: PandaKinematics, q0, target_pos, target_quat):
+    """The joint goal of one dense control step: damped least squares warm-started at the
+    current joints q0 (B, 7), no seeds elsewhere and no path (a target a control period
+    away is near); returns (q (B, 7), status (B,)), q0 where the status is not OK.
+
+    Targets are clipped into ACTION_BOUNDS, not refused: the arm's own trajectory between
+    key actions leaves the box (by 0.3 mm in a place_wine demo), so the dense export's
+    frames do too.  The plain step first (the experts' posture); where it stalls out of
+    tolerance, typically on a joint limit, the limit-aware restart step from the same warm
+    start.  Numpy stops each world once it converges; JAX runs DENSE_IK_ITERS steps of
+    both."""
+    xp = array_module(q0, target_pos, target_quat)
+    target_pos, target_quat, finite, _ = _checked_targets(target_pos, target_quat)
+    target_pos = xp.clip(target_pos, xp.asarray(ACTION_BOUNDS[0]), xp.asarray(ACTION_BOUNDS[1]))
+    if xp is np:
+        n = len(q0)
+        q0 = np.asarray(q0, np.float64)
+        q, pe, re = _descend_np(kin, q0, np.arange(n), target_pos, target_quat, n,
+                                DENSE_IK_ITERS, restart=False)
+        todo = np.flatnonzero(~_ok(pe, re))
+        if todo.size:
+            q2, pe2, re2 = _descend_np(kin, q0[todo], np.arange(todo.size), target_pos[todo],
+                                       target_quat[todo], todo.size, DENSE_IK_ITERS,
+                                       restart=True)
+            q[todo], pe[todo], re[todo] = q2, pe2, re2
+    else:
+        q, pe, re = _ik_from(kin, q0, target_pos, target_quat, DENSE_IK_ITERS)
+        q2, pe2, re2 = _ik_from(kin, q0, target_pos, target_quat, DENSE_IK_ITERS, restart=True)
+        retry = ~_ok(pe, re)
+        q = xp.where(retry[:, None], q2, q)
+        pe, re = xp.where(retry, pe2, pe), xp.where(retry, re2, re)
+    status = _status(finite, xp.ones_like(finite), _ok(pe, re))
+    return xp.where((status == Status.OK)[:, None], q, q0), status
+
+
+def gripper_toward(start, goal, t):
+    """Finger targets moving from `start` toward `goal` at FINGER_SPEED for t seconds
+    (dense control: the gripper is commanded directly, at the gripper's rate)."""
+    xp = array_module(start, goal, t)
+    reach = FINGER_SPEED * t
+    return start + xp.clip(goal - start, -reach, reach)

@@ -21,7 +21,11 @@ layout (data/lerobot_layout.py), for the same ``cameras``, ``size``, ``state`` a
 
 ``control_mode``: ``keyaction`` (one step = one key action through the planner, as the
 AGNOSTOS protocol and X-ICM's harness run policies; ``_max_episode_steps`` = the task's 25
-key actions).  ``dense`` is refused until the runtime has a dense control step.
+key actions) or ``dense`` (one step = one control period at ``control_hz``, default 20, the
+rate of the export's ``--every rlbench`` frames: the row is an end-effector target reached
+by IK and physics without the planner, runtime/dense.py; ``_max_episode_steps`` = the dense
+step budget, ``dense_steps`` or by default 25 key actions x 2 s: 1000 steps at 20 Hz; the
+render fps is the control rate).
 
 Episodes follow the evaluation protocol (evaluation/protocol.py): gymnasium seed ``g`` of a
 world is episode ``g`` of protocol seed ``protocol_seed``, scene key ``fold_in(PRNGKey(
@@ -96,6 +100,8 @@ class EnvOptions:
     state: str = "rlbench"
     rotation: str = "quat"
     control_mode: str = "keyaction"
+    control_hz: float = 20.0  # dense: control steps per second
+    dense_steps: int | None = None  # dense: the step budget (default: runtime/dense.py's)
     backend: str = "native"
     variations: str = "protocol"  # as the evaluator's --variations (protocol|all|zero|N)
     protocol_seed: int = 0
@@ -123,10 +129,12 @@ class EnvOptions:
         if self.control_mode not in CONTROL_MODES:
             raise ValueError(f"unknown control_mode {self.control_mode!r}; choose from "
                              f"{', '.join(CONTROL_MODES)}")
-        if self.control_mode == "dense":
-            raise ValueError("control_mode 'dense' needs the runtime's dense control step, "
-                             "which is not part of this build yet; use control_mode "
-                             "'keyaction'")
+        if not isinstance(self.control_hz, (int, float)) or not self.control_hz > 0:
+            raise ValueError(f"control_hz must be a positive rate, got {self.control_hz!r}")
+        if self.dense_steps is not None and (not isinstance(self.dense_steps, int)
+                                             or self.dense_steps < 1):
+            raise ValueError(f"dense_steps must be a positive integer, got "
+                             f"{self.dense_steps!r}")
         if self.autoreset_mode not in AUTORESET_MODES:
             raise ValueError(f"unknown autoreset_mode {self.autoreset_mode!r}; choose from "
                              f"{', '.join(AUTORESET_MODES)}")
@@ -226,9 +234,10 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
                              f"0..{self._task.num_variations - 1}")
         self.num_envs = num_envs
         self.task = self._task.name
-        self._max_episode_steps = self._task.max_key_actions
         self.render_mode = "rgb_array"
-        self.metadata = {"render_modes": ["rgb_array"], "render_fps": KEYFRAME_FPS,
+        dense = opts.control_mode == "dense"
+        self.metadata = {"render_modes": ["rgb_array"],
+                         "render_fps": opts.control_hz if dense else KEYFRAME_FPS,
                          "autoreset_mode": AUTORESET_MODES[opts.autoreset_mode]}
         pixels = gym.spaces.Dict({c: gym.spaces.Box(0, 255, (opts.size, opts.size, 3), np.uint8)
                                   for c in opts.cameras})
@@ -242,7 +251,8 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         self.single_action_space = gym.spaces.Box(low, high, dtype=np.float32)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
-        self._step_fn = {"keyaction": self._key_action_step}[opts.control_mode]
+        self._step_fn = self._dense_step if dense else self._key_action_step
+        self._dense_control = None  # dense: runtime.dense.DenseControl, made with the runner
         self._episodes = None  # the batched runner, built at the first reset
         self._state = None
         self._episode: np.ndarray | None = None  # each world's protocol episode number
@@ -255,6 +265,24 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
     def task_description(self) -> tuple[str, ...]:
         """Each world's instruction (its variation's first description)."""
         return self._instructions
+
+    @property
+    def _max_episode_steps(self) -> int:
+        """Steps per episode: the task's key actions, or the dense step budget."""
+        if self.options.control_mode == "dense":
+            return self.dense_control.max_steps
+        return self._task.max_key_actions
+
+    @property
+    def dense_control(self):
+        """Dense mode's control period and step budget (built with the runner)."""
+        if self._dense_control is None:
+            from agnostos_mjx.runtime.dense import DenseControl
+
+            self._dense_control = DenseControl.at(
+                self.options.control_hz, self.runner.dt, self._task.max_key_actions,
+                self.options.dense_steps)
+        return self._dense_control
 
     @property
     def runner(self):
@@ -395,6 +423,15 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
 
     def _key_action_step(self, state, rows: np.ndarray, running: np.ndarray):
         """One key action per running world from the export-layout rows."""
+        return self.runner.step(state, self._targets(rows, running))[0]
+
+    def _dense_step(self, state, rows: np.ndarray, running: np.ndarray):
+        """One control period per running world toward the export-layout rows."""
+        return self.runner.step_dense(state, self._targets(rows, running),
+                                      self.dense_control)[0]
+
+    def _targets(self, rows: np.ndarray, running: np.ndarray) -> KeyActions:
+        """The rows as targets (tip pose, gripper); a row that is none is not valid."""
         from agnostos_mjx.remote.adapter import Adapter, BadAnswer, parse_rows
 
         adapter = Adapter(action_key=None, rotation=self.options.rotation)
@@ -408,8 +445,7 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
                 valid[i] = False  # the world ends as no_action
                 continue
             pos[i], quat[i], grip[i] = p, q, g
-        acts = KeyActions(pos=pos, quat=quat.astype(np.float32), gripper=grip, valid=valid)
-        return self.runner.step(state, acts)[0]
+        return KeyActions(pos=pos, quat=quat.astype(np.float32), gripper=grip, valid=valid)
 
     # ---- observation ---------------------------------------------------------------------
     def _observe(self) -> dict:

@@ -120,6 +120,23 @@ def slerp(a: Array, b: Array, t: Array) -> Array:
     return quat_normalize(wa * a + wb * b)
 
 
+def apply_delta(pos: Array, quat: Array, delta_pos: Array, delta_quat: Array
+                ) -> tuple[Array, Array]:
+    """A pose (pos, quat wxyz) moved by a relative action: the position plus `delta_pos`
+    (world frame), `delta_quat` composed on the left (a rotation about the world axes, as
+    RLBench's ``absolute_mode=False`` and robosuite's OSC apply deltas), normalised."""
+    xp = array_module(quat, delta_quat)
+    quat = quat / xp.linalg.norm(quat, axis=-1, keepdims=True)
+    return pos + delta_pos, quat_normalize(quat_mul(delta_quat, quat))
+
+
+def pose_delta(pos: Array, quat: Array, target_pos: Array, target_quat: Array
+               ) -> tuple[Array, Array]:
+    """The relative action that `apply_delta` turns from the pose (pos, quat) into the
+    target: (target_pos - pos, target_quat * conj(quat))."""
+    return target_pos - pos, quat_mul(target_quat, quat_conj(quat))
+
+
 def transform_point(pos: Array, quat: Array, local: Array) -> Array:
     """World position of a point given in a frame (pos, quat)."""
     return pos + quat_rotate(quat, local)

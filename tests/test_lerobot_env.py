@@ -241,7 +241,8 @@ def test_suites_features_and_plugin_package() -> None:
     (lambda: resolve_tasks("level3"), "unknown task or suite 'level3'.*level1"),
     (lambda: make_suites("", 1), "must name a task or a suite"),
     (lambda: AgnostosVectorEnv("lamp_on", 0), "num_envs"),
-    (lambda: EnvOptions(control_mode="dense"), "control_mode 'dense'.*keyaction"),
+    (lambda: EnvOptions(control_mode="dense", control_hz=0), "control_hz must be a positive rate"),
+    (lambda: EnvOptions(control_mode="dense", dense_steps=0), "dense_steps must be"),
     (lambda: EnvOptions(control_mode="joint"), "unknown control_mode"),
     (lambda: EnvOptions(cameras="front,top"), "cameras must be"),
     (lambda: EnvOptions(rotation="matrix"), "unknown rotation"),
@@ -303,3 +304,28 @@ def test_real_lerobot_rollout_through_the_plugin(tmp_path) -> None:
     out = json.loads((tmp_path / "out.json").read_text())
     assert out["known_env_types_has_agnostos"]
     assert len(out["replay"]) == 6 and all(all(r["successes"]) for r in out["replay"])
+
+
+def test_dense_rows_of_the_dense_export_replay_to_success() -> None:
+    """control_mode dense: one step = one 50 ms control period; the dense export's action
+    rows of each world's expert demo (the dense-replay policy's, in the export's Euler
+    layout) replayed one per step succeed within the dense budget."""
+    from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
+
+    env = _env("turn_tap", 2, control_mode="dense", rotation="euler")
+    assert env.call("_max_episode_steps") == (1000, 1000)
+    assert env.metadata["render_fps"] == 20.0
+    env.reset(seed=0)
+    replay = DenseReplayPolicy()
+    replay.reset(env.runner, env._state, ["", ""])
+    n = replay.gripper.shape[1]
+    ended, success = np.zeros(2, bool), np.zeros(2, bool)
+    for k in range(n + 20):
+        rows = layout.action_vector("euler", replay.pose[:, min(k, n - 1)],
+                                    replay.gripper[:, min(k, n - 1)])
+        _, _, term, trunc, info = env.step(rows)
+        success |= (term | trunc) & ~ended & info["is_success"]
+        ended |= term | trunc
+        if ended.all():
+            break
+    assert success.all() and info["key_actions"].max() <= n

@@ -40,16 +40,43 @@ def keyframe_observations(episodes, env, spec) -> tuple[object, list[list[dict]]
 def episode_observations(episodes, env, spec, every: int | None = None
                          ) -> tuple[object, list[list[dict]], list[list[int]]]:
     """Run the expert; per world its frames (RLBenchObservation.world dicts plus
-    ``task_low_dim_state``) and the indices of its keyframes among them.
+    ``task_low_dim_state``) and the indices of its keyframes among them (`expert_frames`)."""
+    task = episodes.scene.task
+
+    def snapshot(view) -> list[dict]:
+        obs = episodes.observe(view, spec)
+        state = task_low_dim_state(task, view.obs)
+        return [{**obs.world(i), "task_low_dim_state": state[i]}
+                for i in range(len(view.variation))]
+
+    return expert_frames(episodes, env, snapshot, every)
+
+
+def proprio_frames(episodes, env, every: int | None = None
+                   ) -> tuple[object, list[list[dict]], list[list[int]]]:
+    """`expert_frames` without rendering: each frame the proprioception (gripper_pose,
+    gripper_open, joints) an export's frame holds; what a dense replay needs."""
+
+    def snapshot(view) -> list[dict]:
+        proprio = episodes.observer.proprioception(view)
+        return [{k: v[i] for k, v in proprio.items()} for i in range(len(view.variation))]
+
+    return expert_frames(episodes, env, snapshot, every, qpos=False)
+
+
+def expert_frames(episodes, env, snapshot, every: int | None = None, qpos: bool = True
+                  ) -> tuple[object, list[list[dict]], list[list[int]]]:
+    """Run the expert; per world its frames (`snapshot(view)`: a dict per row of an
+    EnvState `view`) and the indices of its keyframes among them.
 
     Keyframes: the scene after reset and after each key action.  With `every` = K (physics
-    steps, native backend) also the scene after every K-th physics step of each key action,
-    counted from the action's start over its arm and gripper phases, before the action's
-    keyframe (a step that ends the action is its keyframe, not repeated): a key action of S
-    steps gives ceil(S / K) frames, the last its keyframe.  A dense frame is the physics
-    state of that step (qpos, the step's sensordata: joint velocities, gripper, object
-    poses), painted with the state colours as the runtime would paint them had the phase
-    ended there."""
+    steps, recorded on the host) also the scene after every K-th physics step of each key
+    action, counted from the action's start over its arm and gripper phases, before the
+    action's keyframe (a step that ends the action is its keyframe, not repeated): a key
+    action of S steps gives ceil(S / K) frames, the last its keyframe.  A dense frame is the
+    physics state of that step (qpos when `qpos`, for rendering; the step's sensordata:
+    joint velocities, gripper, object poses), painted with the state colours as the runtime
+    would paint them had the phase ended there."""
     import jax
 
     from agnostos_mjx.observables import Observation
@@ -57,19 +84,17 @@ def episode_observations(episodes, env, spec, every: int | None = None
     n = len(env.variation)
     frames: list[list[dict]] = [[] for _ in range(n)]
     keyframes: list[list[int]] = [[] for _ in range(n)]
-    task = episodes.scene.task
     layout = episodes.scene.layout
 
     def snap(view, worlds, key: bool, rows=None):
-        """Observe `view` and append its row rows[i] (default: worlds[i]) to world
+        """Snapshot `view` and append its row rows[i] (default: worlds[i]) to world
         worlds[i]'s frames."""
-        obs = episodes.observe(view, spec)
-        state = task_low_dim_state(task, view.obs)
+        shots = snapshot(view)
         for i, w in enumerate(worlds):
             row = int(w) if rows is None else int(rows[i])
             if key:
                 keyframes[w].append(len(frames[w]))
-            frames[w].append({**obs.world(row), "task_low_dim_state": state[row]})
+            frames[w].append(shots[row])
 
     def dense(env, results, rgba, running):
         """The in-between frames of one key action from its phases' StepResults."""
@@ -84,8 +109,9 @@ def episode_observations(episodes, env, spec, every: int | None = None
                 rows = np.nonzero(want[:, t])[0]
                 obs_t = Observation(r.sensordata[:, t], layout, r.attached[:, t])
                 painted = colours.update(rgba, env.initial_obs, obs_t, env.variation)
+                physics = env.physics.rows(rows)
                 view = env.replace(
-                    physics=env.physics.rows(rows).replace(qpos=r.qpos[rows, t]),
+                    physics=physics if r.qpos is None else physics.replace(qpos=r.qpos[rows, t]),
                     data=r.sensordata[rows, t], attached=r.attached[rows, t],
                     geom_rgba=np.asarray(painted)[rows], variation=env.variation[rows],
                     initial_data=env.initial_data[rows])
@@ -100,7 +126,7 @@ def episode_observations(episodes, env, spec, every: int | None = None
     snap(env, range(n), key=True)
     actions = episodes.expert_actions(env)
     recording = episodes.record_qpos
-    episodes.record_qpos = every is not None
+    episodes.record_qpos = every is not None and qpos
     try:
         for k in range(actions.pos.shape[1]):
             step = jax.tree.map(lambda x, k=k: x[:, k], actions)
@@ -108,13 +134,23 @@ def episode_observations(episodes, env, spec, every: int | None = None
             if not running.any():
                 break
             rgba = env.geom_rgba
-            env, results = episodes.step(env, step)
+            env, results = episodes.step(env, step, record=every is not None)
             if every is not None and results:
                 dense(env, results, rgba, running)
             snap(env, np.nonzero(running)[0], key=True)
     finally:
         episodes.record_qpos = recording
     return env, frames, keyframes
+
+
+def next_frame_actions(frames: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """The dense actions of one demo's frames, as the LeRobot export writes them: frame t's
+    action is frame t+1's gripper pose (x y z qx qy qz qw, float64 of the float32 pose) and
+    gripper_open, the last frame's its own.  Returns (target pose (n, 7), gripper (n,))."""
+    pose = np.stack([np.asarray(f["gripper_pose"], np.float32) for f in frames])
+    grip = np.array([f["gripper_open"] for f in frames], np.float32)
+    return (np.concatenate([pose[1:], pose[-1:]]).astype(np.float64),
+            np.concatenate([grip[1:], grip[-1:]]))
 
 
 def task_low_dim_state(task, obs) -> np.ndarray:

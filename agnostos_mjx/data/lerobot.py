@@ -101,6 +101,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agnostos_mjx.data.expert_frames import next_frame_actions
 from agnostos_mjx.data.lerobot_layout import (
     IMAGE_PREFIX,
     ROTATION_DOCS,
@@ -248,8 +249,7 @@ def stage_episode(path: Path, frames: list[dict], keyframes: Sequence[int], key_
     pose = np.stack([np.asarray(f["gripper_pose"], np.float32) for f in frames])
     grip = np.array([f["gripper_open"] for f in frames], np.float32)
     if dense:
-        target = np.concatenate([pose[1:], pose[-1:]]).astype(np.float64)
-        target_grip = np.concatenate([grip[1:], grip[-1:]])
+        target, target_grip = next_frame_actions(frames)
     else:
         ran = n - 1
         if ran > len(key_pos):

@@ -26,6 +26,8 @@ VARIATION_MODES = ("protocol", "all", "zero")
 # Option groups of --help (None: the main options).
 SCALE = "several devices and hosts (see README, Scale out)"
 LLM = "X-ICM and retrieval"
+DENSE = "dense control (see README, Dense control)"
+ACTION_MODES = ("keyaction", "dense")
 
 
 class UsageError(Exception):
@@ -140,6 +142,24 @@ class EvalConfig:
         "protocol", "protocol: unseen tasks use variation 0, seen tasks sample one per "
                     "episode; all: sample for every task; zero: always 0; N: always N",
         type=variation_mode)
+    action_mode: str = option(
+        "keyaction", "keyaction: one key action per policy step, planned and executed to "
+                     "rest (the AGNOSTOS / X-ICM protocol); dense: one end-effector target "
+                     "per control step at --control-hz, by IK and physics for one control "
+                     "period, for policies that declare it (see agnostos_mjx/runtime/dense.py)",
+        group=DENSE, choices=ACTION_MODES)
+    control_hz: float | None = option(
+        None, "dense: control rate (default 20, RLBench's and LIBERO's observation rate; the "
+              "period is rounded to whole 5 ms physics steps)", group=DENSE,
+        type=positive_float, metavar="HZ")
+    dense_steps: int | None = option(
+        None, "dense: step budget in control steps, after which an episode ends as "
+              "max_steps (default: 25 key actions x 2 s = 50 s, 1000 steps at 20 Hz)",
+        group=DENSE, type=positive_int, metavar="N")
+    execute: int | None = option(
+        None, "dense: rows of a policy's action chunk run open loop before it is asked again "
+              "(default: the whole chunk); remote policies take theirs as --policy-arg "
+              "execute=K", group=DENSE, type=positive_int, metavar="K")
     out: str | None = option(
         None, "output directory; default results/<policy>-<timestamp>, <policy> being the "
               "policy run (retrieval or xicm under auto)")

@@ -18,6 +18,7 @@ import numpy as np
 
 from agnostos_mjx.cli import Progress
 from agnostos_mjx.evaluation.config import EvalConfig
+from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
 from agnostos_mjx.policies.base import PolicyAdapter
 
@@ -91,6 +92,12 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
 
     n = len(part)
     run_part = part + [part[-1]] * (size - n)
+    dense = cfg.action_mode == "dense"
+    ctl = dense_control(cfg, runner) if dense else None
+    limit = ctl.max_steps if ctl is not None else task.max_key_actions
+    mode = {"action_mode": cfg.action_mode, "step_budget": limit}
+    if ctl is not None:
+        mode["control_hz"] = round(1.0 / (ctl.period_steps * runner.dt), 6)
     t_batch = time.perf_counter()
     keys = episode_keys(np.array([s for s, _ in run_part]), np.array([e for _, e in run_part]))
     variations = episode_variations(keys, task.num_variations, task.split.value, cfg.variations)
@@ -103,16 +110,17 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
         if new.any():
             records = episode_records(task, policy, runner.backend_name, part, variations,
                                       instructions, env, outcome, np.nonzero(new)[0],
-                                      time.perf_counter() - t_batch, len(run_part))
+                                      time.perf_counter() - t_batch, len(run_part), mode)
             recorded[new] = True
             out.extend(records)
             on_records(records)
 
+    unit = "control step" if dense else "key action"
+
     def report(rounds: int) -> None:
         if tick is not None:
-            tick(done_before + len(out), (n - recorded.sum()) * rounds / task.max_key_actions,
-                 f"{label} key action {min(rounds + 1, task.max_key_actions)}"
-                 f"/{task.max_key_actions}")
+            tick(done_before + len(out), (n - recorded.sum()) * rounds / limit,
+                 f"{label} {unit} {min(rounds + 1, limit)}/{limit}")
 
     report(0)
     env = runner.reset(keys, variations)
@@ -121,12 +129,17 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
     try:
         policy.reset(runner, env, instructions,
                      episode_seeds=[policy_seed(s, e) for s, e in run_part])
-        for rounds in range(task.max_key_actions):
+        driver = DenseDriver(cfg.execute, policy.relative()) if ctl is not None else None
+        for rounds in range(limit):
             if env.done.all():
                 break
-            actions = yield from policy.act_steps(runner, env)
             running = env.outcome == Outcome.RUNNING
-            env, _ = runner.step(env, actions)
+            if driver is not None:
+                actions = yield from driver.next(policy, runner, env)
+                env, _ = runner.step_dense(env, actions, ctl)
+            else:
+                actions = yield from policy.act_steps(runner, env)
+                env, _ = runner.step(env, actions)
             if videos is not None:
                 videos.capture(env)
             # A policy may say why a world got no action (bad LLM output, LLM error).
@@ -153,8 +166,10 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
 def episode_records(task: Task, policy: PolicyAdapter, backend: str,
                     part: Sequence[tuple[int, int]], variations: np.ndarray,
                     instructions: list[str], env: EnvState, outcome: np.ndarray,
-                    worlds: Iterable[int], wall_s: float, batch_size: int) -> list[dict]:
-    """The records of the finished `worlds` of a batch (episodes.jsonl's lines)."""
+                    worlds: Iterable[int], wall_s: float, batch_size: int,
+                    mode: dict | None = None) -> list[dict]:
+    """The records of the finished `worlds` of a batch (episodes.jsonl's lines); `mode`:
+    the action mode and step budget (key_actions counts control steps in dense mode)."""
     from agnostos_mjx.runtime.outcome import Outcome
 
     records = []
@@ -168,6 +183,7 @@ def episode_records(task: Task, policy: PolicyAdapter, backend: str,
             "outcome": Outcome(int(outcome[i])).label,
             "key_actions": int(env.key_actions[i]), "sim_steps": int(env.sim_steps[i]),
             "backend": backend, "batch_size": batch_size, "wall_s": round(wall_s, 4),
+            **(mode or {}),
         }
         info = policy.episode_info(int(i))
         if info is not None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from agnostos_mjx.cli import check_writable_dir, progress_bar, versions
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
+from agnostos_mjx.evaluation.dense import check_action_mode
 from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, select_tasks
 from agnostos_mjx.evaluation.records import (
     EPISODES_FILE,
@@ -128,6 +129,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                  ", ".join(t.name for t in tasks) or "no task")
     _check_compare(cfg)
     spec, note, policy = load_policy(cfg)
+    check_action_mode(cfg, policy)
     policy_class = f"{type(policy.policy).__module__}.{type(policy.policy).__qualname__}"
     log.info("policy %s (%s)", policy.name, policy_class)
     backend = resolve_backend(cfg.backend, cfg.batch)

@@ -33,6 +33,11 @@ parts, `PolicyExtras`; a policy adds whichever it needs:
 * ``episode_info(world)``: what to store with the episode's record (``policy_info``).
 * ``report()``: the run's request statistics, as sections of results.json (``llm``,
   ``remote``).
+* ``action_modes``: the modes the policy acts in, ("keyaction",) by default; a policy for
+  ``--action-mode dense`` declares "dense": its `act` then returns one end-effector target
+  per world per control step, or an action chunk (B, H, ...) of them
+  (agnostos_mjx/evaluation/dense.py), and ``relative = True`` makes its rows deltas of the
+  current tip pose.
 
 The evaluator reaches every policy through `PolicyAdapter`, which supplies the defaults
 of the optional parts a policy lacks.
@@ -94,6 +99,11 @@ class PolicyExtras(Policy, Protocol):
     # Per world, an Outcome code for a world given no action (0: plain no_action);
     # default: all 0.
     end_reasons: np.ndarray
+    # The action modes it acts in ("keyaction", "dense"); default ("keyaction",).
+    action_modes: tuple[str, ...]
+    # Dense mode: rows are deltas of the tip pose measured when each row starts; default
+    # False (absolute targets).
+    relative: bool
 
     def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
               episode_seeds: Sequence[int] | None = None) -> None:
@@ -171,6 +181,14 @@ class PolicyAdapter:
             return (yield from self.policy.act_steps(episodes, env, **kwargs))
         return self.policy.act(episodes, env, **kwargs)
 
+    def action_modes(self) -> tuple[str, ...]:
+        """The action modes the policy acts in (default: key actions only)."""
+        return tuple(getattr(self.policy, "action_modes", ("keyaction",)))
+
+    def relative(self) -> bool:
+        """Whether the policy's dense rows are deltas of the current tip pose."""
+        return bool(getattr(self.policy, "relative", False))
+
     def end_reasons(self, env: EnvState) -> np.ndarray:
         """Per world, the outcome that replaces no_action (0: none)."""
         reasons = getattr(self.policy, "end_reasons", None)
@@ -206,6 +224,7 @@ def no_actions(batch: int) -> KeyActions:
 # (an LLM client, a model) load only when it is used.
 _REGISTRY: dict[str, str | Callable[..., Policy]] = {
     "oracle": "agnostos_mjx.policies.oracle:OraclePolicy",
+    "dense-replay": "agnostos_mjx.policies.dense_replay:DenseReplayPolicy",
     "xicm": "agnostos_mjx.policies.xicm:XICMPolicy",
     "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
     "remote": "agnostos_mjx.remote.client:RemotePolicy",

@@ -368,11 +368,10 @@ def apply_row(adapter: Adapter, row: Row, gripper_pose: np.ndarray) -> Row:
     if not adapter.relative:
         return row
     pose = np.asarray(gripper_pose, np.float64)
-    current = pose[[6, 3, 4, 5]]
     delta_pos, delta_quat, grip = row
-    quat = math3d.quat_normalize(math3d.quat_mul(np.asarray(delta_quat, np.float64),
-                                                 current / np.linalg.norm(current)))
-    return pose[:3] + delta_pos, quat, grip
+    pos, quat = math3d.apply_delta(pose[:3], pose[[6, 3, 4, 5]], delta_pos,
+                                   np.asarray(delta_quat, np.float64))
+    return pos, quat, grip
 
 
 def _layout(adapter: Adapter) -> str:

@@ -297,6 +297,9 @@ class RemotePolicy:
     constants)."""
 
     name = "remote"
+    # In dense mode each row is one control step's target (the adapter's execute and
+    # relative options apply as for key actions).
+    action_modes = ("keyaction", "dense")
 
     def __init__(self, url: str | None = None, preset: str = "auto",
                  keys: dict[str, str] | str | None = None,

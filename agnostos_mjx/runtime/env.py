@@ -18,6 +18,7 @@ from agnostos_mjx.control import PandaKinematics
 from agnostos_mjx.math3d import quat_conj, quat_rotate
 from agnostos_mjx.observables import Observation
 from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
+from agnostos_mjx.runtime.dense import DenseControl, dense_action
 from agnostos_mjx.runtime.key_action import StepSpec, key_action
 from agnostos_mjx.runtime.observe import Observer
 from agnostos_mjx.runtime.phase import (
@@ -95,6 +96,10 @@ class Episodes:
         self._reachable = control.jit_for_robot(control.reachable, self.kin) if on_device else (
             lambda *args: control.reachable(self.kin, *args))
         self._device_programs: dict = {}  # batch size -> jitted key action (compiled once each)
+        # Dense control's IK (runtime/dense.py), placed as the planner is.
+        self._dense_ik = control.jit_for_robot(control.dense_ik, self.kin)
+        self._dense_plan = self._dense_ik if on_device else (
+            lambda q, p, r: control.dense_ik(self.kin, q, p, r))
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
     # ---- pure pieces (vmapped above) -------------------------------------------------
@@ -248,19 +253,35 @@ class Episodes:
         and native MuJoCo run the same key action on the host."""
         if self.on_mjx and not record:
             return self.step_on_device(state, actions), ()
+        return self._run_on_host(state, actions, self._plan,
+                                 lambda *args: key_action(self.spec, *args))
+
+    def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run
+                     ) -> tuple[EnvState, tuple[StepResult, ...]]:
+        """`run(phases, state, actions, plan)` on the host (HostPhases, numpy), the plan
+        `plan_fn(q, pos, quat)` from the current joints."""
         phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        plan = tuple(map(np.asarray, self._plan(
+        plan = tuple(map(np.asarray, plan_fn(
             q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype))))
         actions = jax.tree.map(np.asarray, actions)
-        return key_action(self.spec, phases, state, actions, plan)
+        return run(phases, state, actions, plan)
 
     def step_on_device(self, state: EnvState, actions: KeyActions, physics=None,
                        unroll: int | None = None) -> EnvState:
         """`step` as one device program; the physics state and condition carries stay on
         the device, the host receives the per-world bookkeeping and latest sensor row.
         `physics`, `unroll`: see `device_program`."""
+        return self._run_on_device(state, actions,
+                                   lambda b: self.device_program(b, physics, unroll),
+                                   self._device_plan)
+
+    def _run_on_device(self, state: EnvState, actions: KeyActions, program_for, plan_fn
+                       ) -> EnvState:
+        """`program_for(batch)(state, actions, plan_fn(q, pos, quat))` with state and
+        actions as JAX arrays, split over the local devices where the backend has several
+        (sharding.py); returns the host's view of the new state."""
         from agnostos_mjx.physics.mjx_backend import gc_paused
 
         dev = state.to_device()
@@ -272,10 +293,10 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:  # worlds split over the local devices (sharding.py)
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        program = self.device_program(dev.batch, physics, unroll)
+        program = program_for(dev.batch)
         # The plan is its own program, shared by every task (control.jit_for_robot): the
         # IK is most of the compile time, and the robot is the same in every scene.
-        plan = self._device_plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        plan = plan_fn(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
         with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
             new = jax.block_until_ready(program(dev, acts, plan))
         return sharding.unpad(new, n).to_host()
@@ -292,6 +313,38 @@ class Episodes:
             phases = DevicePhases(dev, self._condition_step, k)
             self._device_programs[key] = jax.jit(
                 lambda s, a, p: key_action(self.spec, phases, s, a, p)[0])
+        return self._device_programs[key]
+
+    # ---- one dense control step ---------------------------------------------------------
+    def step_dense(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
+                   record: bool = False) -> tuple[EnvState, tuple[StepResult, ...]]:
+        """Execute one control period (runtime/dense.py) toward each world's target:
+        pos (B, 3) tip position, quat (B, 4) wxyz, gripper (B,) open amount, valid (B,).
+        On the MJX backends one device program (unless `record`); native MuJoCo and
+        `record=True` run the same step on the host."""
+        if self.on_mjx and not record:
+            return self.dense_on_device(state, targets, ctl), ()
+        return self._run_on_host(state, targets, self._dense_plan,
+                                 lambda *args: dense_action(self.spec, *args, ctl))
+
+    def dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
+                        physics=None) -> EnvState:
+        """`step_dense` as one device program (the IK its own program, shared by every
+        task as the key action's plan is); `physics`: the DevicePhysics to step (default:
+        this runner's MJX backend's)."""
+        return self._run_on_device(state, targets,
+                                   lambda b: self.dense_program(b, ctl, physics),
+                                   self._dense_ik)
+
+    def dense_program(self, batch: int, ctl: DenseControl, physics=None):
+        """The jitted dense step of `batch` worlds: (state, targets, IK plan) -> state,
+        compiled once per batch size and control (as `device_program`)."""
+        key = ("dense", batch, ctl, physics)
+        if key not in self._device_programs:
+            phases = DevicePhases(physics or self.backend.device_physics(batch),
+                                  self._condition_step, steps_per_iteration(self.backend_name))
+            self._device_programs[key] = jax.jit(
+                lambda s, a, p: dense_action(self.spec, phases, s, a, p, ctl)[0])
         return self._device_programs[key]
 
     # ---- observation ------------------------------------------------------------------

@@ -73,18 +73,8 @@ def key_action(spec: StepSpec, phases: Phases, state: EnvState, actions: KeyActi
     worlds ignore theirs.  Returns the new state and the phases' per-step records."""
     xp = phases.xp
     stop = state.stop_at_success
-    running = state.outcome == Outcome.RUNNING
-    done = is_done(state.outcome, stop)
-    valid = xp.asarray(actions.valid, bool)
-    outcome = xp.where(~done & ~valid & running, Outcome.NO_ACTION, state.outcome)
-    active = ~done & valid
-
     path, duration, status = plan
-    bad = active & (status != control.Status.OK)
-    for code, reason in STATUS_OUTCOME.items():
-        outcome = xp.where(bad & (status == code), reason, outcome)
-    active = active & ~bad
-    state = state.replace(outcome=outcome, key_actions=state.key_actions + active)
+    state, active = begin_action(phases, state, actions.valid, status)
     records: list[StepResult] = []
 
     # Arm phase: move along the path, then hold so the arm comes to rest; each world for
@@ -119,12 +109,37 @@ def key_action(spec: StepSpec, phases: Phases, state: EnvState, actions: KeyActi
     state = _phase(spec, phases, state, gripper_steps * moving, grip_ctrl, records)
     closing = moving & ~opening & ~is_done(state.outcome, stop)
     state = state.replace(gripper=xp.where(moving, target, state.gripper))
+    return end_action(spec, phases, state, closing, spec.max_key_actions), tuple(records)
+
+
+def begin_action(phases: Phases, state: EnvState, valid, status) -> tuple[EnvState, Any]:
+    """Outcomes before an action runs: NO_ACTION for a running world without a valid
+    action, the planner's verdict (`status`) for one it cannot execute; the others are
+    `active` and counted (key_actions).  Returns (state, active)."""
+    xp = phases.xp
+    running = state.outcome == Outcome.RUNNING
+    done = is_done(state.outcome, state.stop_at_success)
+    valid = xp.asarray(valid, bool)
+    outcome = xp.where(~done & ~valid & running, Outcome.NO_ACTION, state.outcome)
+    active = ~done & valid
+    bad = active & (status != control.Status.OK)
+    for code, reason in STATUS_OUTCOME.items():
+        outcome = xp.where(bad & (status == code), reason, outcome)
+    active = active & ~bad
+    return state.replace(outcome=outcome, key_actions=state.key_actions + active), active
+
+
+def end_action(spec: StepSpec, phases: Phases, state: EnvState, closing, budget: int
+               ) -> EnvState:
+    """After an action: the worlds whose gripper just `closing` closed grasp what lies in
+    the attach volume (RLBench's grasp on close), and a running world that has used the
+    `budget` of actions ends with MAX_STEPS."""
+    xp = phases.xp
     if spec.attach is not None:
         hits = xp.asarray(spec.attach(state.data, state.attached))
         state = _with_welds(spec, phases, state, state.attached | (hits & closing[:, None]))
-
-    over = (state.outcome == Outcome.RUNNING) & (state.key_actions >= spec.max_key_actions)
-    return state.replace(outcome=xp.where(over, Outcome.MAX_STEPS, state.outcome)), tuple(records)
+    over = (state.outcome == Outcome.RUNNING) & (state.key_actions >= budget)
+    return state.replace(outcome=xp.where(over, Outcome.MAX_STEPS, state.outcome))
 
 
 def _phase(spec: StepSpec, phases: Phases, state: EnvState, steps, ctrl_at: Callable,

@@ -29,6 +29,8 @@ class AgnostosEnvConfig(EnvConfig):
     state: str = "rlbench"
     rotation: str = "quat"
     control_mode: str = "keyaction"
+    control_hz: float = 20.0  # control_mode dense: control steps per second
+    dense_steps: int | None = None  # control_mode dense: the step budget
     backend: str = "native"
     variations: str = "protocol"
     protocol_seed: int = 0
@@ -53,6 +55,7 @@ class AgnostosEnvConfig(EnvConfig):
     def gym_kwargs(self) -> dict:
         return {"cameras": self.cameras, "size": self.size, "state": self.state,
                 "rotation": self.rotation, "control_mode": self.control_mode,
+                "control_hz": self.control_hz, "dense_steps": self.dense_steps,
                 "backend": self.backend, "variations": self.variations,
                 "protocol_seed": self.protocol_seed, "render_camera": self.render_camera,
                 "render_size": self.render_size, "autoreset_mode": self.autoreset_mode}

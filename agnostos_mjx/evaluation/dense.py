@@ -1,0 +1,107 @@
+"""Dense control in the evaluator (``--action-mode dense``): the policy's rows -> one target
+per world per control step for `Episodes.step_dense`.
+
+A dense policy's `act` returns one row per world (KeyActions of pos (B, 3), quat (B, 4),
+gripper (B,), valid (B,)) or an action chunk (pos (B, H, 3), quat (B, H, 4), gripper
+(B, H), valid (B, H)).  The first ``--execute K`` rows of a chunk (default: all of them)
+run open loop, one per control step, then the policy is asked again (the way LeRobot's
+ACT / diffusion policies and openpi's clients execute chunks).  A policy that declares
+``relative = True`` gives deltas: the target is the tip pose measured when the row starts
+plus the row's position, the row's rotation composed on the left (math3d.apply_delta), so
+the rows of a chunk chain through the poses actually reached.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agnostos_mjx.evaluation.config import EvalConfig, UsageError
+from agnostos_mjx.math3d import apply_delta
+from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.tasks.base import KeyActions
+
+if TYPE_CHECKING:
+    import concurrent.futures
+
+    from agnostos_mjx.runtime.dense import DenseControl
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
+
+
+def check_action_mode(cfg: EvalConfig, policy: PolicyAdapter) -> None:
+    """A UsageError unless the policy acts in cfg's action mode and the dense options are
+    only given with ``--action-mode dense``."""
+    if cfg.action_mode != "dense":
+        given = [flag for flag, value in (("--control-hz", cfg.control_hz),
+                                          ("--dense-steps", cfg.dense_steps),
+                                          ("--execute", cfg.execute)) if value is not None]
+        if given:
+            raise UsageError(f"{', '.join(given)}: only with --action-mode dense")
+    modes = policy.action_modes()
+    if cfg.action_mode not in modes:
+        raise UsageError(
+            f"policy {policy.name} acts in {' and '.join(modes)} mode, not "
+            f"{cfg.action_mode}: --action-mode {cfg.action_mode} needs a policy that declares "
+            f"it (action_modes = (..., {cfg.action_mode!r}), see agnostos_mjx/policies/base.py)")
+
+
+def dense_control(cfg: EvalConfig, runner: Episodes) -> DenseControl:
+    """The control period and step budget of cfg for `runner`'s task."""
+    from agnostos_mjx.runtime.dense import DEFAULT_CONTROL_HZ, DenseControl
+
+    hz = DEFAULT_CONTROL_HZ if cfg.control_hz is None else cfg.control_hz
+    return DenseControl.at(hz, runner.dt, runner.task.max_key_actions, cfg.dense_steps)
+
+
+def as_chunk(actions: KeyActions, batch: int) -> KeyActions:
+    """A policy's answer as a chunk (B, H, ...) of numpy arrays; a ValueError naming the
+    shapes when it is neither one row nor a chunk per world."""
+    pos, quat = np.asarray(actions.pos, np.float64), np.asarray(actions.quat, np.float64)
+    grip, valid = np.asarray(actions.gripper, np.float64), np.asarray(actions.valid, bool)
+    if pos.shape == (batch, 3):
+        pos, quat, grip, valid = pos[:, None], quat[:, None], grip[:, None], valid[:, None]
+    h = pos.shape[1] if pos.ndim == 3 else 0
+    if (pos.shape != (batch, h, 3) or quat.shape != (batch, h, 4) or grip.shape != (batch, h)
+            or valid.shape != (batch, h) or h < 1):
+        raise ValueError(
+            f"a dense policy returns one row per world (pos (B, 3), quat (B, 4), gripper "
+            f"(B,), valid (B,)) or a chunk (pos (B, H, 3), quat (B, H, 4), gripper (B, H), "
+            f"valid (B, H)), B = {batch}; got pos {pos.shape}, quat {quat.shape}, gripper "
+            f"{grip.shape}, valid {valid.shape}")
+    return KeyActions(pos, quat, grip, valid)
+
+
+class DenseDriver:
+    """The rows a batch executes: asks the policy when its chunk is used up (after
+    `execute` rows, default the whole chunk) and turns relative rows into targets."""
+
+    def __init__(self, execute: int | None, relative: bool) -> None:
+        self.execute = execute
+        self.relative = relative
+        self.chunk: KeyActions | None = None
+        self.row = 0
+        self.rows = 0
+        self.queries = 0
+
+    def next(self, policy: PolicyAdapter, runner: Episodes, env: EnvState
+             ) -> Generator[concurrent.futures.Future, Any, KeyActions]:
+        """This control step's target of every world (a generator over the futures the
+        policy waits on, as PolicyAdapter.act_steps)."""
+        if self.chunk is None or self.row >= self.rows:
+            answer = yield from policy.act_steps(runner, env)
+            self.chunk = as_chunk(answer, env.batch)
+            h = self.chunk.pos.shape[1]
+            self.rows = h if self.execute is None else min(h, self.execute)
+            self.row = 0
+            self.queries += 1
+        c, r = self.chunk, self.row
+        self.row += 1
+        pos, quat = c.pos[:, r], c.quat[:, r]
+        if self.relative:
+            obs = env.obs
+            pos, quat = apply_delta(np.asarray(obs["tip.pos"], np.float64),
+                                    np.asarray(obs["tip.quat"], np.float64), pos, quat)
+        return KeyActions(pos, quat, c.gripper[:, r], c.valid[:, r])
