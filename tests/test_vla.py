@@ -121,3 +121,20 @@ def test_usage_errors(tmp_path, capsys):
     empty.mkdir()
     assert vla.main(["--out", str(tmp_path / "r"), "--data", str(empty)]) == 2
     assert "no keyframe chunks" in capsys.readouterr().err
+
+
+def test_data_worker_holds_one_runner_at_a_time():
+    """A data worker that moves to another task closes the old runner first (one GL context
+    per process: NVIDIA's EGL refused a second one on the lent H100)."""
+    from agnostos_mjx.train import vla_data
+
+    vla_data._RUNNER.clear()
+    first = vla_data._episodes("turn_tap", 1)
+    assert vla_data._episodes("turn_tap", 1) is first
+    closed = []
+    first.close = lambda: closed.append(True)
+    second = vla_data._episodes("push_buttons", 1)
+    assert closed == [True] and second is not first
+    assert list(vla_data._RUNNER) == [("push_buttons", 1)]
+    vla_data._RUNNER.clear()
+    second.close()

@@ -21,7 +21,6 @@ the settings; a rerun with the same settings skips finished chunks.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import sys
 import time
@@ -71,14 +70,25 @@ class DataConfig:
         return self.out / f"{task}_{start:05d}.npz"
 
 
-@functools.cache
+_RUNNER: dict = {}  # this process's runner: {(task, threads): Episodes}, one at a time
+
+
 def _episodes(task_name: str, threads: int | None):
-    """One native runner per task and process: a worker that gets several chunks of a task
-    builds its scene and compiles once."""
+    """This process's native runner for `task_name`: a worker that gets several chunks of a
+    task in a row builds its scene and compiles once.  When the worker moves to another
+    task the old runner is closed first, so a process holds one renderer (GL context) at a
+    time: on a GPU host's NVIDIA EGL a worker's second live renderer failed to get a
+    framebuffer ("Offscreen framebuffer is not complete", lent H100, 16 workers)."""
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
-    return Episodes(get_task(task_name), "native", threads=threads)
+    key = (task_name, threads)
+    if key not in _RUNNER:
+        for old in _RUNNER.values():
+            old.close()
+        _RUNNER.clear()
+        _RUNNER[key] = Episodes(get_task(task_name), "native", threads=threads)
+    return _RUNNER[key]
 
 
 def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
