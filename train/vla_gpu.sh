@@ -4,11 +4,12 @@
 #   bash train/vla_gpu.sh train     keyframe data of the 18 seen tasks (16 processes), training
 #                                   on the GPU until VLA_STEPS or the call's time budget
 #                                   (VLA_CALL_S, 570 s, minus the data's time and a reserve),
-#                                   then a quick check on 3 seen tasks x 5 episodes (VLA_QUICK_TASKS,
-#                                   empty: none); rerun to resume: finished data chunks and
-#                                   checkpoints are kept
-#                                   and the float16 export (~13 MB) to $OUT/vla_export
-#   bash train/vla_gpu.sh eval      the protocol: seen, then unseen tasks, 3 seeds x 25 episodes,
+#                                   the float16 export (~13 MB) to $OUT/vla_export, then a
+#                                   quick check on 3 seen tasks x 5 episodes (VLA_QUICK_TASKS;
+#                                   empty: none); rerun to resume (finished data chunks and
+#                                   checkpoints are kept)
+#   bash train/vla_gpu.sh eval [seen|unseen]   the protocol: seen, then unseen tasks (or one
+#                                   of them), 3 seeds x 25 episodes,
 #                                   with the paper's RVT2 row (--compare); on a fresh machine
 #                                   carry the export back and set VLA_CHECKPOINT=its folder
 #   bash train/vla_gpu.sh collect   logs, curves, results and the export
@@ -84,8 +85,10 @@ case "$1" in
       echo "no checkpoint at $CKPT (a fresh machine?): carry the export that 'train' wrote to" \
         "\$OUT/vla_export and set VLA_CHECKPOINT to its folder" >&2; exit 2
     fi
-    evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS"
-    evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
+    # `eval seen` / `eval unseen`: one split per call when both do not fit one; --resume
+    # lets a call stopped by its limit continue where it was
+    [ "${2:-seen}" = unseen ] || evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS"
+    [ "${2:-unseen}" = seen ] || evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
   collect)
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
     [ -d "$OUT/vla_export" ] || $PY -m agnostos_mjx.train.vla --out "$RUN" --export "$OUT/vla_export"
