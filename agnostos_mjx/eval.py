@@ -65,6 +65,9 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         return merge_main(cfg.out)
     if cfg.local_processes > 1:
         setup_logging(cfg.quiet)
+        if guard is not None and cfg.out:  # the resume hint even if stopping takes long
+            guard.message = processes.interrupted_text(Path(cfg.out))
+            guard.grace_s = processes.STOP_GRACE_S
         return processes.main(cfg, argv)
     try:
         spec, _, note = resolve_policy(cfg)

@@ -131,6 +131,17 @@ def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
     return envs, max(where.count(k) for k in set(where))
 
 
+# Seconds Ctrl-C may take: the processes get up to 60 s to save their episodes, then are
+# killed (eval's InterruptGuard would otherwise end this process after its default 3 s,
+# before it has said where the results are).
+STOP_GRACE_S = 90.0
+
+
+def interrupted_text(out: Path) -> str:
+    return (f"interrupted: finished episodes are saved in {out}/proc-*; run the same command "
+            "with --resume to continue")
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
@@ -185,8 +196,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
                 p.wait(timeout=60)
             except subprocess.TimeoutExpired:
                 p.kill()
-        print(f"interrupted: finished episodes are saved in {out}/proc-*; run the same "
-              "command with --resume to continue", file=sys.stderr)
+        print(interrupted_text(out), file=sys.stderr)
         return 130
     finally:
         for f in logs:
