@@ -2,13 +2,7 @@
 # The GPU physics-floor measurements of issue 26 on a lent H100 (one stage per device call;
 # the machine stays warm 30 s between calls).  Outputs go to $OUT; runs to /tmp/agnostos.
 #
-# Setup, six consecutive calls (the tree that travels is ~45 MB, so a call carries <= ~20 MB):
-#   carry .whl .gl      bash tools/gpu_floor.sh setup     mujoco & co; libglvnd (EGL) if missing
-#   carry .warp/pK      bash tools/gpu_floor.sh part K    K = 0..4; part 4 assembles warp-lang
-#   (.whl: `pip download` of mujoco 4.0.0, mujoco-core, mujoco-mjx 3.17.0, trimesh for cp312;
-#    .warp/pK: `split -b 21M -d` of an xz tarball of the unpacked warp-lang 1.18.0 wheel
-#    without warp/examples and warp/tests; .gl: `apt-get download libegl1 libglvnd0 libgl1
-#    libglx0 libopengl0 libx11-6 libxcb1 libxau6 libxdmcp6 libbsd0 libmd0 libx11-data`)
+# Setup first: tools/gpu_setup.sh gl, whl, then 0..4 (warp-lang), back to back.
 # Stages:
 #   bash tools/gpu_floor.sh ab          warmup (fresh-machine cold start) + graph mode / K A/B
 #   bash tools/gpu_floor.sh warp LABEL [ARGS]   the main job on warp (extra eval ARGS)
@@ -19,24 +13,6 @@ export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d
 mkdir -p /tmp/agnostos "$OUT"
 quiet() { grep --line-buffered -v 'solver iterations\|warn_overflow\|linesearch iterations\|^Module \|^   '; }
 case "$1" in
-  setup)
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-    python3 --version; nproc
-    mkdir -p /tmp/gl && for f in .gl/*.deb; do dpkg -x "$f" /tmp/gl; done
-    for f in /tmp/gl/usr/lib/x86_64-linux-gnu/*.so*; do  # only what the image lacks
-      [ -e /usr/lib/x86_64-linux-gnu/$(basename "$f") ] || cp -a "$f" /usr/lib/x86_64-linux-gnu/
-    done
-    ldconfig
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-      --target /tmp/site .whl/*.whl
-    python3 -c "import mujoco, jax; print('mujoco', mujoco.__version__, 'jax', jax.__version__, jax.devices())"
-    python3 -c "import mujoco; r = mujoco.Renderer(mujoco.MjModel.from_xml_string('<mujoco/>'), 32, 32); print('EGL renderer ok')" 2>&1 | tail -1 ;;
-  part)
-    mkdir -p /tmp/w && cp .warp/p"$2"/* /tmp/w/
-    if [ "$2" = 4 ]; then
-      cat /tmp/w/part_* | xz -d | tar xf - -C /tmp/site
-      python3 -c "import warp, mujoco.mjx; print('warp', warp.__version__)"
-    fi ;;
   ab)
     t0=$SECONDS
     python3 -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8 2>&1 | quiet | tail -30

@@ -1,27 +1,42 @@
 #!/bin/bash
-# Install the carried wheels on the lent GPU machine in consecutive calls (the machine
-# stays warm 30 s between calls). The tree that travels is ~39 MB (the shipped model and
-# memory), so each call carries at most ~20 MB beside it (64 MiB per call):
-#   call 0, carrying .whl .gl:            bash tools/gpu_setup.sh 0    mujoco & co, EGL libraries
-#   call k = 0..N, carrying .gl .warp/pk: bash tools/gpu_setup.sh k    one 21 MB part of warp-lang
-#   (call 0 installs the wheels, then part 0 of warp when .warp/p0 is carried too)
-# The last part (N = number of .warp/p* folders made by `split -b 20M`) assembles and installs
-# warp-lang. Then: export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_run.sh does).
-# Native-only work (no warp backend) needs call 0 only.
+# Install the carried packages on the lent GPU machine, one call each, back to back (the
+# machine is given back after 30 s without a call, and everything installed goes with it).
+# The tree that travels is ~45 MB and a call may carry 64 MiB in all, so ~20 MB per call:
+#   carry .gl       bash tools/gpu_setup.sh gl     libglvnd (EGL) libraries the image lacks
+#   carry .whl      bash tools/gpu_setup.sh whl    mujoco 4.0.0, mujoco-core, mujoco-mjx 3.17.0,
+#                                                  trimesh, PyOpenGL (cp312) into /tmp/site
+#   carry .warp/pK  bash tools/gpu_setup.sh K [N]  part K of warp-lang (K = 0..N, N = 4 by
+#                                                  default); the last part assembles it
+# Native-only work (no warp backend) needs the first two calls only. Then
+# export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_run.sh, tools/gpu_floor.sh and
+# train/vla_gpu.sh do).  Making the carried folders (on this machine, all ignored):
+#   .whl:     pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp
+#             mujoco==4.0.0 mujoco-core==4.0.0 mujoco-mjx==3.17.0 trimesh==5.2.0 PyOpenGL==3.1.9
+#   .gl:      apt-get download libegl1 libglvnd0 libgl1 libglx0 libopengl0 libx11-6 libxcb1
+#             libxau6 libxdmcp6 libbsd0 libmd0 libx11-data
+#   .warp/pK: unzip the warp-lang 1.18.0 wheel, rm -r warp/examples warp/tests,
+#             tar cf - . | xz -T2 -6 > warp.tar.xz, split -b 21M -d warp.tar.xz part_,
+#             part_0K into .warp/pK
 set -e
-for f in .gl/*.deb; do [ -e "$f" ] && dpkg -x "$f" /; done  # .gl is carried in call 0 only
-ldconfig
-if [ "$1" = 0 ] && [ -d .whl ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target /tmp/site .whl/*.whl
-fi
-[ -d .warp/p"$1" ] || exit 0
-mkdir -p /tmp/w
-cp .warp/p"$1"/* /tmp/w/
-if [ "$1" = "${2:-4}" ]; then  # the last part: give N as the 2nd argument if not 4
-  # The parts are an xz tarball of the unpacked wheel without examples and tests:
-  #   cd DIR && unzip warp_lang-1.18.0-*.whl && rm -r warp/examples warp/tests &&
-  #   tar cf - . | xz -T2 -6 > warp.tar.xz && split -b 21M -d warp.tar.xz part_
-  cat /tmp/w/part_* | xz -d | tar xf - -C /tmp/site
-  PYTHONPATH=/tmp/site:$PWD python3 -c "import mujoco, warp, flax, optax, orbax.checkpoint; print('mujoco', mujoco.__version__, 'warp', warp.__version__, 'flax', flax.__version__)"
-fi
+case "$1" in
+  gl)  # only the libraries the image lacks: overwriting its own could break its drivers
+    mkdir -p /tmp/gl && for f in .gl/*.deb; do dpkg -x "$f" /tmp/gl; done
+    for f in /tmp/gl/usr/lib/x86_64-linux-gnu/*.so*; do
+      [ -e "/usr/lib/x86_64-linux-gnu/$(basename "$f")" ] || cp -a "$f" /usr/lib/x86_64-linux-gnu/
+    done
+    ldconfig
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader ;;
+  whl)
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+      --target /tmp/site .whl/*.whl
+    PYTHONPATH=/tmp/site MUJOCO_GL=egl \
+      __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json \
+      python3 -c "import mujoco, jax; mujoco.Renderer(mujoco.MjModel.from_xml_string('<mujoco/>'), 32, 32); print('mujoco', mujoco.__version__, 'jax', jax.__version__, jax.devices(), 'EGL ok')" ;;
+  [0-9]*)
+    mkdir -p /tmp/w && cp .warp/p"$1"/part_* /tmp/w/
+    if [ "$1" = "${2:-4}" ]; then
+      cat /tmp/w/part_* | xz -d | tar xf - -C /tmp/site
+      PYTHONPATH=/tmp/site python3 -c "import warp, mujoco.mjx; print('warp', warp.__version__)"
+    fi ;;
+  *) echo "usage: bash tools/gpu_setup.sh gl|whl|K [N]" >&2; exit 2 ;;
+esac

@@ -1,5 +1,5 @@
 #!/bin/bash
-# The reference VLA (issue 28) on one lent GPU host, after `bash tools/gpu_setup.sh 0`
+# The reference VLA (issue 28) on one lent GPU host, after `bash tools/gpu_setup.sh gl` and `whl`
 # (mujoco & co in /tmp/site; native physics only, no warp needed):
 #   bash train/vla_gpu.sh train     keyframe data of the 18 seen tasks (16 processes), training
 #                                   on the GPU until VLA_STEPS or the call's time budget
