@@ -17,6 +17,7 @@ import pytest
 
 from agnostos_mjx import eval as ev
 from agnostos_mjx.evaluation import protocol, records, run, scheduler, summary
+from agnostos_mjx.evaluation.timings import time_split_table
 
 
 def _records(task: str, split: str, seed: int, successes: list[bool]) -> list[dict]:
@@ -79,6 +80,19 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
                     "--backend", "native", "--quiet", "--out", str(out)])
     assert code == 0
     return out
+
+
+def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
+    """timings.jsonl: one line per task run, its stages and the rest adding up to its wall
+    time, physics and policy both measured (what the GPU profile of issue 26 reads)."""
+    (line,) = (run_dir / "timings.jsonl").read_text().splitlines()
+    t = json.loads(line)
+    assert (t["task"], t["backend"], t["episodes"]) == ("lamp_on", "native", 2)
+    stages = [t[k] for k in ("build_s", "reset_s", "policy_s", "physics_s", "other_s")]
+    assert all(v >= 0 for v in stages) and t["physics_s"] > 0 and t["policy_s"] > 0
+    assert sum(stages) == pytest.approx(t["wall_s"], abs=0.01)
+    table = time_split_table([run_dir])
+    assert "| lamp_on | native | 2 |" in table and "| all |" in table
 
 
 def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture) -> None:

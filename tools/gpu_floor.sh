@@ -2,7 +2,7 @@
 # The GPU physics-floor measurements of issue 26 on a lent H100 (one stage per device call;
 # the machine stays warm 30 s between calls).  Outputs go to $OUT; runs to /tmp/agnostos.
 #
-# Setup first: tools/gpu_setup.sh gl, whl, then 0..4 (warp-lang), back to back.
+# Setup first: tools/gpu_setup.sh base, then 0..3 (warp-lang), back to back.
 # Stages:
 #   bash tools/gpu_floor.sh ab          warmup (fresh-machine cold start) + graph mode / K A/B
 #   bash tools/gpu_floor.sh warp LABEL [ARGS]   the main job on warp (extra eval ARGS)

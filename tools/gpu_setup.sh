@@ -1,42 +1,50 @@
 #!/bin/bash
 # Install the carried packages on the lent GPU machine, one call each, back to back (the
 # machine is given back after 30 s without a call, and everything installed goes with it).
-# The tree that travels is ~45 MB and a call may carry 64 MiB in all, so ~20 MB per call:
+# The tree that travels is ~44 MB and a call may carry 64 MiB in all, so ~22 MB per call:
+#   carry .gl .whl  bash tools/gpu_setup.sh base   both of these in one call:
 #   carry .gl       bash tools/gpu_setup.sh gl     libglvnd (EGL) libraries the image lacks
 #   carry .whl      bash tools/gpu_setup.sh whl    mujoco 4.0.0, mujoco-core, mujoco-mjx 3.17.0,
 #                                                  trimesh, PyOpenGL (cp312) into /tmp/site
-#   carry .warp/pK  bash tools/gpu_setup.sh K [N]  part K of warp-lang (K = 0..N, N = 4 by
+#   carry .warp/pK  bash tools/gpu_setup.sh K [N]  part K of warp-lang (K = 0..N, N = 3 by
 #                                                  default); the last part assembles it
-# Native-only work (no warp backend) needs the first two calls only. Then
+# Native-only work (no warp backend) needs the first call only. Then
 # export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_run.sh, tools/gpu_floor.sh and
 # train/vla_gpu.sh do).  Making the carried folders (on this machine, all ignored):
 #   .whl:     pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp
 #             mujoco==4.0.0 mujoco-core==4.0.0 mujoco-mjx==3.17.0 trimesh==5.2.0 PyOpenGL==3.1.9
 #   .gl:      apt-get download libegl1 libglvnd0 libgl1 libglx0 libopengl0 libx11-6 libxcb1
 #             libxau6 libxdmcp6 libbsd0 libmd0 libx11-data
-#   .warp/pK: unzip the warp-lang 1.18.0 wheel, rm -r warp/examples warp/tests,
-#             tar cf - . | xz -T2 -6 > warp.tar.xz, split -b 21M -d warp.tar.xz part_,
+#   .warp/pK: unzip the warp-lang 1.18.0 wheel, rm -r warp/examples warp/tests
+#             warp/bin/warp-clang.so (Warp's CPU compiler: kernels for the GPU go through
+#             NVRTC in warp.so, and Warp loads warp-clang only if the file is there),
+#             tar cf - . | xz -T2 -6 > warp.tar.xz (82.5 MB), split -n 4 -d warp.tar.xz part_,
 #             part_0K into .warp/pK
 set -e
+gl() {  # only the libraries the image lacks: overwriting its own could break its drivers
+  mkdir -p /tmp/gl && for f in .gl/*.deb; do dpkg -x "$f" /tmp/gl; done
+  for f in /tmp/gl/usr/lib/x86_64-linux-gnu/*.so*; do
+    [ -e "/usr/lib/x86_64-linux-gnu/$(basename "$f")" ] || cp -a "$f" /usr/lib/x86_64-linux-gnu/
+  done
+  ldconfig
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+}
+whl() {
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl
+  PYTHONPATH=/tmp/site MUJOCO_GL=egl \
+    __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json \
+    python3 -c "import mujoco, jax; mujoco.Renderer(mujoco.MjModel.from_xml_string('<mujoco/>'), 32, 32); print('mujoco', mujoco.__version__, 'jax', jax.__version__, jax.devices(), 'EGL ok')"
+}
 case "$1" in
-  gl)  # only the libraries the image lacks: overwriting its own could break its drivers
-    mkdir -p /tmp/gl && for f in .gl/*.deb; do dpkg -x "$f" /tmp/gl; done
-    for f in /tmp/gl/usr/lib/x86_64-linux-gnu/*.so*; do
-      [ -e "/usr/lib/x86_64-linux-gnu/$(basename "$f")" ] || cp -a "$f" /usr/lib/x86_64-linux-gnu/
-    done
-    ldconfig
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader ;;
-  whl)
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-      --target /tmp/site .whl/*.whl
-    PYTHONPATH=/tmp/site MUJOCO_GL=egl \
-      __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json \
-      python3 -c "import mujoco, jax; mujoco.Renderer(mujoco.MjModel.from_xml_string('<mujoco/>'), 32, 32); print('mujoco', mujoco.__version__, 'jax', jax.__version__, jax.devices(), 'EGL ok')" ;;
+  base) gl && whl ;;
+  gl) gl ;;
+  whl) whl ;;
   [0-9]*)
     mkdir -p /tmp/w && cp .warp/p"$1"/part_* /tmp/w/
-    if [ "$1" = "${2:-4}" ]; then
+    if [ "$1" = "${2:-3}" ]; then
       cat /tmp/w/part_* | xz -d | tar xf - -C /tmp/site
-      PYTHONPATH=/tmp/site python3 -c "import warp, mujoco.mjx; print('warp', warp.__version__)"
+      PYTHONPATH=/tmp/site python3 -c "import warp, mujoco.mjx; warp.init(); print('warp', warp.__version__, 'CUDA devices', warp.get_cuda_device_count())"
     fi ;;
-  *) echo "usage: bash tools/gpu_setup.sh gl|whl|K [N]" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_setup.sh base|gl|whl|K [N]" >&2; exit 2 ;;
 esac

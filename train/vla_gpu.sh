@@ -1,6 +1,6 @@
 #!/bin/bash
-# The reference VLA (issue 28) on one lent GPU host, after `bash tools/gpu_setup.sh gl` and `whl`
-# (mujoco & co in /tmp/site; native physics only, no warp needed):
+# The reference VLA (issue 28) on one lent GPU host, after `bash tools/gpu_setup.sh base`
+# (EGL libraries, mujoco & co in /tmp/site; native physics only, no warp needed):
 #   bash train/vla_gpu.sh train     keyframe data of the 18 seen tasks (16 processes), training
 #                                   on the GPU until VLA_STEPS or the call's time budget
 #                                   (VLA_CALL_S, 570 s, minus the data's time and a reserve),
@@ -15,7 +15,9 @@
 #   bash train/vla_gpu.sh collect   logs, curves, results and the export
 # Settings (environment): VLA_DEMOS (100 per task), VLA_CAMERAS, VLA_SIZE (96 px), VLA_STEPS
 # (8000), VLA_BATCH (32), VLA_EPISODES (25) and VLA_SEEDS (0,1,2) of the evaluation,
-# VLA_EVAL_BATCH (75), VLA_BACKEND (native; warp: the GPU physics and renderer), VLA_PROCS
+# VLA_WORKERS (data processes, 16), VLA_PRECISION (training matmuls: default, tensorfloat32,
+# bfloat16, or auto: tools/vla_step_profile.py times them while the data are made and the
+# fastest by > 10 % wins), VLA_EVAL_BATCH (75), VLA_BACKEND (native; warp: the GPU physics and renderer), VLA_PROCS
 # (eval processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
 # A training stopped by the call's budget (log: "stopping at step") resumes where it
 # stopped, on the same schedule, when `train` runs again on the same (warm) machine.
@@ -38,7 +40,7 @@ if [ -n "$VLA_TINY" ]; then
 else
   TASKS=seen UNSEEN=unseen DEMOS=${VLA_DEMOS:-100} QUICK=
   EPISODES=${VLA_EPISODES:-25} SEEDS=${VLA_SEEDS:-0,1,2}
-  WORKERS=16 CHUNK=10 CAMERAS=${VLA_CAMERAS:-front,left_shoulder,right_shoulder,wrist}
+  WORKERS=${VLA_WORKERS:-16} CHUNK=10 CAMERAS=${VLA_CAMERAS:-front,left_shoulder,right_shoulder,wrist}
   SIZE=${VLA_SIZE:-96} STEPS=${VLA_STEPS:-8000}
 fi
 BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
@@ -69,14 +71,30 @@ evaluate() {  # evaluate SPLIT LABEL EPISODES SEEDS [PROCS]
 
 case "$1" in
   train)
+    PRECISION=${VLA_PRECISION:-default}
+    if [ "$PRECISION" = auto ]; then  # measure the step's precisions while the data are made
+      $PY tools/vla_step_profile.py ${VLA_TINY:+--batch 2 --iters 1} --out "$OUT/step_profile.json" > "$OUT/vla_profile.log" 2>&1 &
+      profile=$!
+    fi
     stage data $PY -m agnostos_mjx.train.vla_data --out "$DATA" --tasks "$TASKS" \
       --demos "$DEMOS" --cameras "$CAMERAS" --size "$SIZE" --chunk "$CHUNK" --workers "$WORKERS"
+    if [ "$PRECISION" = auto ]; then  # the fastest by >10 % over the default, else the default
+      wait $profile || true
+      PRECISION=$($PY -c "import json,sys
+try: r = json.load(open(sys.argv[1]))
+except Exception: print('default'); raise SystemExit
+t = {k: r.get(f'train_step_{k}_ms', 1e9) for k in ('default', 'tensorfloat32', 'bfloat16')}
+best = min(t, key=t.get)
+print(best if t[best] < 0.9 * t['default'] else 'default')" "$OUT/step_profile.json")
+      echo "== matmul precision: $PRECISION ($(cat "$OUT/step_profile.json" 2>/dev/null | tr -d '\n '))" \
+        | tee -a "$OUT/vla_timings.txt"
+    fi
     # What is left of the call after loading, compiling, the last checkpoint and the check.
     reserve=$((60 + (${#QUICK_TASKS} > 0 ? 90 : 0)))
     left=$((CALL_S - SECONDS - reserve)); [ $left -lt 30 ] && left=30
     stage train $PY -m agnostos_mjx.train.vla $QUICK --data "$DATA" --out "$RUN" \
       --steps "$STEPS" --batch-size "$BATCH" --max-seconds $left --no-progress \
-      --export "$OUT/vla_export" $VLA_EXTRA
+      --export "$OUT/vla_export" --matmul-precision "$PRECISION" $VLA_EXTRA
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
     if [ -n "$VLA_TINY" ]; then evaluate "$TASKS" quick "$EPISODES" 0
     elif [ -n "$QUICK_TASKS" ]; then evaluate "$QUICK_TASKS" quick 5 0; fi ;;

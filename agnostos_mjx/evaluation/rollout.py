@@ -8,6 +8,7 @@ simulate other tasks meanwhile; `run_task` drives it alone.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Callable, Generator, Iterable, Sequence
@@ -33,6 +34,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("agnostos_mjx.eval")
 
 OnRecords = Callable[[list[dict]], None]
+OnTiming = Callable[[dict], None]
 # tick(episodes done, partial (key-action rounds of unfinished episodes, in episodes), detail)
 Tick = Callable[..., None]
 Steps = Generator["concurrent.futures.Future", Any, list[dict]]
@@ -52,15 +54,19 @@ def run_task(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
 
 
 def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
-               cfg: EvalConfig, on_records: OnRecords, tick: Tick | None = None) -> Steps:
+               cfg: EvalConfig, on_records: OnRecords, tick: Tick | None = None,
+               on_timing: OnTiming | None = None) -> Steps:
     """`run_task` as a generator that yields the futures the policy waits on (see
     PolicyAdapter.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
-    `tick(episodes_done, partial, detail)` reports progress within the task."""
+    `tick(episodes_done, partial, detail)` reports progress within the task;
+    `on_timing(split)` gets where the task's wall time went (`TimeSplit.summary`)."""
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.video import EpisodeVideos
 
     t0 = time.perf_counter()
-    runner = Episodes(task, cfg.backend, planner=cfg.planner)
+    split = TimeSplit()
+    with split.measure("build"):
+        runner = Episodes(task, cfg.backend, planner=cfg.planner)
     videos = EpisodeVideos.for_task(cfg, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)
@@ -74,17 +80,51 @@ def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]]
         t_batch = time.perf_counter()
         label = f"{task.name} batch {b + 1}/{batches}"
         out += yield from batch_steps(task, policy, runner, part, chunk if pad else len(part),
-                                      cfg, on_records, tick, len(out), label, videos)
+                                      cfg, on_records, tick, len(out), label, videos, split)
         rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
         log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
                  time.perf_counter() - t_batch, rate)
+    summary = split.summary(task.name, runner.backend_name, len(pending),
+                            time.perf_counter() - t0)
+    log.info("%s: %.1f s: %s", task.name, summary["wall_s"], ", ".join(
+        f"{k} {summary[k + '_s']:.1f} s" for k in (*TimeSplit.STAGES, "other")))
+    if on_timing is not None:
+        on_timing(summary)
     return out
+
+
+class TimeSplit:
+    """Where a task's wall time goes: building the runner (scene, compiled programs),
+    resetting batches, the policy (reset and actions, including any wait for its LLM or
+    server) and the physics (key actions or control steps, until the outcomes reach the
+    host); the rest (records, videos, other tasks interleaved) is "other"."""
+
+    STAGES = ("build", "reset", "policy", "physics")
+
+    def __init__(self) -> None:
+        self.seconds = dict.fromkeys(self.STAGES, 0.0)
+
+    @contextlib.contextmanager
+    def measure(self, stage: str):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] += time.perf_counter() - t
+
+    def summary(self, task: str, backend: str, episodes: int, wall_s: float) -> dict:
+        rec = {"task": task, "backend": backend, "episodes": episodes,
+               "wall_s": round(wall_s, 3)}
+        rec.update({f"{k}_s": round(v, 3) for k, v in self.seconds.items()})
+        rec["other_s"] = round(max(0.0, wall_s - sum(self.seconds.values())), 3)
+        return rec
 
 
 def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
                 part: list[tuple[int, int]], size: int, cfg: EvalConfig,
                 on_records: OnRecords, tick: Tick | None = None, done_before: int = 0,
-                label: str = "", videos: EpisodeVideos | None = None) -> Steps:
+                label: str = "", videos: EpisodeVideos | None = None,
+                split: TimeSplit | None = None) -> Steps:
     """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
     `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
@@ -122,24 +162,32 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
             tick(done_before + len(out), (n - recorded.sum()) * rounds / limit,
                  f"{label} {unit} {min(rounds + 1, limit)}/{limit}")
 
+    split = split or TimeSplit()
     report(0)
-    env = runner.reset(keys, variations)
+    with split.measure("reset"):
+        env = runner.reset(keys, variations)
     if videos is not None:
         videos.start(env, part)
     try:
-        policy.reset(runner, env, instructions,
-                     episode_seeds=[policy_seed(s, e) for s, e in run_part])
+        with split.measure("policy"):
+            policy.reset(runner, env, instructions,
+                         episode_seeds=[policy_seed(s, e) for s, e in run_part])
         driver = DenseDriver(cfg.execute, policy.relative()) if ctl is not None else None
         for rounds in range(limit):
             if env.done.all():
                 break
             running = env.outcome == Outcome.RUNNING
+            t_policy = time.perf_counter()
             if driver is not None:
                 actions = yield from driver.next(policy, runner, env)
-                env, _ = runner.step_dense(env, actions, ctl)
+                split.seconds["policy"] += time.perf_counter() - t_policy
+                with split.measure("physics"):
+                    env, _ = runner.step_dense(env, actions, ctl)
             else:
                 actions = yield from policy.act_steps(runner, env)
-                env, _ = runner.step(env, actions)
+                split.seconds["policy"] += time.perf_counter() - t_policy
+                with split.measure("physics"):
+                    env, _ = runner.step(env, actions)
             if videos is not None:
                 videos.capture(env)
             # A policy may say why a world got no action (bad LLM output, LLM error).

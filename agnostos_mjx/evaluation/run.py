@@ -9,6 +9,7 @@ its episodes.jsonl already holds.
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import re
 import time
@@ -30,6 +31,7 @@ from agnostos_mjx.evaluation.records import (
 from agnostos_mjx.evaluation.rollout import task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
+from agnostos_mjx.evaluation.timings import TIMINGS_FILE
 from agnostos_mjx.policies.base import PolicyAdapter
 
 log = logging.getLogger("agnostos_mjx.eval")
@@ -182,7 +184,12 @@ def evaluate(cfg: EvalConfig) -> dict:
                             partial=sum(p for _, p in done.values()), detail=detail)
 
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
+        def on_timing(split: dict) -> None:  # where each task's time went (rollout.TimeSplit)
+            with open(out_dir / TIMINGS_FILE, "a") as f:
+                f.write(json.dumps(split) + "\n")
+
         jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
-                           on_records, functools.partial(tick, t.name)) for t in todo]
+                           on_records, functools.partial(tick, t.name), on_timing)
+                for t in todo]
         run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
     return write_results(final=True)

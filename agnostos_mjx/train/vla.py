@@ -49,6 +49,7 @@ TRAIN_DEFAULT = TrainConfig(steps=8_000, batch_size=32, lr=3e-4, warmup=500, log
                             sample_every=2_000, ckpt_every=2_000)
 TRAIN_QUICK = TrainConfig(steps=30, batch_size=8, lr=2e-3, warmup=0, log_every=5,
                           sample_every=0, ckpt_every=30)
+PRECISIONS = ("default", "tensorfloat32", "bfloat16")
 _ARRAYS = ("rgb", "points", "gripper_pose", "gripper_open", "step", "demo", "variation",
            "target_pos", "target_quat", "target_gripper")
 
@@ -216,6 +217,10 @@ def parser():
                    help="print the run's training curve (held-out accuracy and loss) as "
                    "markdown and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--matmul-precision", choices=PRECISIONS, default="default",
+                   help="JAX matmul/conv precision of training (jax.default_matmul_precision): "
+                   "tensorfloat32 or bfloat16 trade mantissa bits for tensor-core speed on a "
+                   "GPU (tools/vla_step_profile.py measures it); no effect on a CPU")
     add_flags(p, "vla", VLA_DEFAULT, VLA_QUICK)
     add_flags(p, "train", TRAIN_DEFAULT, TRAIN_QUICK)
     return p
@@ -252,8 +257,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--data {data_dir}: no such directory")
     try:
         data = KeyframeData(data_dir, cfg.text_len, tasks)
-        train_vla(data, cfg, tcfg, args.out, args.augment, not args.no_progress,
-                  args.max_seconds)
+        precision = None if args.matmul_precision == "default" else args.matmul_precision
+        with jax.default_matmul_precision(precision):
+            train_vla(data, cfg, tcfg, args.out, args.augment, not args.no_progress,
+                      args.max_seconds)
     except ValueError as err:
         print(f"train.vla: {err}", file=sys.stderr)
         return 2

@@ -1,0 +1,71 @@
+"""Where an evaluation's time went: ``python -m agnostos_mjx.evaluation.timings RUN...``.
+
+Every task an evaluation runs appends one line to ``<out>/timings.jsonl`` (a
+``--local-processes`` run: ``<out>/proc-I/timings.jsonl``): its wall time split into
+building the runner, resetting batches, the policy and the physics, and the rest
+(rollout.TimeSplit).  This prints them as a markdown table with the shares of the summed
+task time, the profile that says whether physics and policy dominate a run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+
+TIMINGS_FILE = "timings.jsonl"
+STAGES = ("build", "reset", "policy", "physics", "other")
+
+
+def read_timings(runs: Iterable[Path]) -> list[dict]:
+    """The task lines of each run folder and of its per-process folders (proc-I)."""
+    rows: list[dict] = []
+    for run in map(Path, runs):
+        files = [run / TIMINGS_FILE, *sorted(run.glob(f"proc-*/{TIMINGS_FILE}"))]
+        for f in files:
+            if f.is_file():
+                rows += [json.loads(line) for line in f.read_text().splitlines() if line]
+    return rows
+
+
+def time_split_table(runs: Iterable[Path]) -> str:
+    """Per task and in all: wall seconds and each stage's seconds (share of the wall)."""
+    rows = read_timings(runs)
+    if not rows:
+        raise ValueError("no timings.jsonl in these run folders (written by evaluations "
+                         "since 2026-11-25)")
+    head = ["task", "backend", "episodes", "wall s", *(f"{s} s" for s in STAGES)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def line(name: str, backend: str, episodes: int, r: dict) -> str:
+        wall = r["wall_s"]
+        cells = [f"{r[s + '_s']:.1f} ({100 * r[s + '_s'] / wall:.0f}%)" if wall else "0"
+                 for s in STAGES]
+        return f"| {name} | {backend} | {episodes} | {wall:.1f} | " + " | ".join(cells) + " |"
+
+    for r in rows:
+        lines.append(line(r["task"], r["backend"], r["episodes"], r))
+    total = {k: sum(r[k] for r in rows) for k in ("wall_s", *(s + "_s" for s in STAGES))}
+    backends = ",".join(sorted({r["backend"] for r in rows}))
+    lines.append(line("all", backends, sum(r["episodes"] for r in rows), total))
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.evaluation.timings",
+                                description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path, help="evaluation --out folders")
+    args = p.parse_args(argv)
+    try:
+        print(time_split_table(args.runs), end="")
+    except (ValueError, KeyError) as err:
+        print(f"timings: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

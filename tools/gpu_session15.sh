@@ -1,0 +1,66 @@
+#!/bin/bash
+# Issues 26, 28 and 29 on one lent nvidia-h100-x2 (two H100s), device calls back to back:
+# the reference VLA trains on GPU 1 in the background while the main jobs run on GPU 0,
+# then both GPUs run the main job (issue 29) and the VLA's evaluation.
+#   carry .gl .whl   bash tools/gpu_setup.sh base && bash tools/gpu_session15.sh vla_start
+#   carry .warp/pK   bash tools/gpu_setup.sh K (K = 0..3); then, no carry:
+#   bash tools/gpu_session15.sh poll        the VLA's progress (any call may add it)
+#   bash tools/gpu_session15.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
+#   bash tools/gpu_session15.sh warm        GPU 0: the main job again (caches on disk), its
+#                                           time split; then native on GPU 0 (planner auto)
+#   bash tools/gpu_session15.sh scale       both GPUs: the warm main job as 16 processes
+#   bash tools/gpu_session15.sh vla_eval    the VLA on seen and unseen tasks (both GPUs)
+# Runs live in /tmp/agnostos; each stage copies its results to $OUT.
+set -e
+: "${OUT:?set OUT}"
+export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl AGNOSTOS_JAX_CACHE=/tmp/agnostos/jax_cache
+export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+R=/tmp/agnostos
+mkdir -p $R "$OUT"
+quiet() { grep --line-buffered -v 'solver iterations\|warn_overflow\|linesearch iterations\|^Module \|^   '; }
+poll() {
+  echo "-- VLA background job:"; tail -4 $R/vla_bg.log 2>/dev/null || true
+  cat $R/vla_out/vla_timings.txt 2>/dev/null || true; tail -1 $R/vla_run/log.jsonl 2>/dev/null || true
+  nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader
+}
+main() {  # main LABEL BACKEND ARGS...: the main job into $R/main_LABEL (at most $LIMIT_S s;
+  # rerun to resume), its wall time and time split
+  local label=$1 b=$2 d=$R/main_$1 t0=$SECONDS; shift 2; mkdir -p $d
+  timeout ${LIMIT_S:-590} python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume --quiet --out $d \
+    --compare "X-ICM 7B" "$@" 2>&1 | quiet | tail -12 || true
+  echo "main job $label ($b $*) wall $((SECONDS - t0)) s" | tee -a $d/wall.txt $OUT/walls.txt
+  python3 -m agnostos_mjx.evaluation.timings $d | tail -1 || true
+  tar -C $R --exclude='*.mp4' -czf "$OUT/main_$label.tgz" main_$label
+}
+case "$1" in
+  vla_start)  # data, the precision profile and training on GPU 1, detached from this call
+    rm -rf $R/src && mkdir -p $R/src $R/vla_out
+    cp -a agnostos_mjx tools train pyproject.toml $R/src/
+    (cd $R/src && CUDA_VISIBLE_DEVICES=1 OUT=$R/vla_out VLA_ROOT=$R VLA_CALL_S=${VLA_CALL_S:-1500} \
+      VLA_QUICK_TASKS= VLA_PRECISION=${VLA_PRECISION:-auto} PYTHONPATH=/tmp/site:$R/src \
+      setsid nohup bash train/vla_gpu.sh train > $R/vla_bg.log 2>&1 < /dev/null &)
+    sleep 20; poll ;;
+  poll) poll ;;
+  fresh)
+    t0=$SECONDS
+    CUDA_VISIBLE_DEVICES=0 python3 -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8 \
+      2>&1 | quiet | tail -8
+    echo "warmup (fresh machine) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
+    CUDA_VISIBLE_DEVICES=0 main fresh warp --local-processes 8 --mps on
+    echo "fresh total (warmup + main job) $((SECONDS - t0)) s" | tee -a $OUT/walls.txt; poll ;;
+  warm)
+    CUDA_VISIBLE_DEVICES=0 main warm warp --local-processes 8 --mps on
+    poll
+    CUDA_VISIBLE_DEVICES=0 LIMIT_S=${NATIVE_S:-330} main native native --local-processes 8
+    poll ;;
+  scale)
+    main scale2 warp --local-processes 16 --mps on
+    CUDA_VISIBLE_DEVICES=0 main scale1 warp --local-processes 8 --mps on
+    poll ;;
+  vla_eval)
+    cd $R/src && OUT=$R/vla_out VLA_ROOT=$R VLA_PROCS=${VLA_PROCS:-16} PYTHONPATH=/tmp/site:$R/src \
+      bash train/vla_gpu.sh eval ${2:-} || true
+    OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
+    cp -r $R/vla_out "$OUT/" ;;
+  *) echo "usage: bash tools/gpu_session15.sh vla_start|poll|fresh|warm|scale|vla_eval" >&2; exit 2 ;;
+esac
