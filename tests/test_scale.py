@@ -163,6 +163,10 @@ def _episodes(out: Path) -> list[dict]:
     return [{k: v for k, v in json.loads(line).items() if k != "wall_s"} for line in lines]
 
 
+def _episodes_or_none(out: Path) -> list[dict]:
+    return _episodes(out) if (out / "episodes.jsonl").exists() else []
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("localhost", 0))
@@ -199,6 +203,19 @@ def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
     _finish(_eval("--out", str(single)))
     assert _episodes(shared) == _episodes(single)
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
+    # Each task ran in one process, which claimed it in --out/queue.
+    owners = {f.name: int(f.read_text()) for f in (shared / "queue").iterdir()}
+    assert sorted(owners) == ["lamp_off", "lamp_on"]
+    for i in range(2):  # (a process that started late may have found both tasks taken)
+        ran = {r["task"] for r in _episodes_or_none(shared / f"proc-{i}")}
+        assert ran == {t for t, owner in owners.items() if owner == i}
+    # --resume with a third episode: each task stays with the process holding its episodes.
+    _finish(_eval("--out", str(shared), "--local-processes", "2", "--resume", "--episodes", "3"))
+    for i in range(2):
+        ran = [r["task"] for r in _episodes_or_none(shared / f"proc-{i}")]
+        assert sorted(set(ran)) == [t for t, owner in sorted(owners.items()) if owner == i]
+        assert len(ran) == 3 * len(set(ran))
+    assert len(_episodes(shared)) == 6
 
 
 def test_local_processes_report_a_failure_once(tmp_path: Path) -> None:

@@ -84,6 +84,14 @@ def test_quick_train_reload_evaluate(tmp_path, capsys):
         p._forward(p._params, *args) for p in policies)
     np.testing.assert_allclose(pos_a, pos_b, atol=0.01)
     assert (np.asarray(grip_a) == np.asarray(grip_b)).all()
+    # Chunks (3 worlds in chunks of 2: the last one padded) predict what one pass does.
+    three = [np.concatenate([a, a[:1]]) for a in args]
+    whole = policies[0]._predict(*three)
+    chunked = make_policy("reference-vla", checkpoint=str(run), chunk=2)._predict(*three)
+    assert [len(x) for x in chunked] == [3, 3, 3]
+    np.testing.assert_allclose(chunked[0], whole[0], atol=1e-5)
+    np.testing.assert_array_equal(chunked[1], whole[1])
+    np.testing.assert_array_equal(chunked[2], whole[2])
 
     out = tmp_path / "eval"
     rc = eval_main(["--policy", "reference-vla", "--policy-arg", f"checkpoint={run}",
@@ -102,6 +110,8 @@ def test_usage_errors(tmp_path, capsys):
 
     with pytest.raises(ValueError, match="checkpoint=RUN"):
         make_policy("reference-vla")
+    with pytest.raises(SystemExit):
+        vla.parser().parse_args(["--out", "r", "--matmul-precision", "float8"])
     with pytest.raises(ValueError, match="no checkpoint"):
         make_policy("reference-vla", checkpoint=str(tmp_path / "missing"))
     assert vla.main(["--out", str(tmp_path / "missing"), "--export", str(tmp_path / "x")]) == 2

@@ -35,10 +35,13 @@ main() {  # main LABEL BACKEND ARGS...: the main job into $R/main_LABEL (at most
 case "$1" in
   vla_start)  # data, the precision profile and training on GPU 1, detached from this call
     rm -rf $R/src && mkdir -p $R/src $R/vla_out
-    cp -a agnostos_mjx tools train pyproject.toml $R/src/
+    pkill -f vla_gpu.sh || true; pkill -f vla_step_profile || true
+    cp -a agnostos_mjx tools train scenes pyproject.toml $R/src/
     (cd $R/src && CUDA_VISIBLE_DEVICES=1 OUT=$R/vla_out VLA_ROOT=$R VLA_CALL_S=${VLA_CALL_S:-1500} \
       VLA_QUICK_TASKS= VLA_PRECISION=${VLA_PRECISION:-auto} PYTHONPATH=/tmp/site:$R/src \
-      setsid nohup bash train/vla_gpu.sh train > $R/vla_bg.log 2>&1 < /dev/null &)
+      XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup bash -c \
+      'for i in 1 2 3; do bash train/vla_gpu.sh train && break; sleep 5; done' \
+      > $R/vla_bg.log 2>&1 < /dev/null &)
     sleep 20; poll ;;
   poll) poll ;;
   fresh)

@@ -73,7 +73,7 @@ case "$1" in
   train)
     PRECISION=${VLA_PRECISION:-default}
     if [ "$PRECISION" = auto ]; then  # measure the step's precisions while the data are made
-      $PY tools/vla_step_profile.py ${VLA_TINY:+--batch 2 --iters 1} --out "$OUT/step_profile.json" > "$OUT/vla_profile.log" 2>&1 &
+      XLA_PYTHON_CLIENT_PREALLOCATE=false $PY tools/vla_step_profile.py ${VLA_TINY:+--batch 2 --iters 1} --out "$OUT/step_profile.json" > "$OUT/vla_profile.log" 2>&1 &
       profile=$!
     fi
     stage data $PY -m agnostos_mjx.train.vla_data --out "$DATA" --tasks "$TASKS" \

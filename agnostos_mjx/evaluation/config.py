@@ -190,11 +190,17 @@ class EvalConfig:
               "(one JAX cluster; sharding stays on each host's local devices); without it "
               "the processes run independently", group=SCALE, metavar="HOST:PORT")
     local_processes: int = option(
-        1, "run as N processes on this machine (each every N-th task; with G GPUs process I "
-           "on GPU I mod G, see --mps; logs in --out/proc-I.log), then merge: with warp at "
-           "batch 75 the GPU is mostly idle (H100 main job: 407 s as 8 processes without MPS; "
-           "see agnostos_mjx/evaluation/processes.py)",
+        1, "run as N processes on this machine (each takes the next task no other has taken, "
+           "longest first, see --task-queue; with G GPUs process I on GPU I mod G, see --mps; "
+           "logs in --out/proc-I.log), then merge: on a 2 x H100 host the main job took "
+           "103-109 s native and 140 s warp as 8 processes (see "
+           "agnostos_mjx/evaluation/processes.py)",
         group=SCALE, type=positive_int, metavar="N")
+    task_queue: str | None = option(
+        None, "a folder shared by processes on one machine: instead of every N-th task, "
+              "this process takes the next task that no process has claimed there, longest "
+              "expected first (--local-processes passes --out/queue to its processes)",
+        group=SCALE, metavar="DIR")
     mps: str = option(
         "auto", "CUDA MPS for --local-processes: for each GPU that several processes share, "
                 "auto starts a private MPS daemon (pipe and log folders in --out/mps) and "

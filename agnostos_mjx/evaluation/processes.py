@@ -1,8 +1,10 @@
 """``python -m agnostos_mjx.eval --local-processes N``: one run as N processes on this machine.
 
-Each process is the same command with ``--num-processes N --process-id I`` (every N-th task
-into ``--out/proc-I``, its log in ``--out/proc-I.log``); when all have finished, their
-records are merged into ``--out`` as one process would have written them (summary.merge).
+Each process is the same command with ``--num-processes N --process-id I --task-queue
+--out/queue`` (into ``--out/proc-I``, its log in ``--out/proc-I.log``): whenever a process is
+free it takes the next task no other process has taken, longest expected first
+(task_queue.py); when all have finished, their records are merged into ``--out`` as one
+process would have written them (summary.merge).
 
 Why: with MJX-Warp at the protocol's batch of 75 a physics step leaves the GPU mostly idle
 (its cost is latency, not work), so tasks run side by side: on one H100 the main job took
@@ -47,12 +49,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from agnostos_mjx import mps
+from agnostos_mjx.evaluation import task_queue
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import merge_main
 
 log = logging.getLogger("agnostos_mjx.eval")
 JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
+QUEUE_DIR = "queue"  # --out/queue: the claims of the processes (task_queue.py)
 
 
 def _without(argv: Sequence[str], flag: str) -> list[str]:
@@ -169,7 +173,12 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         except mps.MpsError as e:
             print(f"error: --mps {mps_mode}: {e}", file=sys.stderr)
             return 2
-        child = _without(_without(argv, "--local-processes"), "--mps")
+        child = _without(_without(_without(argv, "--local-processes"), "--mps"), "--task-queue")
+        queue = out / QUEUE_DIR
+        owners = task_queue.prepare(queue, out, n)  # resumed tasks stay with their process
+        if owners:
+            log.info("%d tasks stay with the processes that have episodes of them", len(owners))
+        child += ["--task-queue", str(queue)]
         if memory_fraction is None and not os.environ.get("AGNOSTOS_GPU_MEM_FRACTION"):
             child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
         for i in range(n):

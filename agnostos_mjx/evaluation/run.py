@@ -31,6 +31,7 @@ from agnostos_mjx.evaluation.records import (
 from agnostos_mjx.evaluation.rollout import task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
+from agnostos_mjx.evaluation.task_queue import TaskQueue, longest_first
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
 from agnostos_mjx.policies.base import PolicyAdapter
 
@@ -125,10 +126,17 @@ def evaluate(cfg: EvalConfig) -> dict:
     out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
     episodes_path = out_dir / EPISODES_FILE
     sharding.configure(cfg.devices)
-    tasks = process_share(tasks, cfg)
-    if cfg.num_processes > 1:
-        log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
-                 ", ".join(t.name for t in tasks) or "no task")
+    queue = None
+    if cfg.task_queue is not None:  # take tasks as this process gets free, longest first
+        queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
+        tasks = [tasks[i] for i in longest_first([t.name for t in tasks])]
+        log.info("process %d of %d: tasks from the queue %s", cfg.process_id,
+                 cfg.num_processes, cfg.task_queue)
+    else:
+        tasks = process_share(tasks, cfg)
+        if cfg.num_processes > 1:
+            log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
+                     ", ".join(t.name for t in tasks) or "no task")
     _check_compare(cfg)
     spec, note, policy = load_policy(cfg)
     check_action_mode(cfg, policy)
@@ -157,14 +165,17 @@ def evaluate(cfg: EvalConfig) -> dict:
             "backend": backend, "versions": versions(), "started": started,
             "tasks": all_tasks}
 
+    def mine() -> list[str]:  # the tasks this process runs (with a queue: has claimed)
+        return list(queue.mine) if queue is not None else [t.name for t in tasks]
+
     def selected() -> list[dict]:
-        names, seeds = {t.name for t in tasks}, set(cfg.seeds)
+        names, seeds = set(mine()), set(cfg.seeds)
         return [r for r in all_records if r["task"] in names and int(r["seed"]) in seeds
                 and int(r["episode"]) < cfg.episodes]
 
     def write_results(final: bool) -> dict:
         # policy.report(): requests, retries, failures, what was sent (LLM, policy server)
-        return write_outputs(out_dir, meta, selected(), [t.name for t in tasks], cfg,
+        return write_outputs(out_dir, meta, selected(), mine(), cfg,
                              time.perf_counter() - t0, final, policy.report())
 
     def on_records(records: list[dict]) -> None:
@@ -191,5 +202,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
                            on_records, functools.partial(tick, t.name), on_timing)
                 for t in todo]
+        if queue is not None:
+            jobs = [queue.claimed(t.name, job) for t, job in zip(todo, jobs)]
         run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
     return write_results(final=True)

@@ -17,8 +17,9 @@ BACKENDS = ("auto", "native", "jax", "warp")
 # (1,024 x 3 seeds: ~11.5 s native vs ~5 s + 10 s warp).  Native is also bit-reproducible,
 # which warp's atomics are not.  Since then warp's key action runs 1.5x-1.8x faster (graph mode
 # WARP, 16 steps per loop iteration) and the main job is fastest as 8 warp processes under MPS
-# (274 s vs native's 786 s single-process, eval/reports/gpu_h100_floor): that is a choice of
-# --local-processes, not of a batch, so `auto` still looks at the batch alone.
+# (274 s vs native's 786 s single-process, eval/reports/gpu_h100_floor).  But on a 32-core host
+# with both as 8 processes, native finished the main job first: 103-109 s against warp's 140 s
+# with warm caches (eval/reports/gpu_h100_x2_session15), so `auto` keeps native at batch 75.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 

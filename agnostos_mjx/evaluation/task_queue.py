@@ -1,0 +1,108 @@
+"""Tasks handed to ``--local-processes`` processes as they become free, longest first.
+
+A fixed split (process I runs tasks I, I+N, ...) leaves processes idle while others still
+work: in the main job on a 2 x H100 host, 16 processes had 1 or 2 of the 23 tasks each, and
+the slowest needed 81.6 s of task time against a mean of 56.5 s
+(eval/reports/gpu_h100_x2_session15).  Here each process takes the next task no process has
+taken yet, in the order of `EXPECTED_S` (longest first: the short tasks fill the gaps at the
+end), so the run ends when the last task does.
+
+A claim is a file ``<queue>/<task>`` created with O_CREAT | O_EXCL (atomic on one machine's
+file system) holding the claiming process's index.  The launcher empties the queue before
+the processes start and, for ``--resume``, writes the claims of tasks a process already has
+episodes of, so that the task stays with the process whose folder holds them.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import statistics
+from collections.abc import Generator, Sequence
+from pathlib import Path
+from typing import TypeVar
+
+from agnostos_mjx.evaluation.config import UsageError
+from agnostos_mjx.evaluation.records import EPISODES_FILE, load_records
+
+T = TypeVar("T")
+
+# Seconds for 75 episodes of each task, measured on a 2 x H100 host (32 cores): the unseen
+# tasks in the main job (native, 8 processes, eval/reports/gpu_h100_x2_session15/main_native_host),
+# the seen ones with the reference VLA (eval/reports/reference_vla/gpu_h100_full/eval_seen).
+# Only their order matters; a task not listed counts as the median.
+EXPECTED_S = {
+    "place_cups": 80, "put_item_in_drawer": 70, "meat_off_grill": 69,
+    "sweep_to_dustpan_of_size": 64, "stack_blocks": 62, "light_bulb_in": 59, "stack_cups": 57,
+    "turn_tap": 57, "close_jar": 56, "slide_block_to_color_target": 53,
+    "put_groceries_in_cupboard": 52, "reach_and_drag": 49, "place_shape_in_shape_sorter": 49,
+    "put_money_in_safe": 48, "place_wine_at_rack_location": 45, "push_buttons": 42,
+    "insert_onto_square_peg": 38, "straighten_rope": 35, "put_knife_on_chopping_board": 35,
+    "put_toilet_roll_on_stand": 34, "put_umbrella_in_umbrella_stand": 33,
+    "toilet_seat_down": 33, "lamp_off": 29, "put_rubbish_in_bin": 29,
+    "take_plate_off_colored_dish_rack": 28, "put_books_on_bookshelf": 28, "turn_oven_on": 28,
+    "phone_on_base": 28, "beat_the_buzz": 28, "close_microwave": 27, "open_grill": 26,
+    "water_plants": 26, "close_laptop_lid": 26, "take_usb_out_of_computer": 25,
+    "take_lid_off_saucepan": 25, "basketball_in_hoop": 24, "open_drawer": 24, "lamp_on": 23,
+    "scoop_with_spatula": 22, "unplug_charger": 21, "close_fridge": 7,
+}
+
+
+def longest_first(names: Sequence[str]) -> list[int]:
+    """Indices of `names` by expected time, longest first (ties keep the given order)."""
+    median = statistics.median(EXPECTED_S.values())
+    return sorted(range(len(names)), key=lambda i: -EXPECTED_S.get(names[i], median))
+
+
+def prepare(queue: Path, out: Path, processes: int) -> dict[str, int]:
+    """Empty `queue` and claim, for each process I < `processes`, the tasks it already has
+    episodes of in ``out/proc-I`` (a task found in several keeps the lowest I).  Returns
+    those claims."""
+    queue.mkdir(parents=True, exist_ok=True)
+    for f in queue.iterdir():
+        f.unlink()
+    owners: dict[str, int] = {}
+    for i in range(processes):
+        for r in load_records(out / f"proc-{i}" / EPISODES_FILE):
+            owners.setdefault(r["task"], i)
+    for task, i in owners.items():
+        (queue / task).write_text(str(i))
+    return owners
+
+
+class TaskQueue:
+    """This process's view of the shared queue folder."""
+
+    def __init__(self, directory: Path, process_id: int):
+        if not Path(directory).is_dir():
+            raise UsageError(f"--task-queue {directory}: no such folder (--local-processes "
+                             "makes it)")
+        self.directory, self.process_id = Path(directory), process_id
+        self.mine: list[str] = []
+
+    def claim(self, task: str) -> bool:
+        """Take `task` unless another process has; True when it is this process's."""
+        path = self.directory / task
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except OSError as err:
+            if err.errno != errno.EEXIST:
+                raise
+            ours = path.read_text().strip() == str(self.process_id)
+        else:
+            with os.fdopen(fd, "w") as f:
+                f.write(str(self.process_id))
+            ours = True
+        if ours and task not in self.mine:
+            self.mine.append(task)
+        return ours
+
+    def claimed(self, task: str, steps: Generator[T, object, list]
+                ) -> Generator[T, object, list]:
+        """`steps` (rollout.task_steps, not started yet) if this process gets `task`, else
+        nothing: the claim is made when the scheduler starts the job, i.e. when this process
+        is free for it."""
+        if not self.claim(task):
+            steps.close()
+            return []
+        return (yield from steps)

@@ -1,0 +1,66 @@
+"""--task-queue: processes take the next unclaimed task, longest first; claims are exclusive
+and survive a resume with the process that holds the task's episodes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from agnostos_mjx.evaluation.config import UsageError
+from agnostos_mjx.evaluation.task_queue import TaskQueue, longest_first, prepare
+
+
+def test_longest_first_orders_by_expected_time_and_keeps_unknown_tasks_in_the_middle():
+    names = ["close_fridge", "new_task", "place_cups", "lamp_on"]
+    assert [names[i] for i in longest_first(names)] == [
+        "place_cups", "new_task", "lamp_on", "close_fridge"]
+
+
+def test_a_task_goes_to_one_process_only(tmp_path: Path):
+    a, b = TaskQueue(tmp_path, 0), TaskQueue(tmp_path, 1)
+    assert a.claim("lamp_on") and not b.claim("lamp_on")
+    assert b.claim("lamp_off") and not a.claim("lamp_off")
+    assert a.claim("lamp_on")  # its own claim again: still its task
+    assert (a.mine, b.mine) == (["lamp_on"], ["lamp_off"])
+    assert (tmp_path / "lamp_on").read_text() == "0"
+
+
+def test_claimed_runs_the_job_only_for_its_owner(tmp_path: Path):
+    started = []
+
+    def job(name):
+        started.append(name)
+        yield "future"
+        return [name]
+
+    a, b = TaskQueue(tmp_path, 0), TaskQueue(tmp_path, 1)
+    mine = a.claimed("lamp_on", job("lamp_on"))
+    assert next(mine) == "future"
+    with pytest.raises(StopIteration) as stop:
+        mine.send(None)
+    assert stop.value.value == ["lamp_on"]
+    with pytest.raises(StopIteration) as stop:  # b finds lamp_on taken: the job never starts
+        next(b.claimed("lamp_on", job("lamp_on again")))
+    assert stop.value.value == [] and started == ["lamp_on"]
+
+
+def test_prepare_empties_the_queue_and_keeps_resumed_tasks_with_their_process(tmp_path: Path):
+    queue, out = tmp_path / "queue", tmp_path / "run"
+    queue.mkdir()
+    (queue / "stale").write_text("3")
+    for i, task in ((0, "lamp_off"), (1, "lamp_on"), (2, "open_drawer")):
+        (out / f"proc-{i}").mkdir(parents=True)
+        (out / f"proc-{i}" / "episodes.jsonl").write_text(
+            json.dumps({"task": task, "seed": 0, "episode": 0}) + "\n")
+    assert prepare(queue, out, processes=2) == {"lamp_off": 0, "lamp_on": 1}
+    assert sorted(f.name for f in queue.iterdir()) == ["lamp_off", "lamp_on"]
+    assert not TaskQueue(queue, 0).claim("lamp_on") and TaskQueue(queue, 1).claim("lamp_on")
+    # proc-2 is not part of this launch: its task is free again
+    assert TaskQueue(queue, 0).claim("open_drawer")
+
+
+def test_a_missing_queue_folder_is_a_usage_error(tmp_path: Path):
+    with pytest.raises(UsageError, match="no such folder"):
+        TaskQueue(tmp_path / "missing", 0)
