@@ -16,6 +16,10 @@ def test_longest_first_orders_by_expected_time_and_keeps_unknown_tasks_in_the_mi
     names = ["close_fridge", "new_task", "place_cups", "lamp_on"]
     assert [names[i] for i in longest_first(names)] == [
         "place_cups", "new_task", "lamp_on", "close_fridge"]
+    names = ["lamp_on", "straighten_rope", "put_toilet_roll_on_stand", "place_cups"]
+    assert [names[i] for i in longest_first(names, "warp")] == [
+        "put_toilet_roll_on_stand", "straighten_rope", "place_cups", "lamp_on"]
+    assert longest_first(names, "jax") == longest_first(names, "warp")
 
 
 def test_a_task_goes_to_one_process_only(tmp_path: Path):

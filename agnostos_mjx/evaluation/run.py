@@ -126,10 +126,11 @@ def evaluate(cfg: EvalConfig) -> dict:
     out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
     episodes_path = out_dir / EPISODES_FILE
     sharding.configure(cfg.devices)
+    backend = resolve_backend(cfg.backend, cfg.batch)
     queue = None
     if cfg.task_queue is not None:  # take tasks as this process gets free, longest first
         queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
-        tasks = [tasks[i] for i in longest_first([t.name for t in tasks])]
+        tasks = [tasks[i] for i in longest_first([t.name for t in tasks], backend)]
         log.info("process %d of %d: tasks from the queue %s", cfg.process_id,
                  cfg.num_processes, cfg.task_queue)
     else:
@@ -142,7 +143,6 @@ def evaluate(cfg: EvalConfig) -> dict:
     check_action_mode(cfg, policy)
     policy_class = f"{type(policy.policy).__module__}.{type(policy.policy).__qualname__}"
     log.info("policy %s (%s)", policy.name, policy_class)
-    backend = resolve_backend(cfg.backend, cfg.batch)
 
     all_records = repair_records(episodes_path) if cfg.resume else []
     if all_records:
