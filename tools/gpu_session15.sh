@@ -8,8 +8,10 @@
 #   bash tools/gpu_session15.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
 #   bash tools/gpu_session15.sh warm        GPU 0: the main job again (caches on disk), its
 #                                           time split; then native on GPU 0 (planner auto)
+#   bash tools/gpu_session15.sh native_host GPU 0: native with the numpy planner
 #   bash tools/gpu_session15.sh scale       both GPUs: the warm main job as 16 processes
-#   bash tools/gpu_session15.sh vla_eval    the VLA on seen and unseen tasks (both GPUs)
+#   bash tools/gpu_session15.sh vla_eval    the VLA: seen tasks on GPU 0, unseen on GPU 1, at
+#                                           once, 10 processes each (3 seeds x 25, --compare RVT2)
 # Runs live in /tmp/agnostos; each stage copies its results to $OUT.
 set -e
 : "${OUT:?set OUT}"
@@ -60,10 +62,22 @@ case "$1" in
     main scale2 warp --local-processes 16 --mps on
     CUDA_VISIBLE_DEVICES=0 main scale1 warp --local-processes 8 --mps on
     poll ;;
+  native_host) CUDA_VISIBLE_DEVICES=0 LIMIT_S=${LIMIT_S:-420} main native_host native \
+      --local-processes 8 --planner host; poll ;;
   vla_eval)
-    cd $R/src && OUT=$R/vla_out VLA_ROOT=$R VLA_PROCS=${VLA_PROCS:-16} PYTHONPATH=/tmp/site:$R/src \
-      bash train/vla_gpu.sh eval ${2:-} || true
+    vla() {  # vla GPU SPLIT
+      CUDA_VISIBLE_DEVICES=$1 timeout 420 python3 -m agnostos_mjx.eval --policy reference-vla \
+        --policy-arg checkpoint=$R/vla_run --tasks $2 --episodes 25 --seeds 0,1,2 --batch 75 \
+        --backend native --local-processes 10 --mps on --quiet --resume --compare RVT2 \
+        --out $R/vla_final_$2 > $R/vla_final_$2.log 2>&1
+      echo "vla $2 exit $? wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
+    }
+    t0=$SECONDS; vla 0 seen & vla 1 unseen & wait
+    for s in seen unseen; do
+      grep "Seen\|Level\|All" $R/vla_final_$s.log || true
+      tar -C $R --exclude='*.mp4' --exclude=mps -czf "$OUT/vla_final_$s.tgz" vla_final_$s
+    done
     OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
-    cp -r $R/vla_out "$OUT/" ;;
-  *) echo "usage: bash tools/gpu_session15.sh vla_start|poll|fresh|warm|scale|vla_eval" >&2; exit 2 ;;
+    tar -C $R -czf "$OUT/vla_out.tgz" vla_out ;;
+  *) echo "usage: bash tools/gpu_session15.sh vla_start|poll|fresh|warm|native_host|scale|vla_eval" >&2; exit 2 ;;
 esac
