@@ -41,8 +41,7 @@ case "$1" in
     cp -a agnostos_mjx tools train scenes pyproject.toml $R/src/
     (cd $R/src && CUDA_VISIBLE_DEVICES=1 OUT=$R/vla_out VLA_ROOT=$R VLA_CALL_S=${VLA_CALL_S:-1500} \
       VLA_QUICK_TASKS= VLA_PRECISION=${VLA_PRECISION:-auto} PYTHONPATH=/tmp/site:$R/src \
-      XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup bash -c \
-      'for i in 1 2 3; do bash train/vla_gpu.sh train && break; sleep 5; done' \
+      XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup bash train/vla_gpu.sh train \
       > $R/vla_bg.log 2>&1 < /dev/null &)
     sleep 20; poll ;;
   poll) poll ;;

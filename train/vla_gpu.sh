@@ -76,8 +76,18 @@ case "$1" in
       XLA_PYTHON_CLIENT_PREALLOCATE=false $PY tools/vla_step_profile.py ${VLA_TINY:+--batch 2 --iters 1} --out "$OUT/step_profile.json" > "$OUT/vla_profile.log" 2>&1 &
       profile=$!
     fi
-    stage data $PY -m agnostos_mjx.train.vla_data --out "$DATA" --tasks "$TASKS" \
-      --demos "$DEMOS" --cameras "$CAMERAS" --size "$SIZE" --chunk "$CHUNK" --workers "$WORKERS"
+    # Up to 3 attempts: NVIDIA's EGL once refused a worker's framebuffer while other jobs held
+    # most of the GPU's memory; finished chunks are kept, so an attempt does only the rest.
+    # A usage error (exit 2) is not retried.
+    for attempt in 1 2 3; do
+      rc=0
+      stage data $PY -m agnostos_mjx.train.vla_data --out "$DATA" --tasks "$TASKS" \
+        --demos "$DEMOS" --cameras "$CAMERAS" --size "$SIZE" --chunk "$CHUNK" \
+        --workers "$WORKERS" || rc=$?
+      if [ $rc = 0 ]; then break; fi
+      if [ $rc = 2 ] || [ $attempt = 3 ]; then exit $rc; fi
+      echo "== data: attempt $attempt failed; again (finished chunks are kept)"
+    done
     if [ "$PRECISION" = auto ]; then  # the fastest by >10 % over the default, else the default
       wait $profile || true
       PRECISION=$($PY -c "import json,sys
