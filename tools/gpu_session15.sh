@@ -10,6 +10,9 @@
 #                                           time split; then native on GPU 0 (planner auto)
 #   bash tools/gpu_session15.sh native_host GPU 0: native with the numpy planner
 #   bash tools/gpu_session15.sh scale       both GPUs: the warm main job as 16 processes
+#   bash tools/gpu_session15.sh scale_native  both GPUs vs GPU 0: native as 16 / 8 processes
+#   bash tools/gpu_session15.sh obs         warp observation benchmark at 1,024 worlds: GPU 0
+#                                           alone, then one process per GPU at once
 #   bash tools/gpu_session15.sh vla_eval    the VLA: seen tasks on GPU 0, unseen on GPU 1, at
 #                                           once, 10 processes each (3 seeds x 25, --compare RVT2)
 # Runs live in /tmp/agnostos; each stage copies its results to $OUT.
@@ -63,6 +66,19 @@ case "$1" in
     poll ;;
   native_host) CUDA_VISIBLE_DEVICES=0 LIMIT_S=${LIMIT_S:-420} main native_host native \
       --local-processes 8 --planner host; poll ;;
+  scale_native)
+    main scale2_native native --local-processes 16
+    CUDA_VISIBLE_DEVICES=0 main scale1_native native --local-processes 8 ;;
+  obs)
+    bench() {  # bench GPU LABEL
+      CUDA_VISIBLE_DEVICES=$1 python3 -m agnostos_mjx.observation_bench --batches 1024 \
+        --renderers warp --out "$OUT/obs_$2.json" > "$OUT/obs_$2.log" 2>&1
+      echo "observation bench $2 exit $?" | tee -a $OUT/walls.txt
+    }
+    bench 0 gpu0_alone
+    n=$(nvidia-smi -L | grep -c '^GPU')
+    for k in $(seq 0 $((n - 1))); do bench $k "gpu${k}_of_$n" & done; wait
+    tail -n 3 "$OUT"/obs_*.log ;;
   vla_eval)
     vla() {  # vla GPU SPLIT
       CUDA_VISIBLE_DEVICES=$1 timeout 420 python3 -m agnostos_mjx.eval --policy reference-vla \
@@ -78,5 +94,5 @@ case "$1" in
     done
     OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
     tar -C $R -czf "$OUT/vla_out.tgz" vla_out ;;
-  *) echo "usage: bash tools/gpu_session15.sh vla_start|poll|fresh|warm|native_host|scale|vla_eval" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_session15.sh vla_start|poll|fresh|warm|native_host|scale|scale_native|obs|vla_eval" >&2; exit 2 ;;
 esac
