@@ -49,14 +49,19 @@ from agnostos_mjx.evaluation import processes
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
 from agnostos_mjx.evaluation.records import interrupted_message
 from agnostos_mjx.evaluation.run import evaluate, resolve_out
-from agnostos_mjx.evaluation.summary import merge_main, request_summaries
+from agnostos_mjx.evaluation.summary import (
+    merge_main,
+    policy_error_summary,
+    request_summaries,
+)
 
 log = logging.getLogger("agnostos_mjx.eval")
 
 
 def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None) -> int:
     """Command-line entry point; returns the exit code (2 for usage errors, 1 for file
-    errors, 3 when most requests to a server failed, 130 when interrupted).  `guard` (the
+    errors, 3 when most requests to a server failed or most episodes ended as policy_error,
+    130 when interrupted).  `guard` (the
     command line's) bounds Ctrl-C's delay."""
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse_config(argv)
@@ -106,7 +111,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
             remove_empty_dirs(out_dir)  # a run that failed before its first result
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
-    return request_summaries(results)
+    return max(request_summaries(results), policy_error_summary(results))
 
 
 def start_devices(cfg: EvalConfig, spec: str) -> None:

@@ -444,3 +444,52 @@ def test_run_interleaved_cancels_waiting_work_when_interrupted() -> None:
     with pytest.raises(KeyboardInterrupt):
         scheduler.run_interleaved([waits(), interrupted()], limit=2)
     assert waiting.cancelled() and closed == ["a"]
+
+
+CRASHING_POLICY = '''
+from agnostos_mjx.policies.oracle import OraclePolicy
+
+
+class Crashing(OraclePolicy):
+    """The oracle on lamp_off; raises on lamp_on (as a policy out of GPU memory would)."""
+    name = "crashing"
+
+    def act(self, episodes, env):
+        if episodes.task.name == "lamp_on":
+            raise RuntimeError("RESOURCE_EXHAUSTED: out of memory (test)")
+        return super().act(episodes, env)
+'''
+
+
+@pytest.mark.parametrize("tasks, code", [("lamp_on", 3), ("lamp_on,lamp_off,turn_tap", 0)])
+def test_a_policy_that_raises_is_reported_not_just_counted(tasks: str, code: int,
+                                                            tmp_path: Path, capsys) -> None:
+    """Episodes whose policy raised end as policy_error; when they are most of the run the
+    table measures the crash, so the exit code is 3 and stderr says why (a warning else)."""
+    policy = tmp_path / "crashing.py"
+    policy.write_text(CRASHING_POLICY)
+    rc = ev.main(["--policy", f"{policy}:Crashing", "--tasks", tasks, "--seeds", "0",
+                  "--episodes", "1", "--batch", "1", "--backend", "native", "--quiet",
+                  "--out", str(tmp_path / "run")])
+    assert rc == code
+    err = capsys.readouterr().err
+    n = len(tasks.split(","))
+    if code == 3:
+        assert f"error: 1 of {n} episodes ended as policy_error" in err
+    else:
+        assert "error:" not in err
+    outcomes = [json.loads(line)["outcome"]
+                for line in (tmp_path / "run" / "episodes.jsonl").read_text().splitlines()]
+    assert outcomes.count("policy_error") == 1
+
+
+def test_policy_error_summary_counts_and_decides(capsys) -> None:
+    """Merged runs point at the processes' logs; a minority of crashes only warns."""
+    crashed, fine = {"outcome": "policy_error"}, {"outcome": "success"}
+    assert summary.policy_error_summary({"episodes": [fine, fine]}) == 0
+    assert summary.policy_error_summary({"episodes": [crashed, fine, fine]}) == 0
+    assert "error" not in capsys.readouterr().err
+    merged = {"episodes": [crashed, crashed, fine], "processes": [{}, {}]}
+    assert summary.policy_error_summary(merged) == 3
+    err = capsys.readouterr().err
+    assert "2 of 3 episodes ended as policy_error" in err and "in the logs" in err

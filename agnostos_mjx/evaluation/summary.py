@@ -273,7 +273,7 @@ def merge_main(out: str | None) -> int:
     if not results["complete"]:
         log.warning("%s: episodes are missing (a process has not finished); merge again "
                     "once it has", out)
-    return 0
+    return policy_error_summary(results)
 
 
 # ---- requests to servers -----------------------------------------------------------------
@@ -298,6 +298,26 @@ def llm_summary(report: dict | None) -> int:
         return 0
     print("\n".join(summary_lines(report)), flush=True)
     return 3 if mostly_failed(report) else 0
+
+
+def policy_error_summary(results: dict) -> int:
+    """Say how many episodes ended as policy_error (the policy raised: a crash, not a
+    decision, e.g. out of GPU memory); the exit code: 3 when more than half did, since
+    the table then measures the crash (seen: 16 reference-VLA processes on one H100, every
+    episode out of memory, a table of zeros with exit 0)."""
+    episodes = results.get("episodes") or []
+    failed = sum(r.get("outcome") == "policy_error" for r in episodes)
+    if not failed:
+        return 0
+    text = (f"{failed} of {len(episodes)} episodes ended as policy_error: the policy raised "
+            f"(the traceback is in the log{'s' if results.get('processes') else ''}; "
+            "--fail-fast stops at the first)")
+    if failed * 2 > len(episodes):
+        print(f"error: {text}; the table measures that failure, not the policy",
+              file=sys.stderr, flush=True)
+        return 3
+    log.warning("%s", text)
+    return 0
 
 
 def request_summaries(results: dict) -> int:
