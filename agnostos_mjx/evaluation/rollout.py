@@ -96,8 +96,9 @@ def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]]
 class TimeSplit:
     """Where a task's wall time goes: building the runner (scene, compiled programs),
     resetting batches, the policy (reset and actions, including any wait for its LLM or
-    server) and the physics (key actions or control steps, until the outcomes reach the
-    host); the rest (records, videos, other tasks interleaved) is "other"."""
+    server, and with tasks interleaved the other tasks' turns meanwhile) and the physics
+    (key actions or control steps, until the outcomes reach the host); the rest (records,
+    videos) is "other"."""
 
     STAGES = ("build", "reset", "policy", "physics")
 
