@@ -19,10 +19,10 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from flax import nnx
 
-from agnostos_mjx.train.vla import batch_inputs
+from agnostos_mjx.train.common import make_step, optimizer
+from agnostos_mjx.train.vla import TRAIN_DEFAULT, batch_inputs
 from agnostos_mjx.vla.model import VLA_DEFAULT, ReferenceVLA, vla_loss
 from agnostos_mjx.vla.views import render_views
 
@@ -60,7 +60,7 @@ def main() -> None:
     mask = jnp.ones((1, cfg.text_len), bool)
     key = jax.random.key(0)
     graphdef, params = nnx.split(ReferenceVLA(cfg, rngs=nnx.Rngs(0)))
-    tx = optax.adamw(3e-4)
+    tx = optimizer(TRAIN_DEFAULT)  # the training's AdamW and schedule
     opt = tx.init(params)
     result = {"device": str(jax.devices()[0]), "batch": b, "points": n}
 
@@ -71,19 +71,14 @@ def main() -> None:
     fwd = jax.jit(lambda pr, x: vla_loss(nnx.merge(graphdef, pr), x)[0])
     result["loss_forward_ms"] = 1e3 * best_of(lambda: fwd(params, inputs), args.iters)
 
-    def loss_fn(pr, bt, k):
-        return vla_loss(nnx.merge(graphdef, pr), batch_inputs(bt, k, ids, mask, cfg, 0.1))[0]
+    def loss_fn(model, bt, k):  # train_vla's
+        return vla_loss(model, batch_inputs(bt, k, ids, mask, cfg, 0.1))[0]
 
     for precision in ("default", "tensorfloat32", "bfloat16"):
         with jax.default_matmul_precision(None if precision == "default" else precision):
-            @jax.jit
-            def step(pr, o, bt, k):
-                loss, g = jax.value_and_grad(loss_fn)(pr, bt, k)
-                u, o = tx.update(g, o, pr)
-                return optax.apply_updates(pr, u), o, loss
-
+            step = make_step(graphdef, tx, loss_fn)  # traced (at its first call) in here
             result[f"train_step_{precision}_ms"] = 1e3 * best_of(
-                lambda: step(params, opt, batch, key), args.iters)
+                lambda step=step: step(params, opt, batch, key), args.iters)
         print(json.dumps(result), flush=True)
     if args.out:
         args.out.write_text(json.dumps(result, indent=2))

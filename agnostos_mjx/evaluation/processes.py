@@ -59,15 +59,15 @@ JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
 QUEUE_DIR = "queue"  # --out/queue: the claims of the processes (task_queue.py)
 
 
-def _without(argv: Sequence[str], flag: str) -> list[str]:
-    """`argv` without `flag` and its value (``--flag N`` or ``--flag=N``)."""
+def _without(argv: Sequence[str], *flags: str) -> list[str]:
+    """`argv` without `flags` and their values (``--flag N`` or ``--flag=N``)."""
     out, skip = [], False
     for arg in argv:
         if skip:
             skip = False
-        elif arg == flag:
+        elif arg in flags:
             skip = True
-        elif not arg.startswith(flag + "="):
+        elif not any(arg.startswith(flag + "=") for flag in flags):
             out.append(arg)
     return out
 
@@ -173,7 +173,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         except mps.MpsError as e:
             print(f"error: --mps {mps_mode}: {e}", file=sys.stderr)
             return 2
-        child = _without(_without(_without(argv, "--local-processes"), "--mps"), "--task-queue")
+        child = _without(argv, "--local-processes", "--mps", "--task-queue")
         queue = out / QUEUE_DIR
         owners = task_queue.prepare(queue, out, n)  # resumed tasks stay with their process
         if owners:

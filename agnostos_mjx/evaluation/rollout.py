@@ -21,6 +21,7 @@ from agnostos_mjx.cli import Progress
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
+from agnostos_mjx.evaluation.timings import MEASURED
 from agnostos_mjx.policies.base import PolicyAdapter
 
 if TYPE_CHECKING:
@@ -100,7 +101,7 @@ class TimeSplit:
     (key actions or control steps, until the outcomes reach the host); the rest (records,
     videos) is "other"."""
 
-    STAGES = ("build", "reset", "policy", "physics")
+    STAGES = MEASURED
 
     def __init__(self) -> None:
         self.seconds = dict.fromkeys(self.STAGES, 0.0)

@@ -178,6 +178,10 @@ def evaluate(cfg: EvalConfig) -> dict:
         return write_outputs(out_dir, meta, selected(), mine(), cfg,
                              time.perf_counter() - t0, final, policy.report())
 
+    def on_timing(split: dict) -> None:  # where each task's time went (rollout.TimeSplit)
+        with open(out_dir / TIMINGS_FILE, "a") as f:
+            f.write(json.dumps(split) + "\n")
+
     def on_records(records: list[dict]) -> None:
         append_records(episodes_path, records)
         all_records.extend(records)
@@ -195,10 +199,6 @@ def evaluate(cfg: EvalConfig) -> dict:
                             partial=sum(p for _, p in done.values()), detail=detail)
 
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
-        def on_timing(split: dict) -> None:  # where each task's time went (rollout.TimeSplit)
-            with open(out_dir / TIMINGS_FILE, "a") as f:
-                f.write(json.dumps(split) + "\n")
-
         jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
                            on_records, functools.partial(tick, t.name), on_timing)
                 for t in todo]
