@@ -8,8 +8,8 @@
 #                                   quick check on 3 seen tasks x 5 episodes (VLA_QUICK_TASKS;
 #                                   empty: none); rerun to resume (finished data chunks and
 #                                   checkpoints are kept)
-#   bash train/vla_gpu.sh eval [seen|unseen]   the protocol: seen, then unseen tasks (or one
-#                                   of them), 3 seeds x 25 episodes,
+#   bash train/vla_gpu.sh eval [all|seen|unseen]   the protocol: the seen and unseen tasks
+#                                   as one run (or one split), 3 seeds x 25 episodes,
 #                                   with the paper's RVT2 row (--compare); on a fresh machine
 #                                   carry the export back and set VLA_CHECKPOINT=its folder
 #   bash train/vla_gpu.sh collect   logs, curves, results and the export
@@ -17,8 +17,9 @@
 # (8000), VLA_BATCH (32), VLA_EPISODES (25) and VLA_SEEDS (0,1,2) of the evaluation,
 # VLA_WORKERS (data processes, 16), VLA_PRECISION (training matmuls: default, tensorfloat32,
 # bfloat16, or auto: tools/vla_step_profile.py times them while the data are made and the
-# fastest by > 10 % wins), VLA_EVAL_BATCH (75), VLA_BACKEND (native; warp: the GPU physics and renderer), VLA_PROCS
-# (eval processes, 4), VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
+# fastest by > 10 % wins), VLA_EVAL_BATCH (75), VLA_BACKEND (native; warp: the GPU physics
+# and renderer), VLA_PROCS (eval processes: 16, one H100's recipe; 1 with VLA_TINY),
+# VLA_ROOT (/tmp/agnostos), VLA_EXTRA (more train.vla flags).
 # A training stopped by the call's budget (log: "stopping at step") resumes where it
 # stopped, on the same schedule, when `train` runs again on the same (warm) machine.
 # VLA_TINY=1: 2 tasks x 2 demos, the --quick model and 2 episodes per task (the script's
@@ -44,7 +45,7 @@ else
   SIZE=${VLA_SIZE:-96} STEPS=${VLA_STEPS:-8000}
 fi
 BATCH=${VLA_BATCH:-32} EVAL_BATCH=${VLA_EVAL_BATCH:-75} BACKEND=${VLA_BACKEND:-native}
-PROCS=${VLA_PROCS:-4} CALL_S=${VLA_CALL_S:-570} CKPT=${VLA_CHECKPOINT:-$RUN}
+PROCS=${VLA_PROCS:-$([ -n "$VLA_TINY" ] && echo 1 || echo 16)} CALL_S=${VLA_CALL_S:-570} CKPT=${VLA_CHECKPOINT:-$RUN}
 QUICK_TASKS=${VLA_QUICK_TASKS-open_drawer,push_buttons,turn_tap}
 
 stage() {  # stage NAME COMMAND...: run, log to $OUT/vla_NAME.log, print the wall time
@@ -113,10 +114,15 @@ print(best if t[best] < 0.9 * t['default'] else 'default')" "$OUT/step_profile.j
       echo "no checkpoint at $CKPT (a fresh machine?): carry the export that 'train' wrote to" \
         "\$OUT/vla_export and set VLA_CHECKPOINT to its folder" >&2; exit 2
     fi
-    # `eval seen` / `eval unseen`: one split per call when both do not fit one; --resume
-    # lets a call stopped by its limit continue where it was
-    [ "${2:-seen}" = unseen ] || evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS"
-    [ "${2:-unseen}" = seen ] || evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
+    # `eval` (all): the seen and unseen tasks as one run, so its processes start once and
+    # one task queue balances all 41 tasks; `eval seen` / `eval unseen`: one split per call
+    # when both do not fit one. --resume lets a call stopped by its limit continue.
+    case "${2:-all}" in
+      all) evaluate "$TASKS,$UNSEEN" all "$EPISODES" "$SEEDS" "$PROCS" ;;
+      seen) evaluate "$TASKS" seen "$EPISODES" "$SEEDS" "$PROCS" ;;
+      unseen) evaluate "$UNSEEN" unseen "$EPISODES" "$SEEDS" "$PROCS" ;;
+      *) echo "usage: bash train/vla_gpu.sh eval [all|seen|unseen]" >&2; exit 2 ;;
+    esac ;;
   collect)
     cp "$RUN"/log.jsonl "$RUN"/heldout.jsonl "$RUN"/config.json "$OUT/" 2>/dev/null || true
     [ -d "$OUT/vla_export" ] || $PY -m agnostos_mjx.train.vla --out "$RUN" --export "$OUT/vla_export"

@@ -1,20 +1,27 @@
 #!/bin/bash
-# Issues 26, 28 and 29 on one lent nvidia-h100-x2 (two H100s), device calls back to back:
-# the reference VLA trains on GPU 1 in the background while the main jobs run on GPU 0,
-# then both GPUs run the main job (issue 29) and the VLA's evaluation.
-#   carry .gl .whl   bash tools/gpu_setup.sh base && bash tools/gpu_session15.sh vla_start
+# Issues 26, 28 and 29 on a lent GPU host, device calls back to back (stages of one session;
+# the machine goes back after 30 s without a call). On a 2-GPU host: the reference VLA
+# trains on GPU 1 in the background while GPU 0 runs main jobs, then both GPUs run the main
+# job (issue 29) and GPU 0 evaluates the VLA.
+#   carry .gl .whl   bash tools/gpu_setup.sh base && bash tools/gpu_runs.sh vla_start
 #   carry .warp/pK   bash tools/gpu_setup.sh K (K = 0..3); then, no carry:
-#   bash tools/gpu_session15.sh poll        the VLA's progress (any call may add it)
-#   bash tools/gpu_session15.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
-#   bash tools/gpu_session15.sh warm        GPU 0: the main job again (caches on disk), its
-#                                           time split; then native on GPU 0 (planner auto)
-#   bash tools/gpu_session15.sh native_host GPU 0: native with the numpy planner
-#   bash tools/gpu_session15.sh scale       both GPUs: the warm main job as 16 processes
-#   bash tools/gpu_session15.sh scale_native  both GPUs vs GPU 0: native as 16 / 8 processes
-#   bash tools/gpu_session15.sh obs         warp observation benchmark at 1,024 worlds: GPU 0
-#                                           alone, then one process per GPU at once
-#   bash tools/gpu_session15.sh vla_eval    the VLA: seen tasks on GPU 0, unseen on GPU 1, at
-#                                           once, 10 processes each (3 seeds x 25, --compare RVT2)
+#   bash tools/gpu_runs.sh poll        the VLA's progress (any call may add it)
+#   bash tools/gpu_runs.sh warmup      GPU 0: warp warmup of the unseen tasks (fills the caches)
+#   bash tools/gpu_runs.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
+#   bash tools/gpu_runs.sh warm        GPU 0: the main job again (caches on disk), its
+#                                      time split; then native on GPU 0 (planner auto)
+#   bash tools/gpu_runs.sh native_host GPU 0: native with the numpy planner
+#   bash tools/gpu_runs.sh scale       warp, then native: the main job on both GPUs (16
+#                                      processes) and on GPU 0 (8 processes), in one call
+#   bash tools/gpu_runs.sh obs         warp observation benchmark at 1,024 worlds: GPU 0
+#                                      alone, then one process per GPU at once
+#   bash tools/gpu_runs.sh vla_eval1   the VLA on ONE H100: seen + unseen as one run, 16
+#                                      processes, 3 seeds x 25, --compare RVT2 (GPU 0)
+#   bash tools/gpu_runs.sh vla_eval    the VLA: seen tasks on GPU 0, unseen on GPU 1, at
+#                                      once, 10 processes each
+# CPUS=0-15 pins a stage's processes to those cores (taskset), e.g. to run as a 16-core
+# one-H100 host (the nvidia-h100-x1 kind) on one GPU of a 32-core 2-GPU host; vla_start
+# pins itself to VLA_CPUS (the other half of the cores on a host with >= 32).
 # Runs live in /tmp/agnostos; each stage copies its results to $OUT.
 set -e
 : "${OUT:?set OUT}"
@@ -22,6 +29,7 @@ export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl AGNOSTOS_JAX_CACHE=/tmp/agnostos/
 export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 R=/tmp/agnostos
 mkdir -p $R "$OUT"
+pin() { if [ -n "$CPUS" ]; then taskset -c "$CPUS" "$@"; else "$@"; fi; }
 quiet() { grep --line-buffered -v 'solver iterations\|warn_overflow\|linesearch iterations\|^Module \|^   '; }
 poll() {
   echo "-- VLA background job:"; tail -4 $R/vla_bg.log 2>/dev/null || true
@@ -31,28 +39,34 @@ poll() {
 main() {  # main LABEL BACKEND ARGS...: the main job into $R/main_LABEL (at most $LIMIT_S s;
   # rerun to resume), its wall time and time split
   local label=$1 b=$2 d=$R/main_$1 t0=$SECONDS; shift 2; mkdir -p $d
-  timeout ${LIMIT_S:-590} python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume --quiet --out $d \
+  pin timeout ${LIMIT_S:-590} python3 -m agnostos_mjx.eval --batch 75 --backend $b --resume --quiet --out $d \
     --compare "X-ICM 7B" "$@" 2>&1 | quiet | tail -12 || true
-  echo "main job $label ($b $*) wall $((SECONDS - t0)) s" | tee -a $d/wall.txt $OUT/walls.txt
+  echo "main job $label ($b $* ${CPUS:+cores $CPUS}) wall $((SECONDS - t0)) s" | tee -a $d/wall.txt $OUT/walls.txt
   python3 -m agnostos_mjx.evaluation.timings $d | tail -1 || true
   tar -C $R --exclude='*.mp4' -czf "$OUT/main_$label.tgz" main_$label
+}
+warmup() {
+  local t0=$SECONDS
+  CUDA_VISIBLE_DEVICES=0 pin python3 -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8 \
+    2>&1 | quiet | tail -8
+  echo "warmup (fresh machine${CPUS:+, cores $CPUS}) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
 }
 case "$1" in
   vla_start)  # data, the precision profile and training on GPU 1, detached from this call
     rm -rf $R/src && mkdir -p $R/src $R/vla_out
     pkill -f vla_gpu.sh || true; pkill -f vla_step_profile || true
     cp -a agnostos_mjx tools train scenes pyproject.toml $R/src/
+    cpus=${VLA_CPUS:-$([ "$(nproc)" -ge 32 ] && echo "$(($(nproc) / 2))-$(($(nproc) - 1))" || echo "0-$(($(nproc) - 1))")}
     (cd $R/src && CUDA_VISIBLE_DEVICES=1 OUT=$R/vla_out VLA_ROOT=$R VLA_CALL_S=${VLA_CALL_S:-1500} \
       VLA_QUICK_TASKS= VLA_PRECISION=${VLA_PRECISION:-auto} PYTHONPATH=/tmp/site:$R/src \
-      XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup bash train/vla_gpu.sh train \
+      XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup taskset -c $cpus bash train/vla_gpu.sh train \
       > $R/vla_bg.log 2>&1 < /dev/null &)
     sleep 20; poll ;;
   poll) poll ;;
+  warmup) warmup; poll ;;
   fresh)
     t0=$SECONDS
-    CUDA_VISIBLE_DEVICES=0 python3 -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8 \
-      2>&1 | quiet | tail -8
-    echo "warmup (fresh machine) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
+    warmup
     CUDA_VISIBLE_DEVICES=0 main fresh warp --local-processes 8 --mps on
     echo "fresh total (warmup + main job) $((SECONDS - t0)) s" | tee -a $OUT/walls.txt; poll ;;
   warm)
@@ -63,12 +77,11 @@ case "$1" in
   scale)
     main scale2 warp --local-processes 16 --mps on
     CUDA_VISIBLE_DEVICES=0 main scale1 warp --local-processes 8 --mps on
+    LIMIT_S=${NATIVE_S:-150} main scale2_native native --local-processes 16
+    CUDA_VISIBLE_DEVICES=0 LIMIT_S=${NATIVE_S:-150} main scale1_native native --local-processes 8
     poll ;;
   native_host) CUDA_VISIBLE_DEVICES=0 LIMIT_S=${LIMIT_S:-420} main native_host native \
       --local-processes 8 --planner host; poll ;;
-  scale_native)
-    main scale2_native native --local-processes 16
-    CUDA_VISIBLE_DEVICES=0 main scale1_native native --local-processes 8 ;;
   obs)
     bench() {  # bench GPU LABEL
       CUDA_VISIBLE_DEVICES=$1 python3 -m agnostos_mjx.observation_bench --batches 1024 \
@@ -79,6 +92,15 @@ case "$1" in
     n=$(nvidia-smi -L | grep -c '^GPU')
     for k in $(seq 0 $((n - 1))); do bench $k "gpu${k}_of_$n" & done; wait
     tail -n 3 "$OUT"/obs_*.log ;;
+  vla_eval1)  # one H100: GPU 0 (and, with CPUS, its share of the cores), both splits as one run
+    t0=$SECONDS
+    CUDA_VISIBLE_DEVICES=0 OUT=$OUT/vla_eval1 VLA_ROOT=$R VLA_CHECKPOINT=$R/vla_run \
+      VLA_PROCS=${VLA_PROCS:-16} pin bash train/vla_gpu.sh eval all || true
+    echo "vla eval all (one GPU${CPUS:+, cores $CPUS}) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
+    python3 -m agnostos_mjx.evaluation.timings $R/vla_eval_all | tail -1 || true
+    tar -C $R --exclude='*.mp4' --exclude=mps -czf "$OUT/vla_eval_all.tgz" vla_eval_all
+    OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
+    tar -C $R -czf "$OUT/vla_out.tgz" vla_out ;;
   vla_eval)
     vla() {  # vla GPU SPLIT
       CUDA_VISIBLE_DEVICES=$1 timeout 420 python3 -m agnostos_mjx.eval --policy reference-vla \
@@ -94,5 +116,5 @@ case "$1" in
     done
     OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
     tar -C $R -czf "$OUT/vla_out.tgz" vla_out ;;
-  *) echo "usage: bash tools/gpu_session15.sh vla_start|poll|fresh|warm|native_host|scale|scale_native|obs|vla_eval" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|fresh|warm|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
 esac
