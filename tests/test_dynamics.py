@@ -126,6 +126,35 @@ def test_checkpoint_round_trip(tmp_path):
         np.testing.assert_array_equal(x, y)
 
 
+class _ShardingProbe(nnx.Module):
+    """Asks a traced value for its sharding, as flax's Variable.set_value does on every
+    RNG draw (JAX answers with an AttributeError, which getattr would swallow)."""
+
+    def __init__(self, rngs: nnx.Rngs):
+        self.w = nnx.Param(jax.random.normal(rngs(), (3, 2)))
+        with pytest.raises(AttributeError, match="sharding"):
+            _ = (self.w[...] * 2.0).sharding
+
+
+def test_building_modules_skips_the_unseen_error_message_walk(monkeypatch):
+    """layers.abstract / create: while a constructor is traced, a tracer's AttributeError
+    does not walk back through the whole trace for its message (quadratic: 19 of the 22 s
+    of loading the shipped dynamics model); outside them JAX walks as before."""
+    from jax._src.interpreters import partial_eval
+
+    walks = []
+    walk = partial_eval.JaxprStackFrame.find_progenitors
+    monkeypatch.setattr(partial_eval.JaxprStackFrame, "find_progenitors",
+                        lambda frame, tracer: walks.append(1) or walk(frame, tracer))
+    original = partial_eval.DynamicJaxprTracer.__dict__["_origin_msg"]
+    assert abstract(lambda: _ShardingProbe(nnx.Rngs(0))).w.shape == (3, 2)
+    assert create(lambda: _ShardingProbe(nnx.Rngs(0))).w[...].shape == (3, 2)
+    assert walks == []
+    assert partial_eval.DynamicJaxprTracer.__dict__["_origin_msg"] is original
+    nnx.eval_shape(lambda: _ShardingProbe(nnx.Rngs(0)))
+    assert walks  # JAX's own behaviour, restored
+
+
 def test_resume_continues_step_count_and_matches_uninterrupted(tmp_path, pairs, ae_run):
     """Interrupt after step 1 (lose checkpoint 2 and a log line past it), resume:
     the run goes on from step 1 and ends where the uninterrupted one did."""
