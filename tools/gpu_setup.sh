@@ -3,8 +3,9 @@
 # machine is given back after 30 s without a call, and everything installed goes with it).
 # The tree that travels is ~44 MB and a call may carry 64 MiB in all, so ~22 MB per call:
 #   carry .gl .whl  bash tools/gpu_setup.sh base   both of these in one call (22.6 MB: fits
-#                                                  while the tree is under ~44.4 MB, 44.1
-#                                                  on 2026-11-25; else the two calls below):
+#                                                  while tree + both stay under 64 MiB as
+#                                                  counted on disk, `du -c`; on 2026-11-26
+#                                                  they came to 64.9: use the two calls below):
 #   carry .gl       bash tools/gpu_setup.sh gl     libglvnd (EGL) libraries the image lacks
 #   carry .whl      bash tools/gpu_setup.sh whl    mujoco 4.0.0, mujoco-core, mujoco-mjx 3.17.0,
 #                                                  trimesh, PyOpenGL (cp312) into /tmp/site
