@@ -9,6 +9,9 @@
 #   carry .gl       bash tools/gpu_setup.sh gl     libglvnd (EGL) libraries the image lacks
 #   carry .whl      bash tools/gpu_setup.sh whl    mujoco 4.0.0, mujoco-core, mujoco-mjx 3.17.0,
 #                                                  trimesh, PyOpenGL (cp312) into /tmp/site
+#                   (wheels carried with any earlier call are kept in /tmp/whl, so when even
+#                   tree + .whl is too much, carry .gl and .whl/mujoco_core-*.whl with `gl`
+#                   and the other wheels with `whl`)
 #   carry .warp/pK  bash tools/gpu_setup.sh K [N]  part K of warp-lang (K = 0..N, N = 3 by
 #                                                  default); the last part assembles it
 # Native-only work (no warp backend) needs the first call only. Then
@@ -32,16 +35,18 @@ gl() {  # only the libraries the image lacks: overwriting its own could break it
   ldconfig
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 }
+stash() { mkdir -p /tmp/whl && { cp .whl/*.whl /tmp/whl/ 2>/dev/null || true; }; }
 whl() {
+  stash
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target /tmp/site .whl/*.whl
+    --target /tmp/site /tmp/whl/*.whl
   PYTHONPATH=/tmp/site MUJOCO_GL=egl \
     __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json \
     python3 -c "import mujoco, jax; mujoco.Renderer(mujoco.MjModel.from_xml_string('<mujoco/>'), 32, 32); print('mujoco', mujoco.__version__, 'jax', jax.__version__, jax.devices(), 'EGL ok')"
 }
 case "$1" in
   base) gl && whl ;;
-  gl) gl ;;
+  gl) gl && stash ;;
   whl) whl ;;
   [0-9]*)
     mkdir -p /tmp/w && cp .warp/p"$1"/part_* /tmp/w/
