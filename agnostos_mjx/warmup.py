@@ -10,9 +10,12 @@ compiled programs in its persistent cache (agnostos_mjx.enable_compilation_cache
 this command does each build once: the first task alone (the kernels every scene shares),
 then one task per distinct scene size in parallel processes (`--jobs`), each running
 what a run runs: reset and settle, one key action of the expert, and on warp one rendered
-frame.  A second run on the same machine finds everything built.  Programs that call Warp
-through JAX's FFI are compiled again in every process (JAX does not cache them); those
-take seconds once the kernels exist.
+frame.  The first task also runs the default policies' demo selection once (X-ICM's
+lang+vis.out dynamics features, which the retrieval baseline uses too): its networks are
+one set of programs per machine, and without this every process of the first run compiled
+them at once (16 s for the sampler alone on an H100, 2026-11-26).  A second run on the same
+machine finds everything built.  Programs that call Warp through JAX's FFI are compiled
+again in every process (JAX does not cache them); those take seconds once the kernels exist.
 """
 
 from __future__ import annotations
@@ -32,9 +35,23 @@ from agnostos_mjx.evaluation.config import positive_int
 log = logging.getLogger("agnostos_mjx.warmup")
 
 
-def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dict:
+def warm_selection(episodes, env) -> None:
+    """The default policies' demo selection once: the retrieval baseline plans every world
+    of this batch, selecting demos as X-ICM does (`--selection auto`, the shipped memory)."""
+    import numpy as np
+
+    from agnostos_mjx.policies.retrieval import RetrievalPolicy
+
+    policy = RetrievalPolicy()
+    policy.reset(episodes, env, [episodes.task.descriptions(0)[0]] * env.batch)
+    policy.plan(episodes, env, np.arange(env.batch))
+
+
+def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
+              selection: bool = False) -> dict:
     """Run what an evaluation runs for one task once: reset (settle steps), the expert's
-    first key action, and on warp one rendered frame.  Returns the stage timings (s)."""
+    first key action, on warp one rendered frame, and with `selection` the default
+    policies' demo selection (warm_selection).  Returns the stage timings (s)."""
     import jax
     import numpy as np
 
@@ -53,10 +70,14 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dic
     if episodes.backend_name == "warp":
         episodes.observe(env, ObservationSpec(cameras=("front",), width=64, height=64))
     t3 = time.perf_counter()
+    if selection:
+        warm_selection(episodes, env)
+    t4 = time.perf_counter()
     episodes.close()
     return {"task": name, "backend": episodes.backend_name, "nv": int(episodes.scene.model.nv),
             "reset_s": round(t1 - t0, 2), "key_action_s": round(t2 - t1, 2),
-            "render_s": round(t3 - t2, 2), "wall_s": round(t3 - t0, 2)}
+            "render_s": round(t3 - t2, 2), "selection_s": round(t4 - t3, 2),
+            "wall_s": round(t4 - t0, 2)}
 
 
 def one_per_size(names: list[str]) -> list[str]:
@@ -71,10 +92,11 @@ def one_per_size(names: list[str]) -> list[str]:
     return list(seen.values())
 
 
-def _worker(name: str, args: argparse.Namespace) -> dict:
+def _worker(name: str, args: argparse.Namespace, selection: bool = False) -> dict:
     """warm_task in its own process (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name,
-           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
+           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner,
+           *(["--worker-selection"] if selection else [])]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
     if not any(v in env for v in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION")):
@@ -105,14 +127,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--every-task", action="store_true",
                    help="warm every task, not one per scene size (fills JAX's cache for each "
                         "task's reset programs too)")
+    p.add_argument("--no-selection", action="store_true",
+                   help="skip the default policies' demo selection (its networks; for runs "
+                        "of other policies, e.g. --policy oracle or reference-vla)")
     p.add_argument("--worker", metavar="TASK", help=argparse.SUPPRESS)
+    p.add_argument("--worker-selection", action="store_true", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.worker:
-        print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner)))
+        print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner,
+                                   args.worker_selection)))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from agnostos_mjx.tasks import parse_tasks
@@ -124,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     todo = names if args.every_task else one_per_size(names)
     t0 = time.perf_counter()
-    results = [_worker(todo[0], args)]  # alone: it builds the kernels every scene shares
+    # alone: it builds the kernels every scene shares (and the selection's networks)
+    results = [_worker(todo[0], args, selection=not args.no_selection)]
     log.info("warmup: %s", results[0])
     with ThreadPoolExecutor(args.jobs) as pool:
         for result in pool.map(lambda n: _worker(n, args), todo[1:]):

@@ -20,3 +20,30 @@ def test_one_per_size_and_bad_task(capsys):
     assert len(picked) == len({p for p in picked})
     assert warmup.main(["--tasks", "lamp_on,no_such_task", "--backend", "native"]) == 2
     assert "unknown task 'no_such_task'" in capsys.readouterr().err
+
+
+def test_warm_selection_compiles_what_the_default_policy_runs():
+    """After warm_selection, the retrieval policy's (= X-ICM's) first plan of the same batch
+    compiles nothing: the networks every process of a first run would otherwise compile at
+    once are the ones the warm-up left in the cache."""
+    import jax
+    import numpy as np
+
+    from agnostos_mjx.policies.retrieval import RetrievalPolicy
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+    from tests.test_compile_once import count_compiles
+
+    jax.clear_caches()  # so that only warm_selection can have compiled them in this process
+    task = get_task("lamp_on")
+    episodes = Episodes(task, "native")
+    env = episodes.reset(jax.random.split(jax.random.PRNGKey(0), 2), np.zeros(2, np.int32))
+    with count_compiles() as warmed:
+        warmup.warm_selection(episodes, env)
+    assert warmed  # the networks were compiled (or fetched from the disk cache) here
+    policy = RetrievalPolicy()
+    policy.reset(episodes, env, [task.descriptions(0)[0]] * 2)
+    with count_compiles() as compiled:
+        plans = policy.plan(episodes, env, np.arange(2))
+    assert len(plans) == 2 and compiled == []
+    episodes.close()
