@@ -28,14 +28,19 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.evaluation.config import positive_int
 
+if TYPE_CHECKING:
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.state import EnvState
+
 log = logging.getLogger("agnostos_mjx.warmup")
 
 
-def warm_selection(episodes, env) -> None:
+def warm_selection(episodes: Episodes, env: EnvState) -> None:
     """The default policies' demo selection once: the retrieval baseline plans every world
     of this batch, selecting demos as X-ICM does (`--selection auto`, the shipped memory)."""
     import numpy as np
