@@ -52,12 +52,13 @@ warmup() {
   echo "warmup (fresh machine${CPUS:+, cores $CPUS}) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
 }
 case "$1" in
-  vla_start)  # data, the precision profile and training on GPU 1, detached from this call
+  vla_start)  # data, the precision profile and training on GPU 1 (or the only GPU), detached
     rm -rf $R/src && mkdir -p $R/src $R/vla_out
     pkill -f vla_gpu.sh || true; pkill -f vla_step_profile || true
     cp -a agnostos_mjx tools train scenes pyproject.toml $R/src/
     cpus=${VLA_CPUS:-$([ "$(nproc)" -ge 32 ] && echo "$(($(nproc) / 2))-$(($(nproc) - 1))" || echo "0-$(($(nproc) - 1))")}
-    (cd $R/src && CUDA_VISIBLE_DEVICES=1 OUT=$R/vla_out VLA_ROOT=$R VLA_CALL_S=${VLA_CALL_S:-1500} \
+    gpu=$(( $(nvidia-smi -L | grep -c '^GPU') > 1 ? 1 : 0 ))  # GPU 1, or the only one
+    (cd $R/src && CUDA_VISIBLE_DEVICES=$gpu OUT=$R/vla_out VLA_ROOT=$R VLA_CALL_S=${VLA_CALL_S:-1500} \
       VLA_QUICK_TASKS= VLA_PRECISION=${VLA_PRECISION:-auto} PYTHONPATH=/tmp/site:$R/src \
       XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup taskset -c $cpus bash train/vla_gpu.sh train \
       > $R/vla_bg.log 2>&1 < /dev/null &)
