@@ -18,7 +18,7 @@
 #   bash tools/gpu_runs.sh vla_eval1   the VLA on ONE H100: seen + unseen as one run, 16
 #                                      processes, 3 seeds x 25, --compare RVT2 (GPU 0)
 #   bash tools/gpu_runs.sh vla_eval    the VLA: seen tasks on GPU 0, unseen on GPU 1, at
-#                                      once, 10 processes each
+#                                      once, 10 processes each (both via train/vla_gpu.sh)
 # CPUS=0-15 pins a stage's processes to those cores (taskset), e.g. to run as a 16-core
 # one-H100 host (the nvidia-h100-x1 kind) on one GPU of a 32-core 2-GPU host; vla_start
 # pins itself to VLA_CPUS (the other half of the cores on a host with >= 32).
@@ -50,6 +50,21 @@ warmup() {
   CUDA_VISIBLE_DEVICES=0 pin python3 -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8 \
     2>&1 | quiet | tail -8
   echo "warmup (fresh machine${CPUS:+, cores $CPUS}) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
+}
+vla() {  # vla GPU SPLIT PROCS: the VLA's protocol evaluation (train/vla_gpu.sh eval SPLIT)
+  local t0=$SECONDS
+  CUDA_VISIBLE_DEVICES=$1 OUT=$OUT/vla_eval_$2 VLA_ROOT=$R VLA_CHECKPOINT=$R/vla_run \
+    VLA_PROCS=$3 pin bash train/vla_gpu.sh eval $2 || true
+  echo "vla eval $2 (GPU $1${CPUS:+, cores $CPUS}, $3 processes) wall $((SECONDS - t0)) s" \
+    | tee -a $OUT/walls.txt
+  python3 -m agnostos_mjx.evaluation.timings $R/vla_eval_$2 | tail -1 || true
+}
+vla_collect() {  # vla_collect SPLIT...: the runs, logs, curve and export back in $OUT
+  for s in "$@"; do
+    tar -C $R --exclude='*.mp4' --exclude=mps -czf "$OUT/vla_eval_$s.tgz" vla_eval_$s
+  done
+  OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
+  tar -C $R -czf "$OUT/vla_out.tgz" vla_out
 }
 case "$1" in
   vla_start)  # data, the precision profile and training on GPU 1 (or the only GPU), detached
@@ -94,28 +109,8 @@ case "$1" in
     for k in $(seq 0 $((n - 1))); do bench $k "gpu${k}_of_$n" & done; wait
     tail -n 3 "$OUT"/obs_*.log ;;
   vla_eval1)  # one H100: GPU 0 (and, with CPUS, its share of the cores), both splits as one run
-    t0=$SECONDS
-    CUDA_VISIBLE_DEVICES=0 OUT=$OUT/vla_eval1 VLA_ROOT=$R VLA_CHECKPOINT=$R/vla_run \
-      VLA_PROCS=${VLA_PROCS:-16} pin bash train/vla_gpu.sh eval all || true
-    echo "vla eval all (one GPU${CPUS:+, cores $CPUS}) wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
-    python3 -m agnostos_mjx.evaluation.timings $R/vla_eval_all | tail -1 || true
-    tar -C $R --exclude='*.mp4' --exclude=mps -czf "$OUT/vla_eval_all.tgz" vla_eval_all
-    OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
-    tar -C $R -czf "$OUT/vla_out.tgz" vla_out ;;
-  vla_eval)
-    vla() {  # vla GPU SPLIT
-      CUDA_VISIBLE_DEVICES=$1 timeout 420 python3 -m agnostos_mjx.eval --policy reference-vla \
-        --policy-arg checkpoint=$R/vla_run --tasks $2 --episodes 25 --seeds 0,1,2 --batch 75 \
-        --backend native --local-processes 10 --mps on --quiet --resume --compare RVT2 \
-        --out $R/vla_final_$2 > $R/vla_final_$2.log 2>&1
-      echo "vla $2 exit $? wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
-    }
-    t0=$SECONDS; vla 0 seen & vla 1 unseen & wait
-    for s in seen unseen; do
-      grep "Seen\|Level\|All" $R/vla_final_$s.log || true
-      tar -C $R --exclude='*.mp4' --exclude=mps -czf "$OUT/vla_final_$s.tgz" vla_final_$s
-    done
-    OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
-    tar -C $R -czf "$OUT/vla_out.tgz" vla_out ;;
+    vla 0 all ${VLA_PROCS:-16}; vla_collect all ;;
+  vla_eval)  # one split per GPU, at once
+    vla 0 seen 10 & vla 1 unseen 10 & wait; vla_collect seen unseen ;;
   *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|fresh|warm|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
 esac
