@@ -36,14 +36,15 @@ def keep_rows(live: jax.Array, new: jax.Array, old: jax.Array) -> jax.Array:
     return jnp.where(live.reshape(-1, *[1] * (new.ndim - 1)), new, old)
 
 
+# The fields of a world's state that a phase freezes at the world's end (and `save` keeps).
+STATE_FIELDS = ("qpos", "qvel", "act", "ctrl", "time")
+
+
 def freeze(live: jax.Array, new: mjx.Data, old: mjx.Data) -> mjx.Data:
     """`new` for live worlds; a world past its own end keeps its state (its ctrl too:
     the last control it was stepped with)."""
-    return new.replace(qpos=keep_rows(live, new.qpos, old.qpos),
-                       qvel=keep_rows(live, new.qvel, old.qvel),
-                       act=keep_rows(live, new.act, old.act),
-                       ctrl=keep_rows(live, new.ctrl, old.ctrl),
-                       time=keep_rows(live, new.time, old.time))
+    return new.replace(**{f: keep_rows(live, getattr(new, f), getattr(old, f))
+                          for f in STATE_FIELDS})
 
 
 @dataclass(frozen=True)
@@ -54,12 +55,29 @@ class DevicePhysics:
         fix) and data of a `PhysicsState`;
     step(model, data, ctrl (B, nu)) -> data: one physics step of every world;
     poses(model, data) -> (xpos (B, nbody, 3), xquat (B, nbody, 4)) at the current qpos;
-    save(state, data) -> state: the `PhysicsState` of `data`."""
+    save(state, data) -> state: the `PhysicsState` of `data`;
+    steps(model, data, ctrl (K, B, nu)) -> (data, rows): K steps at once where a backend has
+        a faster way than K `step`s (physics/warp_chunk.py); see `run_steps`."""
 
     load: Callable[[PhysicsState], tuple[mjx.Model, mjx.Data]]
     step: Callable[[mjx.Model, mjx.Data, jax.Array], mjx.Data]
     poses: Callable[[mjx.Model, mjx.Data], tuple[jax.Array, jax.Array]]
     save: Callable[[PhysicsState, mjx.Data], PhysicsState]
+    steps: Callable[[mjx.Model, mjx.Data, jax.Array], tuple[mjx.Data, mjx.Data]] | None = None
+
+    def run_steps(self, m: mjx.Model, d: mjx.Data, ctrl: jax.Array) -> tuple[mjx.Data, mjx.Data]:
+        """K steps of every world with per-step controls ctrl (K, B, nu): the data after the
+        last step, and `rows`, a data whose STATE_FIELDS and sensordata hold each step's
+        values along a leading K axis (every world steps K times; the caller freezes)."""
+        if self.steps is not None:
+            return self.steps(m, d, ctrl)
+
+        def body(d: mjx.Data, u: jax.Array) -> tuple[mjx.Data, tuple]:
+            new = self.step(m, d, u)
+            return new, tuple(getattr(new, f) for f in (*STATE_FIELDS, "sensordata"))
+
+        last, rows = jax.lax.scan(body, d, ctrl)
+        return last, last.replace(**dict(zip((*STATE_FIELDS, "sensordata"), rows, strict=True)))
 
 
 class MjxBackend:
@@ -155,7 +173,10 @@ class MjxBackend:
                                  mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
                                  eq_active=d.eq_active, time=d.time)
 
-        return DevicePhysics(load=load, step=step, poses=poses, save=save)
+        mjx_physics = DevicePhysics(load=load, step=step, poses=poses, save=save)
+        if impl == "warp" and warp_steps_direct(self.model):
+            return direct_warp_physics(self.model, batch, mjx_physics, **kwargs)
+        return mjx_physics
 
     @functools.lru_cache(maxsize=16)
     def _runner(self, batch: int, nstep: int):
@@ -196,6 +217,38 @@ class MjxBackend:
             return sharding.unpad(runner(state, ctrl, steps), n)
         with gc_paused():
             return jax.block_until_ready(runner(state, ctrl, steps))
+
+
+def warp_steps_direct(model: mujoco.MjModel) -> bool:
+    """Whether the warp backend's device phases step MuJoCo Warp directly, K steps per FFI
+    call (physics/warp_chunk.py; the default), or through MJX's one-call-per-step `mjx.step`
+    (``AGNOSTOS_WARP_STEPS=mjx``, and scenes the direct call does not support)."""
+    from agnostos_mjx.physics import warp_chunk
+
+    choice = os.environ.get("AGNOSTOS_WARP_STEPS", "direct")
+    if choice not in ("direct", "mjx"):
+        raise ValueError(f"AGNOSTOS_WARP_STEPS must be direct or mjx, got {choice!r}")
+    return choice == "direct" and warp_chunk.supported(model) is None
+
+
+def direct_warp_physics(model: mujoco.MjModel, batch: int, mjx_physics: DevicePhysics,
+                        naconmax: int, njmax: int) -> DevicePhysics:
+    """DevicePhysics whose steps are physics/warp_chunk.py's K-step call (MJX's kinematics
+    still give the poses, once per key action)."""
+    from agnostos_mjx.physics.warp_chunk import physics_state, warp_chunk
+
+    chunk = warp_chunk(model, batch, naconmax, njmax)
+
+    def poses(_: None, d) -> tuple[jax.Array, jax.Array]:
+        state = PhysicsState(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl,
+                             mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
+                             eq_active=d.eq_active, eq_data=d.eq_data, time=d.time)
+        return mjx_physics.poses(*mjx_physics.load(state))
+
+    return DevicePhysics(load=lambda state: (None, chunk.load(state)),
+                         step=lambda _, d, u: chunk(d, u[None])[0],
+                         poses=poses, save=physics_state,
+                         steps=lambda _, d, ctrl: chunk(d, ctrl))
 
 
 @contextlib.contextmanager

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.physics.base import Backend, PhysicsState
-from agnostos_mjx.physics.mjx_backend import DevicePhysics, freeze, keep_rows
+from agnostos_mjx.physics.mjx_backend import STATE_FIELDS, DevicePhysics, freeze, keep_rows
 from agnostos_mjx.runtime.outcome import phase_end
 from agnostos_mjx.runtime.state import EnvState, StepResult
 from agnostos_mjx.world import posed_data
@@ -139,31 +139,50 @@ class DevicePhases:
                   ) -> tuple[EnvState, jax.Array, jax.Array, None]:
         stop = state.stop_at_success
         m, d = self.dev.load(state.physics)
-        none = jnp.full(steps.shape[0], -1, jnp.int32)
+        b = steps.shape[0]
+        none = jnp.full(b, -1, jnp.int32)
+
+        def check(c: tuple, sensors: jax.Array) -> tuple:
+            """The conditions after one step of the live worlds (whose sensor rows these are)."""
+            t, data, carry, s_at, f_at, live = c
+            new_carry, s, f = self._check(carry, sensors, state.attached, state.variation)
+            carry = jax.tree.map(lambda n, o: keep_rows(live, n, o), new_carry, carry)
+            s_at = jnp.where(live & s & (s_at < 0), t, s_at)
+            f_at = jnp.where(live & f & (f_at < 0) & (s_at < 0), t, f_at)
+            data = keep_rows(live, sensors, data)
+            ended = (t + 1 >= steps) | (f_at >= 0) | ((s_at >= 0) & stop)
+            return t + 1, data, carry, s_at, f_at, live & ~ended
 
         def one_step(c: tuple) -> tuple:
             t, d, data, carry, s_at, f_at, live = c
             new = self.dev.step(m, d, ctrl_at(t[None])[:, 0])
-            new_carry, s, f = self._check(carry, new.sensordata, state.attached, state.variation)
-            carry = jax.tree.map(lambda n, o: keep_rows(live, n, o), new_carry, carry)
-            s_at = jnp.where(live & s & (s_at < 0), t, s_at)
-            f_at = jnp.where(live & f & (f_at < 0) & (s_at < 0), t, f_at)
-            d = freeze(live, new, d)
-            data = keep_rows(live, new.sensordata, data)
-            ended = (t + 1 >= steps) | (f_at >= 0) | ((s_at >= 0) & stop)
-            return t + 1, d, data, carry, s_at, f_at, live & ~ended
+            t, data, carry, s_at, f_at, after = check((t, data, carry, s_at, f_at, live),
+                                                      new.sensordata)
+            return t, freeze(live, new, d), data, carry, s_at, f_at, after
 
-        def body(c: tuple) -> tuple:
-            # Several masked steps per iteration: a step of a world past its end is undone
-            # by `freeze`, so this changes no result, only how often the loop's condition
-            # makes the host wait for the device (see steps_per_iteration).  An inner loop
-            # of known trip count, not an unrolled one: the step is traced (and compiled)
-            # once whatever K, and XLA runs a counted loop without asking the host.
+        def k_steps(c: tuple) -> tuple:
+            # K steps of every world in one physics call (on warp: one FFI call), then the
+            # conditions over the K sensor rows as the one-step loop checks them; a world
+            # that ended at row i is set back to its state after step i (every world
+            # stepped on to the K-th; a world ended before the chunk keeps its state).
+            # Bit for bit the one-step loop's result (tests/test_key_action.py).
+            t, d, data, carry, s_at, f_at, live = c
             k = self.steps_per_iteration
-            if k == 1:
-                return one_step(c)
-            return jax.lax.fori_loop(0, k, lambda _, c: one_step(c), c)
+            ctrl = jnp.swapaxes(ctrl_at(t + jnp.arange(k)), 0, 1)
+            last, rows = self.dev.run_steps(m, d, ctrl)
 
+            def row(c: tuple, inputs: tuple) -> tuple:
+                (*checked, end), (sensors, i) = c, inputs
+                end = jnp.where(checked[-1], i, end)
+                return (*check(tuple(checked), sensors), end), None
+
+            (t, data, carry, s_at, f_at, after, end), _ = jax.lax.scan(
+                row, (t, data, carry, s_at, f_at, live, none), (rows.sensordata, jnp.arange(k)))
+            at_end = lambda r, old: keep_rows(end >= 0, r[jnp.maximum(end, 0), jnp.arange(b)], old)  # noqa: E731
+            d = last.replace(**{f: at_end(getattr(rows, f), getattr(d, f)) for f in STATE_FIELDS})
+            return t, d, data, carry, s_at, f_at, after
+
+        body = one_step if self.steps_per_iteration == 1 else k_steps
         init = (jnp.int32(0), d, state.data, state.carry, none, none, steps > 0)
         _, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, init)
         new = state.replace(physics=self.dev.save(state.physics, d), data=data, carry=carry)

@@ -1,0 +1,187 @@
+"""K MuJoCo Warp physics steps per JAX call: the device key action's fast path on a GPU.
+
+MJX's `impl="warp"` step is one XLA FFI call per physics step, and every FFI call runs a
+Python callback on the host (~0.4 ms) before Warp replays its CUDA graph.  Here one FFI call
+runs K steps: it copies the batch's state into a MuJoCo Warp `Data` kept on the device for
+this (model, batch), steps it K times with per-step controls from a (K, B, nu) array, and
+writes each step's state and sensor rows out.  Under Warp's graph mode WARP the whole call
+(copies, K steps, records) is one captured CUDA graph, replayed while XLA keeps the buffers.
+
+The call is pure in its inputs: everything the next step depends on (qpos, qvel, time, the
+solver's warm start, mocap poses, weld state and data) goes in, so the kept `Data` is only a
+workspace (contacts, constraint rows, derived quantities are recomputed every step).
+Scenes with actuator activations, sleeping or delay histories would carry more state and
+are refused (`supported`), as MJX's own step then remains the path.
+"""
+
+import dataclasses
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import warp as wp
+from mujoco.mjx.third_party import mujoco_warp as mjw
+from mujoco.mjx.third_party.mujoco_warp._src.types import vec12
+
+from agnostos_mjx.physics.base import PhysicsState
+
+
+@dataclass(frozen=True)
+class WarpData:
+    """What a device phase carries between chunks of steps (B leading); same field names
+    as mjx.Data, so `freeze` and the phases treat both alike."""
+
+    qpos: Any
+    qvel: Any
+    act: Any
+    ctrl: Any
+    time: Any
+    sensordata: Any
+    qacc_warmstart: Any
+    mocap_pos: Any
+    mocap_quat: Any
+    eq_active: Any
+    eq_data: Any
+
+    def replace(self, **changes: Any) -> "WarpData":
+        return dataclasses.replace(self, **changes)
+
+
+jax.tree_util.register_dataclass(WarpData, data_fields=[f.name for f in dataclasses.fields(WarpData)],
+                                 meta_fields=[])
+
+
+def supported(model: mujoco.MjModel) -> str | None:
+    """None when the K-step call carries all of `model`'s state, else why not."""
+    if model.na:
+        return "actuator activations"
+    if model.opt.enableflags & mujoco.mjtEnableBit.mjENBL_SLEEP:
+        return "sleeping"
+    if getattr(model, "nhistory", 0):
+        return "delay histories"
+    return None
+
+
+@wp.kernel
+def _take_row(k: int, rows: wp.array3d(dtype=float), out: wp.array2d(dtype=float)):
+    w, j = wp.tid()
+    out[w, j] = rows[k, w, j]
+
+
+@wp.kernel
+def _put_row(k: int, src: wp.array2d(dtype=float), rows: wp.array3d(dtype=float)):
+    w, j = wp.tid()
+    rows[k, w, j] = src[w, j]
+
+
+@wp.kernel
+def _put_scalar_row(k: int, src: wp.array(dtype=float), rows: wp.array2d(dtype=float)):
+    w = wp.tid()
+    rows[k, w] = src[w]
+
+
+class WarpChunk:
+    """The K-step call for one scene and batch size (a device workspace of `batch` worlds).
+
+    `__call__(d: WarpData, ctrl (K, B, nu)) -> (WarpData after the K steps, rows)`, rows a
+    WarpData whose qpos, qvel, act, ctrl, time and sensordata hold the values after each
+    step along a leading K axis, as MJX's step would give them one step at a time."""
+
+    def __init__(self, model: mujoco.MjModel, batch: int, naconmax: int, njmax: int):
+        why = supported(model)
+        if why:
+            raise ValueError(f"the K-step Warp call does not carry {why}")
+        self.model = model
+        self.batch = batch
+        self.mw = mjw.put_model(model, batch_sizes={"eq_data": batch} if model.neq else None)
+        self.dw = mjw.put_data(model, mujoco.MjData(model), nworld=batch, naconmax=naconmax,
+                               njmax=njmax)
+        self._call = wp.jax_callable(self._make_steps(), num_outputs=5,
+                                     graph_mode=_graph_mode(), vmap_method=None)
+
+    def _make_steps(self):
+        """The function the FFI call runs (a plain function: Warp reads its annotations)."""
+        m, d, b, model = self.mw, self.dw, self.batch, self.model
+
+        def steps(qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float),
+                  time: wp.array(dtype=float), warmstart: wp.array2d(dtype=float),
+                  ctrl: wp.array3d(dtype=float), mocap_pos: wp.array2d(dtype=wp.vec3),
+                  mocap_quat: wp.array2d(dtype=wp.quat), eq_active: wp.array2d(dtype=bool),
+                  eq_data: wp.array2d(dtype=vec12),
+                  qpos_rows: wp.array3d(dtype=float), qvel_rows: wp.array3d(dtype=float),
+                  time_rows: wp.array2d(dtype=float), sensor_rows: wp.array3d(dtype=float),
+                  warmstart_out: wp.array2d(dtype=float)):
+            wp.copy(d.qpos, qpos)
+            wp.copy(d.qvel, qvel)
+            wp.copy(d.time, time)
+            wp.copy(d.qacc_warmstart, warmstart)
+            if model.nmocap:
+                wp.copy(d.mocap_pos, mocap_pos)
+                wp.copy(d.mocap_quat, mocap_quat)
+            if model.neq:
+                wp.copy(d.eq_active, eq_active)
+                wp.copy(m.eq_data, eq_data)
+            for k in range(ctrl.shape[0]):
+                if model.nu:
+                    wp.launch(_take_row, dim=(b, model.nu), inputs=[k, ctrl, d.ctrl])
+                mjw.step(m, d)
+                wp.launch(_put_row, dim=(b, model.nq), inputs=[k, d.qpos, qpos_rows])
+                wp.launch(_put_row, dim=(b, model.nv), inputs=[k, d.qvel, qvel_rows])
+                wp.launch(_put_scalar_row, dim=b, inputs=[k, d.time, time_rows])
+                wp.launch(_put_row, dim=(b, model.nsensordata), inputs=[k, d.sensordata, sensor_rows])
+            wp.copy(warmstart_out, d.qacc_warmstart)
+
+        return steps
+
+    def load(self, state: PhysicsState) -> WarpData:
+        """A phase's starting data.  MJX's make_data starts the solver's warm start at zero,
+        so this does too: the same physics as MJX's step from a fresh Data."""
+        b = state.qpos.shape[0]
+        return WarpData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
+                        time=state.time,
+                        sensordata=jnp.zeros((b, self.model.nsensordata), jnp.float32),
+                        qacc_warmstart=jnp.zeros_like(state.qvel), mocap_pos=state.mocap_pos,
+                        mocap_quat=state.mocap_quat, eq_active=state.eq_active,
+                        eq_data=state.eq_data)
+
+    def __call__(self, d: WarpData, ctrl: jax.Array) -> tuple[WarpData, WarpData]:
+        k, b, m = ctrl.shape[0], self.batch, self.model
+        # Zero-size arrays do not cross the FFI boundary; a scene without mocap bodies or
+        # welds passes one dummy row that the call ignores.
+        mocap_pos = d.mocap_pos if m.nmocap else jnp.zeros((b, 1, 3), jnp.float32)
+        mocap_quat = d.mocap_quat if m.nmocap else jnp.zeros((b, 1, 4), jnp.float32)
+        eq_active = d.eq_active if m.neq else jnp.zeros((b, 1), bool)
+        eq_data = d.eq_data if m.neq else jnp.zeros((b, 1, 12), jnp.float32)
+        dims = {"qpos_rows": (k, b, m.nq), "qvel_rows": (k, b, m.nv), "time_rows": (k, b),
+                "sensor_rows": (k, b, m.nsensordata), "warmstart_out": (b, m.nv)}
+        qpos, qvel, time, sens, warm = self._call(
+            d.qpos, d.qvel, d.time, d.qacc_warmstart, ctrl, mocap_pos, mocap_quat, eq_active,
+            eq_data, output_dims=dims)
+        last = d.replace(qpos=qpos[-1], qvel=qvel[-1], ctrl=ctrl[-1], time=time[-1],
+                         sensordata=sens[-1], qacc_warmstart=warm)
+        acts = jnp.broadcast_to(d.act, (k, *d.act.shape))  # no activations (`supported`)
+        return last, last.replace(qpos=qpos, qvel=qvel, act=acts, ctrl=ctrl, time=time,
+                                  sensordata=sens)
+
+
+def _graph_mode() -> Any:
+    """WARP on a GPU (the call captured once per buffer set, then replayed); on a CPU Warp
+    runs the call's kernels directly."""
+    on_gpu = any(dev.platform == "gpu" for dev in jax.devices())
+    return wp.JaxCallableGraphMode.WARP if on_gpu else wp.JaxCallableGraphMode.NONE
+
+
+@functools.lru_cache(maxsize=32)
+def warp_chunk(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int) -> WarpChunk:
+    """One workspace per (scene, batch size) and process."""
+    return WarpChunk(model, batch, naconmax, njmax)
+
+
+def physics_state(state: PhysicsState, d: WarpData) -> PhysicsState:
+    return state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl, time=d.time)
+
+
+__all__ = ["WarpChunk", "WarpData", "physics_state", "supported", "warp_chunk"]
