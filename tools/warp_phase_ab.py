@@ -1,6 +1,9 @@
 """A/B in one process: the device key action's Warp graph mode and steps per iteration.
 
-    python tools/warp_phase_ab.py --tasks lamp_on,stack_blocks --variants WARP_STAGED:4,WARP_STAGED:16,WARP:16 --batch 75
+    python tools/warp_phase_ab.py --tasks lamp_on,stack_blocks --variants WARP:16,DIRECT:16 --batch 75
+
+A variant DIRECT:K steps MuJoCo Warp directly, K steps per FFI call (physics/warp_chunk.py,
+the default since 2026-11-26); the others step through MJX's `mjx.step` in that graph mode.
 
 Per task one MJX-Warp runner (its reset and settle as a run does them); per variant
 (graph mode : physics steps per while-loop iteration) a DevicePhysics of its own
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import jax
@@ -43,8 +47,8 @@ def main() -> None:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", default="lamp_on,stack_blocks")
-    p.add_argument("--variants", default="WARP_STAGED:4,WARP_STAGED:16,WARP:16",
-                   help="graph mode:K pairs, comma-separated")
+    p.add_argument("--variants", default="WARP:16,DIRECT:16",
+                   help="graph mode (or DIRECT):K pairs, comma-separated")
     p.add_argument("--batch", type=int, default=75)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--out", default=None)
@@ -57,7 +61,9 @@ def main() -> None:
         physics = {}
         for mode, k in variants:
             t0 = time.perf_counter()
-            dev = MjxBackend(model, impl="warp", graph_mode=mode).device_physics(a.batch)
+            os.environ["AGNOSTOS_WARP_STEPS"] = "direct" if mode == "DIRECT" else "mjx"
+            graph_mode = "WARP" if mode == "DIRECT" else mode
+            dev = MjxBackend(model, impl="warp", graph_mode=graph_mode).device_physics(a.batch)
             oracle_batch(runner, a.batch, 1, dev, k)
             physics[(mode, k)] = (dev, time.perf_counter() - t0)
         walls: dict = {v: [] for v in variants}
