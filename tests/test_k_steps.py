@@ -112,7 +112,7 @@ def test_k_steps_equal_one_step_on_mjx_jax(stop_at_success: bool) -> None:
 def test_direct_warp_chunk_equals_its_single_steps_and_native_physics() -> None:
     """MuJoCo Warp stepped K times in one FFI call (on this CPU: Warp's CPU kernels, built
     on first use in about a minute) equals K calls of one step bit for bit, and follows
-    MuJoCo's C physics."""
+    MuJoCo's C physics and kinematics."""
     pytest.importorskip("warp")
     from agnostos_mjx.physics.warp_chunk import warp_chunk
 
@@ -136,3 +136,8 @@ def test_direct_warp_chunk_equals_its_single_steps_and_native_physics() -> None:
         mujoco.mj_step(model, native)
     np.testing.assert_allclose(np.asarray(rows.qpos[-1, 0]), native.qpos, atol=1e-5)
     np.testing.assert_allclose(np.asarray(rows.sensordata[-1, 0]), native.sensordata, atol=1e-4)
+    # the body frames from MuJoCo Warp's kinematics (the welds' poses) at the last state
+    xpos, xquat = jax.jit(chunk.poses)(last)
+    mujoco.mj_kinematics(model, native)
+    np.testing.assert_allclose(np.asarray(xpos[0]), native.xpos, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(xquat[0]), native.xquat, atol=1e-5)

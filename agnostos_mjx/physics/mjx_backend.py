@@ -173,10 +173,9 @@ class MjxBackend:
                                  mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
                                  eq_active=d.eq_active, time=d.time)
 
-        mjx_physics = DevicePhysics(load=load, step=step, poses=poses, save=save)
         if impl == "warp" and warp_steps_direct(self.model):
-            return direct_warp_physics(self.model, batch, mjx_physics, **kwargs)
-        return mjx_physics
+            return direct_warp_physics(self.model, batch, **kwargs)
+        return DevicePhysics(load=load, step=step, poses=poses, save=save)
 
     @functools.lru_cache(maxsize=16)
     def _runner(self, batch: int, nstep: int):
@@ -231,23 +230,16 @@ def warp_steps_direct(model: mujoco.MjModel) -> bool:
     return choice == "direct" and warp_chunk.supported(model) is None
 
 
-def direct_warp_physics(model: mujoco.MjModel, batch: int, mjx_physics: DevicePhysics,
-                        naconmax: int, njmax: int) -> DevicePhysics:
-    """DevicePhysics whose steps are physics/warp_chunk.py's K-step call (MJX's kinematics
-    still give the poses, once per key action)."""
+def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int
+                        ) -> DevicePhysics:
+    """DevicePhysics of MuJoCo Warp called directly (physics/warp_chunk.py): K steps per FFI
+    call, and the poses from its kinematics, so no MJX FFI call is left in a key action."""
     from agnostos_mjx.physics.warp_chunk import physics_state, warp_chunk
 
     chunk = warp_chunk(model, batch, naconmax, njmax)
-
-    def poses(_: None, d) -> tuple[jax.Array, jax.Array]:
-        state = PhysicsState(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl,
-                             mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
-                             eq_active=d.eq_active, eq_data=d.eq_data, time=d.time)
-        return mjx_physics.poses(*mjx_physics.load(state))
-
     return DevicePhysics(load=lambda state: (None, chunk.load(state)),
                          step=lambda _, d, u: chunk(d, u[None])[0],
-                         poses=poses, save=physics_state,
+                         poses=lambda _, d: chunk.poses(d), save=physics_state,
                          steps=lambda _, d, ctrl: chunk(d, ctrl))
 
 

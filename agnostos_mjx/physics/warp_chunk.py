@@ -101,6 +101,25 @@ class WarpChunk:
                                njmax=njmax)
         self._call = wp.jax_callable(self._make_steps(), num_outputs=5,
                                      graph_mode=_graph_mode(), vmap_method=None)
+        self._poses = wp.jax_callable(self._make_poses(), num_outputs=2,
+                                      graph_mode=_graph_mode(), vmap_method=None)
+
+    def _make_poses(self):
+        """The function of the poses' FFI call: the body frames at the given qpos."""
+        m, d, model = self.mw, self.dw, self.model
+
+        def poses(qpos: wp.array2d(dtype=float), mocap_pos: wp.array2d(dtype=wp.vec3),
+                  mocap_quat: wp.array2d(dtype=wp.quat), xpos: wp.array2d(dtype=wp.vec3),
+                  xquat: wp.array2d(dtype=wp.quat)):
+            wp.copy(d.qpos, qpos)
+            if model.nmocap:
+                wp.copy(d.mocap_pos, mocap_pos)
+                wp.copy(d.mocap_quat, mocap_quat)
+            mjw.kinematics(m, d)
+            wp.copy(xpos, d.xpos)
+            wp.copy(xquat, d.xquat)
+
+        return poses
 
     def _make_steps(self):
         """The function the FFI call runs (a plain function: Warp reads its annotations)."""
@@ -147,12 +166,22 @@ class WarpChunk:
                         mocap_quat=state.mocap_quat, eq_active=state.eq_active,
                         eq_data=state.eq_data)
 
+    def _mocap(self, d: WarpData) -> tuple[jax.Array, jax.Array]:
+        # Zero-size arrays do not cross the FFI boundary; a scene without mocap bodies (or
+        # welds) passes one dummy row that the call ignores.
+        if self.model.nmocap:
+            return d.mocap_pos, d.mocap_quat
+        b = self.batch
+        return jnp.zeros((b, 1, 3), jnp.float32), jnp.zeros((b, 1, 4), jnp.float32)
+
+    def poses(self, d: WarpData) -> tuple[jax.Array, jax.Array]:
+        """(xpos (B, nbody, 3), xquat (B, nbody, 4)) at d's qpos, as mjx.kinematics gives."""
+        dims = {"xpos": (self.batch, self.model.nbody), "xquat": (self.batch, self.model.nbody)}
+        return tuple(self._poses(d.qpos, *self._mocap(d), output_dims=dims))
+
     def __call__(self, d: WarpData, ctrl: jax.Array) -> tuple[WarpData, WarpData]:
         k, b, m = ctrl.shape[0], self.batch, self.model
-        # Zero-size arrays do not cross the FFI boundary; a scene without mocap bodies or
-        # welds passes one dummy row that the call ignores.
-        mocap_pos = d.mocap_pos if m.nmocap else jnp.zeros((b, 1, 3), jnp.float32)
-        mocap_quat = d.mocap_quat if m.nmocap else jnp.zeros((b, 1, 4), jnp.float32)
+        mocap_pos, mocap_quat = self._mocap(d)
         eq_active = d.eq_active if m.neq else jnp.zeros((b, 1), bool)
         eq_data = d.eq_data if m.neq else jnp.zeros((b, 1, 12), jnp.float32)
         dims = {"qpos_rows": (k, b, m.nq), "qvel_rows": (k, b, m.nv), "time_rows": (k, b),
