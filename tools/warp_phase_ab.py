@@ -3,7 +3,8 @@
     python tools/warp_phase_ab.py --tasks lamp_on,stack_blocks --variants WARP:16,DIRECT:16 --batch 75
 
 A variant DIRECT:K steps MuJoCo Warp directly, K steps per FFI call (physics/warp_chunk.py,
-the default since 2026-11-26); the others step through MJX's `mjx.step` in that graph mode.
+the default since 2026-11-26; DIRECT_WARP:K with that call in graph mode WARP instead of
+its default); the others step through MJX's `mjx.step` in that graph mode.
 
 Per task one MJX-Warp runner (its reset and settle as a run does them); per variant
 (graph mode : physics steps per while-loop iteration) a DevicePhysics of its own
@@ -61,8 +62,10 @@ def main() -> None:
         physics = {}
         for mode, k in variants:
             t0 = time.perf_counter()
-            os.environ["AGNOSTOS_WARP_STEPS"] = "direct" if mode == "DIRECT" else "mjx"
-            graph_mode = "WARP" if mode == "DIRECT" else mode
+            direct = mode.startswith("DIRECT")
+            os.environ["AGNOSTOS_WARP_STEPS"] = "direct" if direct else "mjx"
+            os.environ["AGNOSTOS_WARP_CHUNK_GRAPH_MODE"] = mode[len("DIRECT_"):] or "auto"
+            graph_mode = "WARP" if direct else mode
             dev = MjxBackend(model, impl="warp", graph_mode=graph_mode).device_physics(a.batch)
             oracle_batch(runner, a.batch, 1, dev, k)
             physics[(mode, k)] = (dev, time.perf_counter() - t0)

@@ -236,7 +236,10 @@ def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax:
     call, and the poses from its kinematics, so no MJX FFI call is left in a key action."""
     from agnostos_mjx.physics.warp_chunk import physics_state, warp_chunk
 
-    chunk = warp_chunk(model, batch, naconmax, njmax)
+    # AGNOSTOS_WARP_CHUNK_GRAPH_MODE: the K-step call's graph mode (measurements; see
+    # warp_chunk._graph_mode for the default)
+    chunk = warp_chunk(model, batch, naconmax, njmax,
+                       os.environ.get("AGNOSTOS_WARP_CHUNK_GRAPH_MODE", "auto"))
     return DevicePhysics(load=lambda state: (None, chunk.load(state)),
                          step=lambda _, d, u: chunk(d, u[None])[0],
                          poses=lambda _, d: chunk.poses(d), save=physics_state,

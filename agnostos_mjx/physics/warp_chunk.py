@@ -90,7 +90,8 @@ class WarpChunk:
     WarpData whose qpos, qvel, act, ctrl, time and sensordata hold the values after each
     step along a leading K axis, as MJX's step would give them one step at a time."""
 
-    def __init__(self, model: mujoco.MjModel, batch: int, naconmax: int, njmax: int):
+    def __init__(self, model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
+                 graph_mode: str = "auto"):
         why = supported(model)
         if why:
             raise ValueError(f"the K-step Warp call does not carry {why}")
@@ -99,10 +100,11 @@ class WarpChunk:
         self.mw = mjw.put_model(model, batch_sizes={"eq_data": batch} if model.neq else None)
         self.dw = mjw.put_data(model, mujoco.MjData(model), nworld=batch, naconmax=naconmax,
                                njmax=njmax)
-        self._call = wp.jax_callable(self._make_steps(), num_outputs=5,
-                                     graph_mode=_graph_mode(), vmap_method=None)
-        self._poses = wp.jax_callable(self._make_poses(), num_outputs=2,
-                                      graph_mode=_graph_mode(), vmap_method=None)
+        mode = _graph_mode(graph_mode)
+        self._call = wp.jax_callable(self._make_steps(), num_outputs=5, graph_mode=mode,
+                                     vmap_method=None)
+        self._poses = wp.jax_callable(self._make_poses(), num_outputs=2, graph_mode=mode,
+                                      vmap_method=None)
 
     def _make_poses(self):
         """The function of the poses' FFI call: the body frames at the given qpos."""
@@ -196,17 +198,23 @@ class WarpChunk:
                                   sensordata=sens)
 
 
-def _graph_mode() -> Any:
-    """WARP on a GPU (the call captured once per buffer set, then replayed); on a CPU Warp
-    runs the call's kernels directly."""
-    on_gpu = any(dev.platform == "gpu" for dev in jax.devices())
-    return wp.JaxCallableGraphMode.WARP if on_gpu else wp.JaxCallableGraphMode.NONE
+def _graph_mode(name: str) -> Any:
+    """How Warp replays the call's CUDA graph.  `auto`: WARP_STAGED on a GPU: the graph is
+    captured once per call site against Warp's own staging buffers, and each call copies the
+    (small) inputs in and outputs out.  Graph mode WARP instead captures anew for every new
+    set of XLA buffer addresses, which the key action's program gets afresh at each run:
+    a capture of K steps each time.  On a CPU Warp runs the call's kernels directly (NONE)."""
+    if name == "auto":
+        on_gpu = any(dev.platform == "gpu" for dev in jax.devices())
+        name = "WARP_STAGED" if on_gpu else "NONE"
+    return getattr(wp.JaxCallableGraphMode, name)
 
 
 @functools.lru_cache(maxsize=32)
-def warp_chunk(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int) -> WarpChunk:
-    """One workspace per (scene, batch size) and process."""
-    return WarpChunk(model, batch, naconmax, njmax)
+def warp_chunk(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
+               graph_mode: str = "auto") -> WarpChunk:
+    """One workspace per (scene, batch size, graph mode) and process."""
+    return WarpChunk(model, batch, naconmax, njmax, graph_mode)
 
 
 def physics_state(state: PhysicsState, d: WarpData) -> PhysicsState:
