@@ -15,6 +15,10 @@
 #                                      processes) and on GPU 0 (8 processes), in one call
 #   bash tools/gpu_runs.sh ab          GPU 0: the device key action, MJX's step (WARP:16) against
 #                                      MuJoCo Warp called directly, K steps per FFI call (DIRECT)
+#   bash tools/gpu_runs.sh subset L    GPU 0, ONE process: the main job's put_rubbish_in_bin,
+#                                      lamp_on, put_knife_on_chopping_board and
+#                                      take_usb_out_of_computer, into main_subset_L (with
+#                                      AGNOSTOS_WARP_STEPS / _CHUNK_GRAPH_MODE set for A/B)
 #   bash tools/gpu_runs.sh obs         warp observation benchmark at 1,024 worlds: GPU 0
 #                                      alone, then one process per GPU at once
 #   bash tools/gpu_runs.sh vla_eval1   the VLA on ONE H100: seen + unseen as one run, 16
@@ -100,6 +104,9 @@ case "$1" in
     poll ;;
   ab) CUDA_VISIBLE_DEVICES=0 pin python3 tools/warp_phase_ab.py --tasks ${AB_TASKS:-lamp_on,put_rubbish_in_bin} \
       --batch 75 --variants ${AB_VARIANTS:-WARP:16,DIRECT:16,DIRECT:32} --out $OUT/ab_75.json 2>&1 | quiet | tail -12 ;;
+  subset) CUDA_VISIBLE_DEVICES=0 main subset_${2:?label} warp \
+      --tasks put_rubbish_in_bin,lamp_on,put_knife_on_chopping_board,take_usb_out_of_computer
+    python3 -m agnostos_mjx.evaluation.timings $R/main_subset_$2 ;;
   native_host) CUDA_VISIBLE_DEVICES=0 LIMIT_S=${LIMIT_S:-420} main native_host native \
       --local-processes 8 --planner host; poll ;;
   obs)
@@ -116,5 +123,5 @@ case "$1" in
     vla 0 all ${VLA_PROCS:-16}; vla_collect all ;;
   vla_eval)  # one split per GPU, at once
     vla 0 seen 10 & vla 1 unseen 10 & wait; vla_collect seen unseen ;;
-  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|fresh|warm|ab|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|fresh|warm|ab|subset|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
 esac
