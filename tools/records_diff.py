@@ -2,7 +2,8 @@
 
     python tools/records_diff.py RUN_A RUN_B [RUN_A2 RUN_B2 ...]
 
-Each RUN is a run folder (its episodes.jsonl) or a jsonl file.  Episodes are matched by
+Each RUN is a run folder (its episodes.jsonl, or episodes.jsonl.gz as reports keep them) or a
+jsonl file.  Episodes are matched by
 (task, seed, episode); every field except timing (`wall_s`, `batch_size`-independent
 timing keys) must be equal.  Prints per pair: episodes, identical, differing (first few
 with the fields that differ), missing on either side.  Exit 1 when any pair differs.
@@ -10,6 +11,7 @@ with the fields that differ), missing on either side.  Exit 1 when any pair diff
 
 from __future__ import annotations
 
+import gzip
 import json
 import sys
 from pathlib import Path
@@ -29,8 +31,11 @@ def _strip(value):
 
 def load(path: Path) -> dict[tuple, dict]:
     file = path / "episodes.jsonl" if path.is_dir() else path
+    if not file.exists() and file.with_suffix(".jsonl.gz").exists():
+        file = file.with_suffix(".jsonl.gz")
+    text = gzip.decompress(file.read_bytes()).decode() if file.suffix == ".gz" else file.read_text()
     out = {}
-    for line in file.read_text().splitlines():
+    for line in text.splitlines():
         if line.strip():
             r = json.loads(line)
             out[(r["task"], r["seed"], r["episode"])] = _strip(r)

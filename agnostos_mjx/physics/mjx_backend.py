@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
+import logging
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -29,6 +30,8 @@ from mujoco import mjx
 
 from agnostos_mjx import sharding
 from agnostos_mjx.physics.base import PhysicsState, check_steps
+
+log = logging.getLogger(__name__)
 
 
 def keep_rows(live: jax.Array, new: jax.Array, old: jax.Array) -> jax.Array:
@@ -89,15 +92,14 @@ class MjxBackend:
         self.model = model
         options = {}
         if impl == "warp":
-            # Graph mode WARP: Warp captures each FFI call's CUDA graph once per set of buffer
-            # addresses and replays it.  Inside the device key action (a while loop of K
-            # steps, runtime/phase.py) XLA keeps the loop's buffers in place, so the graphs
-            # are replayed: 1.5x-1.8x faster per key action than WARP_STAGED (which copies
-            # through fixed staging buffers) with the same outcomes at 75 and 1,024 worlds
-            # (tools/warp_phase_ab.py, H100, eval/reports/gpu_h100_floor).  The stale sensor
-            # data once seen with WARP at 1,024 worlds (tools/warp_variants.py: one jit call
-            # per physics step, so new buffers every step) did not recur there: 1,024 of
-            # 1,024 outcomes equal WARP_STAGED's.  AGNOSTOS_WARP_GRAPH_MODE overrides it.
+            # The graph mode of MJX's own FFI calls (`mjx.step`, `mjx.kinematics`), which
+            # the device phases use only with AGNOSTOS_WARP_STEPS=mjx (see
+            # warp_steps_direct).  WARP was 1.5x-1.8x faster per key action than
+            # WARP_STAGED (eval/reports/gpu_h100_floor), but it gave wrong physics on an H100
+            # on 2026-11-26: put_knife_on_chopping_board run after put_rubbish_in_bin and
+            # lamp_on in one process succeeded in 72 of 75 episodes, twice, against 7 with
+            # native MuJoCo and with the direct call (eval/reports/gpu_h100_session17).
+            # AGNOSTOS_WARP_GRAPH_MODE overrides it.
             from mujoco.mjx.warp import types as warp_types
 
             graph_mode = os.environ.get("AGNOSTOS_WARP_GRAPH_MODE", graph_mode)
@@ -227,7 +229,17 @@ def warp_steps_direct(model: mujoco.MjModel) -> bool:
     choice = os.environ.get("AGNOSTOS_WARP_STEPS", "direct")
     if choice not in ("direct", "mjx"):
         raise ValueError(f"AGNOSTOS_WARP_STEPS must be direct or mjx, got {choice!r}")
-    return choice == "direct" and warp_chunk.supported(model) is None
+    why_not = warp_chunk.supported(model)
+    if choice == "mjx" or why_not:
+        _warn_mjx_steps(why_not or "AGNOSTOS_WARP_STEPS=mjx")
+    return choice == "direct" and why_not is None
+
+
+@functools.cache
+def _warn_mjx_steps(reason: str) -> None:
+    log.warning("warp: device phases step through MJX's mjx.step (%s); in graph mode WARP it "
+                "gave wrong outcomes once several tasks ran in one process "
+                "(eval/reports/gpu_h100_session17)", reason)
 
 
 def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int

@@ -112,13 +112,15 @@ WARP_STEPS_PER_ITERATION = 16
 def steps_per_iteration(backend_name: str) -> int:
     """Physics steps per iteration of a device phase's while loop.
 
-    Each iteration ends with the host reading the loop's condition from the device, so the
-    host cannot queue the next step before the device has finished this one: on MJX-Warp,
-    whose step is a Python FFI callback (~1 ms of host time for ~1 ms of GPU time at batch
-    75), host and device then take turns instead of overlapping.  K steps per iteration
-    (a counted inner loop) let them overlap; a world that ends mid-iteration idles for at
-    most K - 1 masked steps.  On MJX-jax (CPU tests) one step per iteration keeps the
-    program small.  ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
+    Each iteration ends with the host reading the loop's condition from the device.  With
+    K > 1 an iteration is one physics call of K steps (`DevicePhysics.run_steps`: on warp
+    one FFI call, physics/warp_chunk.py), after which the conditions run over the K rows and
+    a world that ended inside is set back to its end step: bit for bit the one-step loop's
+    result (tests/test_k_steps.py), at one Python FFI callback per K steps instead of one
+    per step.  K = 16 and 64 cost the same on an H100 at 75 worlds (oracle key actions,
+    eval/reports/gpu_h100_session17); a finished world idles at most K - 1 steps.  On
+    MJX-jax (CPU tests) one step per iteration keeps the program small.
+    ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
     override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
     if override:
         return max(1, int(override))
