@@ -4,7 +4,8 @@
 
 A variant DIRECT:K steps MuJoCo Warp directly, K steps per FFI call (physics/warp_chunk.py,
 the default since 2026-11-26; DIRECT_WARP:K with that call in graph mode WARP instead of
-its default); the others step through MJX's `mjx.step` in that graph mode.
+its default; a suffix +U, e.g. DIRECT+U:16, checks the conditions of the K rows unrolled);
+the others step through MJX's `mjx.step` in that graph mode.
 
 Per task one MJX-Warp runner (its reset and settle as a run does them); per variant
 (graph mode : physics steps per while-loop iteration) a DevicePhysics of its own
@@ -64,7 +65,9 @@ def main() -> None:
             t0 = time.perf_counter()
             direct = mode.startswith("DIRECT")
             os.environ["AGNOSTOS_WARP_STEPS"] = "direct" if direct else "mjx"
-            os.environ["AGNOSTOS_WARP_CHUNK_GRAPH_MODE"] = mode[len("DIRECT_"):] or "auto"
+            os.environ["AGNOSTOS_UNROLL_CONDITIONS"] = "1" if mode.endswith("+U") else "0"
+            chunk_mode = mode.removesuffix("+U")[len("DIRECT_"):]
+            os.environ["AGNOSTOS_WARP_CHUNK_GRAPH_MODE"] = chunk_mode or "auto"
             graph_mode = "WARP" if direct else mode
             dev = MjxBackend(model, impl="warp", graph_mode=graph_mode).device_physics(a.batch)
             oracle_batch(runner, a.batch, 1, dev, k)

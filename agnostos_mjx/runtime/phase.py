@@ -127,6 +127,13 @@ def steps_per_iteration(backend_name: str) -> int:
     return WARP_STEPS_PER_ITERATION if backend_name == "warp" else 1
 
 
+def unroll_conditions() -> bool:
+    """Whether a K-step iteration checks the conditions of its K rows unrolled (one program
+    region XLA can fuse across rows) instead of in a counted loop; ``AGNOSTOS_UNROLL_CONDITIONS=1``
+    (measurements: eval/reports/gpu_h100_session17)."""
+    return os.environ.get("AGNOSTOS_UNROLL_CONDITIONS", "0") == "1"
+
+
 class DevicePhases:
     """Phases as `lax.while_loop`s of MJX steps, traced into the key action's program."""
 
@@ -179,7 +186,8 @@ class DevicePhases:
                 return (*check(tuple(checked), sensors), end), None
 
             (t, data, carry, s_at, f_at, after, end), _ = jax.lax.scan(
-                row, (t, data, carry, s_at, f_at, live, none), (rows.sensordata, jnp.arange(k)))
+                row, (t, data, carry, s_at, f_at, live, none), (rows.sensordata, jnp.arange(k)),
+                unroll=k if unroll_conditions() else 1)
             at_end = lambda r, old: keep_rows(end >= 0, r[jnp.maximum(end, 0), jnp.arange(b)], old)  # noqa: E731
             d = last.replace(**{f: at_end(getattr(rows, f), getattr(d, f)) for f in STATE_FIELDS})
             return t, d, data, carry, s_at, f_at, after
