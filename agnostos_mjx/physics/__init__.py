@@ -20,6 +20,9 @@ BACKENDS = ("auto", "native", "jax", "warp")
 # (274 s vs native's 786 s single-process, eval/reports/gpu_h100_floor).  But on a 32-core host
 # with both as 8 processes, native finished the main job first: 103-109 s against warp's 140 s
 # with warm caches (eval/reports/gpu_h100_x2_session15), so `auto` keeps native at batch 75.
+# With MuJoCo Warp stepped directly, K steps per FFI call, on one 16-core H100: warp 128 s with
+# 8 processes, 118 s with 12-16, native 118 s with 8 (eval/reports/gpu_h100_session17): still no
+# faster, so still native.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
