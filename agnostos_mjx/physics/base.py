@@ -7,8 +7,8 @@ MJX-jax and MJX-warp backends are interchangeable.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Protocol
+from dataclasses import dataclass, fields, replace
+from typing import Any, Protocol
 
 import jax
 import numpy as np
@@ -53,6 +53,32 @@ class PhysicsState:
             return out
 
         return jax.tree.map(put, self, part)
+
+
+@dataclass(frozen=True)
+class StepData:
+    """The per-world data a device phase carries between physics calls (B leading) where the
+    physics is not MJX's own (native MuJoCo through host callbacks, MuJoCo Warp called
+    directly): the field names of mjx.Data, so the phases treat all alike."""
+
+    qpos: Any
+    qvel: Any
+    act: Any
+    ctrl: Any
+    time: Any
+    sensordata: Any
+    qacc_warmstart: Any  # the solver's warm start (MuJoCo Warp carries it between calls)
+    mocap_pos: Any
+    mocap_quat: Any
+    eq_active: Any
+    eq_data: Any
+
+    def replace(self, **changes: Any) -> StepData:
+        return replace(self, **changes)
+
+
+jax.tree_util.register_dataclass(StepData, data_fields=[f.name for f in fields(StepData)],
+                                 meta_fields=[])
 
 
 class Backend(Protocol):

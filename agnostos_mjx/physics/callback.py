@@ -11,83 +11,57 @@ in the default test suite.  Not a fast path: every step leaves the program.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from typing import Any
-
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.physics.base import PhysicsState
+from agnostos_mjx.physics.base import PhysicsState, StepData
 from agnostos_mjx.physics.mjx_backend import DevicePhysics
 from agnostos_mjx.physics.native import NativeBackend
 from agnostos_mjx.world import posed_data
-
-
-@dataclass(frozen=True)
-class HostData:
-    """The fields of a batch that DevicePhases reads and `freeze` replaces (as mjx.Data)."""
-
-    qpos: Any
-    qvel: Any
-    act: Any
-    ctrl: Any
-    time: Any
-    sensordata: Any
-    mocap_pos: Any
-    mocap_quat: Any
-    eq_active: Any
-    eq_data: Any
-
-    def replace(self, **changes: Any) -> HostData:
-        return dataclasses.replace(self, **changes)
-
-
-jax.tree_util.register_dataclass(HostData, data_fields=[f.name for f in dataclasses.fields(HostData)],
-                                 meta_fields=[])
 
 
 def callback_physics(model: mujoco.MjModel, batch: int) -> DevicePhysics:
     """`DevicePhysics` of `batch` worlds whose step and kinematics run natively on the host."""
     native = NativeBackend(model, nthread=1)
 
-    def host_state(d: HostData) -> PhysicsState:
+    def host_state(d: StepData) -> PhysicsState:
         return PhysicsState(**{f: np.asarray(getattr(d, f), np.float64 if f != "eq_active" else bool)
                                for f in ("qpos", "qvel", "act", "ctrl", "mocap_pos",
                                          "mocap_quat", "eq_active", "eq_data", "time")})
 
-    def step_on_host(d: HostData, ctrl: np.ndarray) -> tuple:
+    def step_on_host(d: StepData, ctrl: np.ndarray) -> tuple:
         state, sens = native.run(host_state(d), np.asarray(ctrl, np.float64)[:, None])
         out = (state.qpos, state.qvel, state.act, state.ctrl, state.time, sens[:, -1])
         return tuple(np.asarray(x, np.float32) for x in out)
 
-    def poses_on_host(d: HostData) -> tuple:
+    def poses_on_host(d: StepData) -> tuple:
         state = host_state(d)
         frames = [posed_data(model, state, w) for w in range(batch)]
         return (np.stack([f.xpos for f in frames]).astype(np.float32),
                 np.stack([f.xquat for f in frames]).astype(np.float32))
 
-    def load(state: PhysicsState) -> tuple[None, HostData]:
+    def load(state: PhysicsState) -> tuple[None, StepData]:
         sens = jnp.zeros((batch, model.nsensordata), jnp.float32)
-        return None, HostData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
-                              time=state.time, sensordata=sens, mocap_pos=state.mocap_pos,
+        return None, StepData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
+                              time=state.time, sensordata=sens,
+                              qacc_warmstart=jnp.zeros_like(state.qvel), mocap_pos=state.mocap_pos,
                               mocap_quat=state.mocap_quat, eq_active=state.eq_active,
                               eq_data=state.eq_data)
 
-    def step(m: None, d: HostData, ctrl: jax.Array) -> HostData:
+    def step(m: None, d: StepData, ctrl: jax.Array) -> StepData:
         shapes = tuple(jax.ShapeDtypeStruct(x.shape, jnp.float32)
                        for x in (d.qpos, d.qvel, d.act, d.ctrl, d.time, d.sensordata))
         qpos, qvel, act, ctrl, time, sens = jax.pure_callback(step_on_host, shapes, d, ctrl)
         return d.replace(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, time=time, sensordata=sens)
 
-    def poses(m: None, d: HostData) -> tuple[jax.Array, jax.Array]:
+    def poses(m: None, d: StepData) -> tuple[jax.Array, jax.Array]:
         shapes = (jax.ShapeDtypeStruct((batch, model.nbody, 3), jnp.float32),
                   jax.ShapeDtypeStruct((batch, model.nbody, 4), jnp.float32))
         return jax.pure_callback(poses_on_host, shapes, d)
 
-    def save(state: PhysicsState, d: HostData) -> PhysicsState:
+    def save(state: PhysicsState, d: StepData) -> PhysicsState:
         return state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl, time=d.time)
 
     return DevicePhysics(load=load, step=step, poses=poses, save=save)

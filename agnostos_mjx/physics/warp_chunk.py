@@ -14,9 +14,7 @@ Scenes with actuator activations, sleeping or delay histories would carry more s
 are refused (`supported`), as MJX's own step then remains the path.
 """
 
-import dataclasses
 import functools
-from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -26,32 +24,7 @@ import warp as wp
 from mujoco.mjx.third_party import mujoco_warp as mjw
 from mujoco.mjx.third_party.mujoco_warp._src.types import vec12
 
-from agnostos_mjx.physics.base import PhysicsState
-
-
-@dataclass(frozen=True)
-class WarpData:
-    """What a device phase carries between chunks of steps (B leading); same field names
-    as mjx.Data, so `freeze` and the phases treat both alike."""
-
-    qpos: Any
-    qvel: Any
-    act: Any
-    ctrl: Any
-    time: Any
-    sensordata: Any
-    qacc_warmstart: Any
-    mocap_pos: Any
-    mocap_quat: Any
-    eq_active: Any
-    eq_data: Any
-
-    def replace(self, **changes: Any) -> "WarpData":
-        return dataclasses.replace(self, **changes)
-
-
-jax.tree_util.register_dataclass(WarpData, data_fields=[f.name for f in dataclasses.fields(WarpData)],
-                                 meta_fields=[])
+from agnostos_mjx.physics.base import PhysicsState, StepData
 
 
 def supported(model: mujoco.MjModel) -> str | None:
@@ -86,8 +59,8 @@ def _put_scalar_row(k: int, src: wp.array(dtype=float), rows: wp.array2d(dtype=f
 class WarpChunk:
     """The K-step call for one scene and batch size (a device workspace of `batch` worlds).
 
-    `__call__(d: WarpData, ctrl (K, B, nu)) -> (WarpData after the K steps, rows)`, rows a
-    WarpData whose qpos, qvel, act, ctrl, time and sensordata hold the values after each
+    `__call__(d: StepData, ctrl (K, B, nu)) -> (StepData after the K steps, rows)`, rows a
+    StepData whose qpos, qvel, act, ctrl, time and sensordata hold the values after each
     step along a leading K axis, as MJX's step would give them one step at a time."""
 
     def __init__(self, model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
@@ -157,18 +130,18 @@ class WarpChunk:
 
         return steps
 
-    def load(self, state: PhysicsState) -> WarpData:
+    def load(self, state: PhysicsState) -> StepData:
         """A phase's starting data.  MJX's make_data starts the solver's warm start at zero,
         so this does too: the same physics as MJX's step from a fresh Data."""
         b = state.qpos.shape[0]
-        return WarpData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
+        return StepData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
                         time=state.time,
                         sensordata=jnp.zeros((b, self.model.nsensordata), jnp.float32),
                         qacc_warmstart=jnp.zeros_like(state.qvel), mocap_pos=state.mocap_pos,
                         mocap_quat=state.mocap_quat, eq_active=state.eq_active,
                         eq_data=state.eq_data)
 
-    def _mocap(self, d: WarpData) -> tuple[jax.Array, jax.Array]:
+    def _mocap(self, d: StepData) -> tuple[jax.Array, jax.Array]:
         # Zero-size arrays do not cross the FFI boundary; a scene without mocap bodies (or
         # welds) passes one dummy row that the call ignores.
         if self.model.nmocap:
@@ -176,12 +149,12 @@ class WarpChunk:
         b = self.batch
         return jnp.zeros((b, 1, 3), jnp.float32), jnp.zeros((b, 1, 4), jnp.float32)
 
-    def poses(self, d: WarpData) -> tuple[jax.Array, jax.Array]:
+    def poses(self, d: StepData) -> tuple[jax.Array, jax.Array]:
         """(xpos (B, nbody, 3), xquat (B, nbody, 4)) at d's qpos, as mjx.kinematics gives."""
         dims = {"xpos": (self.batch, self.model.nbody), "xquat": (self.batch, self.model.nbody)}
         return tuple(self._poses(d.qpos, *self._mocap(d), output_dims=dims))
 
-    def __call__(self, d: WarpData, ctrl: jax.Array) -> tuple[WarpData, WarpData]:
+    def __call__(self, d: StepData, ctrl: jax.Array) -> tuple[StepData, StepData]:
         k, b, m = ctrl.shape[0], self.batch, self.model
         mocap_pos, mocap_quat = self._mocap(d)
         eq_active = d.eq_active if m.neq else jnp.zeros((b, 1), bool)
@@ -217,8 +190,8 @@ def warp_chunk(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
     return WarpChunk(model, batch, naconmax, njmax, graph_mode)
 
 
-def physics_state(state: PhysicsState, d: WarpData) -> PhysicsState:
+def physics_state(state: PhysicsState, d: StepData) -> PhysicsState:
     return state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl, time=d.time)
 
 
-__all__ = ["WarpChunk", "WarpData", "physics_state", "supported", "warp_chunk"]
+__all__ = ["WarpChunk", "physics_state", "supported", "warp_chunk"]
