@@ -5,9 +5,9 @@ MJX for recorded demonstrations): the phase's controls are computed for all its 
 once, the physics runs, then the conditions are scanned over the recorded sensor rows.
 
 `DevicePhases`: inside one jitted program next to MJX: a `lax.while_loop` over physics
-steps, controls read at each step from the plan, conditions checked after every step, a
-world frozen at its own end (last step, failure, or success when episodes stop there),
-and the loop stops when no world is left moving.  A world that finished mid-phase keeps
+steps (K per iteration, in one physics call), controls read at each step from the plan,
+conditions checked after every step, a world frozen at its own end (last step, failure, or
+success when episodes stop there), and the loop stops when no world is left moving.  A world that finished mid-phase keeps
 its state at that step here, where the host path steps it to the phase's end; the episode
 is over either way and its final observation is the same.
 
@@ -117,8 +117,9 @@ def steps_per_iteration(backend_name: str) -> int:
     one FFI call, physics/warp_chunk.py), after which the conditions run over the K rows and
     a world that ended inside is set back to its end step: bit for bit the one-step loop's
     result (tests/test_k_steps.py), at one Python FFI callback per K steps instead of one
-    per step.  K = 16 and 64 cost the same on an H100 at 75 worlds (oracle key actions,
-    eval/reports/gpu_h100_session17); a finished world idles at most K - 1 steps.  On
+    per step.  K = 16, 32 and 64 cost the same on an H100 at 75 worlds (oracle key actions
+    in one process; 16 and 32 also in the 8-process main job, eval/reports/gpu_h100_session17);
+    a finished world idles at most K - 1 steps.  On
     MJX-jax (CPU tests) one step per iteration keeps the program small.
     ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
     override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
@@ -174,7 +175,7 @@ class DevicePhases:
             # conditions over the K sensor rows as the one-step loop checks them; a world
             # that ended at row i is set back to its state after step i (every world
             # stepped on to the K-th; a world ended before the chunk keeps its state).
-            # Bit for bit the one-step loop's result (tests/test_key_action.py).
+            # Bit for bit the one-step loop's result (tests/test_k_steps.py, test_key_action.py).
             t, d, data, carry, s_at, f_at, live = c
             k = self.steps_per_iteration
             ctrl = jnp.swapaxes(ctrl_at(t + jnp.arange(k)), 0, 1)
