@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from agnostos_mjx.physics.base import PhysicsState
+from agnostos_mjx.physics.base import PhysicsState, StepData
 from agnostos_mjx.physics.mjx_backend import MjxBackend
 from agnostos_mjx.runtime.phase import DevicePhases
 from agnostos_mjx.runtime.state import EnvState
@@ -121,8 +121,9 @@ def test_direct_warp_chunk_equals_its_single_steps_and_native_physics() -> None:
     state = _state(model, b, True).physics
     chunk = warp_chunk(model, b, 64 * b, 64)
     ctrl = jnp.swapaxes(ctrl_at(jnp.arange(k)), 0, 1)
-    last, rows = jax.jit(lambda s, u: chunk(chunk.load(s), u))(state, ctrl)
-    d = chunk.load(state)
+    start = lambda s: StepData.start(s, model.nsensordata)  # noqa: E731
+    last, rows = jax.jit(lambda s, u: chunk(start(s), u))(state, ctrl)
+    d = start(state)
     one_by_one = []
     for i in range(k):
         d, row = jax.jit(lambda d, u: chunk(d, u))(d, ctrl[i:i + 1])

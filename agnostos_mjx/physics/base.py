@@ -11,6 +11,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any, Protocol
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -55,6 +56,10 @@ class PhysicsState:
         return jax.tree.map(put, self, part)
 
 
+# The fields of a world's state that a phase freezes at the world's end (and saves).
+STATE_FIELDS = ("qpos", "qvel", "act", "ctrl", "time")
+
+
 @dataclass(frozen=True)
 class StepData:
     """The per-world data a device phase carries between physics calls (B leading) where the
@@ -75,6 +80,20 @@ class StepData:
 
     def replace(self, **changes: Any) -> StepData:
         return replace(self, **changes)
+
+    @classmethod
+    def start(cls, state: PhysicsState, nsensordata: int) -> StepData:
+        """A phase's starting data: sensors and the solver's warm start at zero, as in a
+        fresh mjx.Data."""
+        return cls(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
+                   time=state.time, sensordata=jnp.zeros((state.batch, nsensordata), jnp.float32),
+                   qacc_warmstart=jnp.zeros_like(state.qvel), mocap_pos=state.mocap_pos,
+                   mocap_quat=state.mocap_quat, eq_active=state.eq_active,
+                   eq_data=state.eq_data)
+
+    def saved(self, state: PhysicsState) -> PhysicsState:
+        """`state` with this data's STATE_FIELDS."""
+        return state.replace(**{f: getattr(self, f) for f in STATE_FIELDS})
 
 
 jax.tree_util.register_dataclass(StepData, data_fields=[f.name for f in fields(StepData)],

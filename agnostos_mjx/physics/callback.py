@@ -43,12 +43,7 @@ def callback_physics(model: mujoco.MjModel, batch: int) -> DevicePhysics:
                 np.stack([f.xquat for f in frames]).astype(np.float32))
 
     def load(state: PhysicsState) -> tuple[None, StepData]:
-        sens = jnp.zeros((batch, model.nsensordata), jnp.float32)
-        return None, StepData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
-                              time=state.time, sensordata=sens,
-                              qacc_warmstart=jnp.zeros_like(state.qvel), mocap_pos=state.mocap_pos,
-                              mocap_quat=state.mocap_quat, eq_active=state.eq_active,
-                              eq_data=state.eq_data)
+        return None, StepData.start(state, model.nsensordata)
 
     def step(m: None, d: StepData, ctrl: jax.Array) -> StepData:
         shapes = tuple(jax.ShapeDtypeStruct(x.shape, jnp.float32)
@@ -61,7 +56,4 @@ def callback_physics(model: mujoco.MjModel, batch: int) -> DevicePhysics:
                   jax.ShapeDtypeStruct((batch, model.nbody, 4), jnp.float32))
         return jax.pure_callback(poses_on_host, shapes, d)
 
-    def save(state: PhysicsState, d: StepData) -> PhysicsState:
-        return state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl, time=d.time)
-
-    return DevicePhysics(load=load, step=step, poses=poses, save=save)
+    return DevicePhysics(load=load, step=step, poses=poses, save=lambda state, d: d.saved(state))

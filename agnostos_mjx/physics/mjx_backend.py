@@ -29,7 +29,7 @@ import numpy as np
 from mujoco import mjx
 
 from agnostos_mjx import sharding
-from agnostos_mjx.physics.base import PhysicsState, check_steps
+from agnostos_mjx.physics.base import STATE_FIELDS, PhysicsState, StepData, check_steps
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +37,6 @@ log = logging.getLogger(__name__)
 def keep_rows(live: jax.Array, new: jax.Array, old: jax.Array) -> jax.Array:
     """Rows of `new` where `live` (per world), else rows of `old`."""
     return jnp.where(live.reshape(-1, *[1] * (new.ndim - 1)), new, old)
-
-
-# The fields of a world's state that a phase freezes at the world's end (and `save` keeps).
-STATE_FIELDS = ("qpos", "qvel", "act", "ctrl", "time")
 
 
 def freeze(live: jax.Array, new: mjx.Data, old: mjx.Data) -> mjx.Data:
@@ -116,6 +112,9 @@ class MjxBackend:
         programs that fuse physics with control and conditions (runtime.phase.DevicePhases)."""
         mx = self.mx
         impl = self.impl
+        if impl == "warp" and warp_steps_direct(self.model):
+            return direct_warp_physics(self.model, batch, naconmax=batch * self.contacts_per_world,
+                                       njmax=self.constraints_per_world)
         # make_data wants the MjModel for warp and accepts the mjx.Model for jax.
         source = self.model if impl == "warp" else mx
         kwargs = {}
@@ -175,8 +174,6 @@ class MjxBackend:
                                  mocap_pos=d.mocap_pos, mocap_quat=d.mocap_quat,
                                  eq_active=d.eq_active, time=d.time)
 
-        if impl == "warp" and warp_steps_direct(self.model):
-            return direct_warp_physics(self.model, batch, **kwargs)
         return DevicePhysics(load=load, step=step, poses=poses, save=save)
 
     @functools.lru_cache(maxsize=16)
@@ -246,15 +243,15 @@ def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax:
                         ) -> DevicePhysics:
     """DevicePhysics of MuJoCo Warp called directly (physics/warp_chunk.py): K steps per FFI
     call, and the poses from its kinematics, so no MJX FFI call is left in a key action."""
-    from agnostos_mjx.physics.warp_chunk import physics_state, warp_chunk
+    from agnostos_mjx.physics.warp_chunk import warp_chunk
 
     # AGNOSTOS_WARP_CHUNK_GRAPH_MODE: the K-step call's graph mode (measurements; see
     # warp_chunk._graph_mode for the default)
     chunk = warp_chunk(model, batch, naconmax, njmax,
                        os.environ.get("AGNOSTOS_WARP_CHUNK_GRAPH_MODE", "auto"))
-    return DevicePhysics(load=lambda state: (None, chunk.load(state)),
+    return DevicePhysics(load=lambda state: (None, StepData.start(state, model.nsensordata)),
                          step=lambda _, d, u: chunk(d, u[None])[0],
-                         poses=lambda _, d: chunk.poses(d), save=physics_state,
+                         poses=lambda _, d: chunk.poses(d), save=lambda state, d: d.saved(state),
                          steps=lambda _, d, ctrl: chunk(d, ctrl))
 
 

@@ -27,7 +27,7 @@ import warp as wp
 from mujoco.mjx.third_party import mujoco_warp as mjw
 from mujoco.mjx.third_party.mujoco_warp._src.types import vec12
 
-from agnostos_mjx.physics.base import PhysicsState, StepData
+from agnostos_mjx.physics.base import StepData
 
 
 def supported(model: mujoco.MjModel) -> str | None:
@@ -133,17 +133,6 @@ class WarpChunk:
 
         return steps
 
-    def load(self, state: PhysicsState) -> StepData:
-        """A phase's starting data.  MJX's make_data starts the solver's warm start at zero,
-        so this does too: the same physics as MJX's step from a fresh Data."""
-        b = state.qpos.shape[0]
-        return StepData(qpos=state.qpos, qvel=state.qvel, act=state.act, ctrl=state.ctrl,
-                        time=state.time,
-                        sensordata=jnp.zeros((b, self.model.nsensordata), jnp.float32),
-                        qacc_warmstart=jnp.zeros_like(state.qvel), mocap_pos=state.mocap_pos,
-                        mocap_quat=state.mocap_quat, eq_active=state.eq_active,
-                        eq_data=state.eq_data)
-
     def _mocap(self, d: StepData) -> tuple[jax.Array, jax.Array]:
         # Zero-size arrays do not cross the FFI boundary; a scene without mocap bodies (or
         # welds) passes one dummy row that the call ignores.
@@ -193,8 +182,4 @@ def warp_chunk(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
     return WarpChunk(model, batch, naconmax, njmax, graph_mode)
 
 
-def physics_state(state: PhysicsState, d: StepData) -> PhysicsState:
-    return state.replace(qpos=d.qpos, qvel=d.qvel, act=d.act, ctrl=d.ctrl, time=d.time)
-
-
-__all__ = ["WarpChunk", "physics_state", "supported", "warp_chunk"]
+__all__ = ["WarpChunk", "supported", "warp_chunk"]

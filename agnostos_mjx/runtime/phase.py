@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.physics.base import Backend, PhysicsState
-from agnostos_mjx.physics.mjx_backend import STATE_FIELDS, DevicePhysics, freeze, keep_rows
+from agnostos_mjx.physics.base import STATE_FIELDS, Backend, PhysicsState
+from agnostos_mjx.physics.mjx_backend import DevicePhysics, freeze, keep_rows
 from agnostos_mjx.runtime.outcome import phase_end
 from agnostos_mjx.runtime.state import EnvState, StepResult
 from agnostos_mjx.world import posed_data
