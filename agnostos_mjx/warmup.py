@@ -4,13 +4,14 @@
 
 On a fresh GPU machine the first MJX-Warp step of a scene builds Warp's CUDA kernels
 (~110 s for the first scene, ~15 s for each further `nv`: the solver's kernels are
-specialised per scene size; mjx_notes.md), and every process of a `--local-processes`
-run would build the same kernels at once.  Warp keeps built kernels on disk and JAX keeps
-compiled programs in its persistent cache (agnostos_mjx.enable_compilation_cache), so
-this command does each build once: the first task alone (the kernels every scene shares),
-then one task per distinct scene size in parallel processes (`--jobs`), each running
-what a run runs: reset and settle, one key action of the expert, and on warp one rendered
-frame.  The first task also runs the default policies' demo selection once (X-ICM's
+specialised per scene size; mjx_notes.md), one module after another, and every process of
+a `--local-processes` run would build the same kernels at once.  Warp keeps built kernels
+on disk and JAX keeps compiled programs in its persistent cache
+(agnostos_mjx.enable_compilation_cache), so this command does each build once: on warp,
+first every kernel module of every scene, found by a dry run and built on many threads at
+once (physics/warp_build.py); then the first task alone, then one task per distinct scene
+size in parallel processes (`--jobs`), each running what a run runs: reset and settle, one
+key action of the expert, and on warp one rendered frame.  The first task also runs the default policies' demo selection once (X-ICM's
 lang+vis.out dynamics features, which the retrieval baseline uses too): its networks are
 one set of programs per machine, and without this every process of the first run compiled
 them at once (16 s for the sampler alone on an H100, 2026-11-26).  A second run on the same
@@ -85,6 +86,21 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
             "wall_s": round(t4 - t0, 2)}
 
 
+def build_kernels(names: list[str], batch: int, workers: int | None = None) -> dict:
+    """Warp's kernels of these tasks' scenes at this batch, built in parallel threads
+    (physics/warp_build.py).  Returns its timings."""
+    from agnostos_mjx.physics.mjx_backend import CONSTRAINTS_PER_WORLD, CONTACTS_PER_WORLD
+    from agnostos_mjx.physics.warp_build import build_scenes
+    from agnostos_mjx.tasks import get_task
+    from agnostos_mjx.world import build_scene
+
+    t0 = time.perf_counter()
+    models = [build_scene(get_task(name)).model for name in names]
+    done = build_scenes(models, batch, naconmax=batch * CONTACTS_PER_WORLD,
+                        njmax=CONSTRAINTS_PER_WORLD, workers=workers)
+    return {"task": "(Warp kernels)", **done, "wall_s": round(time.perf_counter() - t0, 2)}
+
+
 def one_per_size(names: list[str]) -> list[str]:
     """The first task of each distinct scene size (`nv`): Warp's kernels are specialised per
     size, so the others reuse what that one builds."""
@@ -98,9 +114,11 @@ def one_per_size(names: list[str]) -> list[str]:
 
 
 def _worker(name: str, args: argparse.Namespace, selection: bool = False) -> dict:
-    """warm_task in its own process (its GPU memory and Warp context go away with it)."""
-    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name,
+    """warm_task (or with name "kernels", build_kernels of args.tasks) in its own process
+    (its GPU memory and Warp context go away with it)."""
+    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
            "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner,
+           *(["--kernel-threads", str(args.kernel_threads)] if args.kernel_threads else []),
            *(["--worker-selection"] if selection else [])]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
@@ -129,6 +147,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="as eval's --planner")
     p.add_argument("--jobs", type=positive_int, default=8,
                    help="processes building at once after the first task")
+    p.add_argument("--kernel-threads", type=positive_int, default=None, metavar="N",
+                   help="warp: threads building Warp's kernels at once, before anything runs "
+                        "(default: the machine's cores, at most 32; 1: one module at a time)")
     p.add_argument("--every-task", action="store_true",
                    help="warm every task, not one per scene size (fills JAX's cache for each "
                         "task's reset programs too)")
@@ -142,6 +163,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.worker == "kernels":
+        from agnostos_mjx.tasks import parse_tasks
+
+        names = [task.name for task in parse_tasks(args.tasks)]
+        print(json.dumps(build_kernels(names, args.batch, args.kernel_threads)))
+        return 0
     if args.worker:
         print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner,
                                    args.worker_selection)))
@@ -156,16 +183,20 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     todo = names if args.every_task else one_per_size(names)
     t0 = time.perf_counter()
-    # alone: it builds the kernels every scene shares (and the selection's networks)
-    results = [_worker(todo[0], args, selection=not args.no_selection)]
-    log.info("warmup: %s", results[0])
+    results = []
+    if args.backend == "warp":  # every scene's Warp kernels first, many at once
+        results.append(_worker("kernels", args))
+        log.info("warmup: %s", results[-1])
+    # alone: it compiles what every task shares (the selection's networks)
+    results.append(_worker(todo[0], args, selection=not args.no_selection))
+    log.info("warmup: %s", results[-1])
     with ThreadPoolExecutor(args.jobs) as pool:
         for result in pool.map(lambda n: _worker(n, args), todo[1:]):
             log.info("warmup: %s", result)
             results.append(result)
     failed = [r for r in results if "error" in r]
-    log.info("warmup: %d of %d tasks warmed in %.1f s%s", len(results) - len(failed),
-             len(todo), time.perf_counter() - t0,
+    log.info("warmup: %d of %d steps done in %.1f s%s", len(results) - len(failed),
+             len(results), time.perf_counter() - t0,
              f"; failed: {', '.join(r['task'] for r in failed)}" if failed else "")
     for r in failed:
         log.error("%s: %s\n%s", r["task"], r["error"], r["stderr_tail"])

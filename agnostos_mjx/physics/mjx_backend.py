@@ -79,9 +79,15 @@ class DevicePhysics:
         return last, last.replace(**dict(zip((*STATE_FIELDS, "sensordata"), rows, strict=True)))
 
 
+# Contact and constraint rows MuJoCo Warp allocates per world (naconmax = batch x contacts).
+CONTACTS_PER_WORLD = 64
+CONSTRAINTS_PER_WORLD = 256
+
+
 class MjxBackend:
     def __init__(self, model: mujoco.MjModel, impl: str = "jax",
-                 contacts_per_world: int = 64, constraints_per_world: int = 256,
+                 contacts_per_world: int = CONTACTS_PER_WORLD,
+                 constraints_per_world: int = CONSTRAINTS_PER_WORLD,
                  graph_mode: str = "WARP"):
         self.name = f"mjx-{impl}"
         self.impl = impl

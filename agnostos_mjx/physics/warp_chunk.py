@@ -18,11 +18,14 @@ are refused (`supported`), as MJX's own step then remains the path.
 """
 
 import functools
+import hashlib
+from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import mujoco
+import numpy as np
 import warp as wp
 from mujoco.mjx.third_party import mujoco_warp as mjw
 from mujoco.mjx.third_party.mujoco_warp._src.types import vec12
@@ -59,6 +62,87 @@ def _put_scalar_row(k: int, src: wp.array(dtype=float), rows: wp.array2d(dtype=f
     rows[k, w] = src[w]
 
 
+def workspace(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int) -> tuple[Any, Any]:
+    """MuJoCo Warp's (Model, Data) for `batch` worlds of `model`, sized as the run sizes them
+    (the kernels Warp builds depend on these sizes, so warp_build dry-runs the same)."""
+    mw = mjw.put_model(model, batch_sizes={"eq_data": batch} if model.neq else None)
+    dw = mjw.put_data(model, mujoco.MjData(model), nworld=batch, naconmax=naconmax, njmax=njmax)
+    return mw, dw
+
+
+def steps_function(model: mujoco.MjModel, mw: Any, dw: Any, batch: int) -> Callable:
+    """The function the K-step FFI call runs (a plain function: Warp reads its annotations)."""
+    m, d, b = mw, dw, batch
+
+    def steps(qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float),
+              time: wp.array(dtype=float), warmstart: wp.array2d(dtype=float),
+              ctrl: wp.array3d(dtype=float), mocap_pos: wp.array2d(dtype=wp.vec3),
+              mocap_quat: wp.array2d(dtype=wp.quat), eq_active: wp.array2d(dtype=bool),
+              eq_data: wp.array2d(dtype=vec12),
+              qpos_rows: wp.array3d(dtype=float), qvel_rows: wp.array3d(dtype=float),
+              time_rows: wp.array2d(dtype=float), sensor_rows: wp.array3d(dtype=float),
+              warmstart_out: wp.array2d(dtype=float)):
+        wp.copy(d.qpos, qpos)
+        wp.copy(d.qvel, qvel)
+        wp.copy(d.time, time)
+        wp.copy(d.qacc_warmstart, warmstart)
+        if model.nmocap:
+            wp.copy(d.mocap_pos, mocap_pos)
+            wp.copy(d.mocap_quat, mocap_quat)
+        if model.neq:
+            wp.copy(d.eq_active, eq_active)
+            wp.copy(m.eq_data, eq_data)
+        for k in range(ctrl.shape[0]):
+            if model.nu:
+                wp.launch(_take_row, dim=(b, model.nu), inputs=[k, ctrl, d.ctrl])
+            mjw.step(m, d)
+            wp.launch(_put_row, dim=(b, model.nq), inputs=[k, d.qpos, qpos_rows])
+            wp.launch(_put_row, dim=(b, model.nv), inputs=[k, d.qvel, qvel_rows])
+            wp.launch(_put_scalar_row, dim=b, inputs=[k, d.time, time_rows])
+            wp.launch(_put_row, dim=(b, model.nsensordata), inputs=[k, d.sensordata, sensor_rows])
+        wp.copy(warmstart_out, d.qacc_warmstart)
+
+    return steps
+
+
+def poses_function(model: mujoco.MjModel, mw: Any, dw: Any) -> Callable:
+    """The function of the poses' FFI call: the body frames at the given qpos."""
+    m, d = mw, dw
+
+    def poses(qpos: wp.array2d(dtype=float), mocap_pos: wp.array2d(dtype=wp.vec3),
+              mocap_quat: wp.array2d(dtype=wp.quat), xpos: wp.array2d(dtype=wp.vec3),
+              xquat: wp.array2d(dtype=wp.quat)):
+        wp.copy(d.qpos, qpos)
+        if model.nmocap:
+            wp.copy(d.mocap_pos, mocap_pos)
+            wp.copy(d.mocap_quat, mocap_quat)
+        mjw.kinematics(m, d)
+        wp.copy(xpos, d.xpos)
+        wp.copy(xquat, d.xquat)
+
+    return poses
+
+
+def model_digest(model: mujoco.MjModel) -> str:
+    """A short hash of the compiled model's contents (the same scene gives the same digest
+    in every process)."""
+    buffer = np.empty(mujoco.mj_sizeModel(model), np.uint8)
+    mujoco.mj_saveModel(model, None, buffer)
+    return hashlib.sha1(buffer.tobytes()).hexdigest()[:16]
+
+
+def _named(fn: Callable, name: str) -> Callable:
+    """`fn` under a name that is the same in every process for the same scene and sizes.
+
+    Warp names an FFI target after the function's qualified name plus a per-process counter,
+    and that name is part of the XLA program: with one shared qualname, a process's second
+    scene got `..._1`, so the key-action programs differed with the order tasks ran in and
+    JAX's persistent cache missed them in every new process.  A name per (scene, sizes) makes
+    the counter 0 and the program the same in every process."""
+    fn.__qualname__ = fn.__name__ = name
+    return fn
+
+
 class WarpChunk:
     """The K-step call for one scene and batch size (a device workspace of `batch` worlds).
 
@@ -73,65 +157,13 @@ class WarpChunk:
             raise ValueError(f"the K-step Warp call does not carry {why}")
         self.model = model
         self.batch = batch
-        self.mw = mjw.put_model(model, batch_sizes={"eq_data": batch} if model.neq else None)
-        self.dw = mjw.put_data(model, mujoco.MjData(model), nworld=batch, naconmax=naconmax,
-                               njmax=njmax)
+        self.mw, self.dw = workspace(model, batch, naconmax, njmax)
         mode = _graph_mode(graph_mode)
-        self._call = wp.jax_callable(self._make_steps(), num_outputs=5, graph_mode=mode,
-                                     vmap_method=None)
-        self._poses = wp.jax_callable(self._make_poses(), num_outputs=2, graph_mode=mode,
-                                      vmap_method=None)
-
-    def _make_poses(self):
-        """The function of the poses' FFI call: the body frames at the given qpos."""
-        m, d, model = self.mw, self.dw, self.model
-
-        def poses(qpos: wp.array2d(dtype=float), mocap_pos: wp.array2d(dtype=wp.vec3),
-                  mocap_quat: wp.array2d(dtype=wp.quat), xpos: wp.array2d(dtype=wp.vec3),
-                  xquat: wp.array2d(dtype=wp.quat)):
-            wp.copy(d.qpos, qpos)
-            if model.nmocap:
-                wp.copy(d.mocap_pos, mocap_pos)
-                wp.copy(d.mocap_quat, mocap_quat)
-            mjw.kinematics(m, d)
-            wp.copy(xpos, d.xpos)
-            wp.copy(xquat, d.xquat)
-
-        return poses
-
-    def _make_steps(self):
-        """The function the FFI call runs (a plain function: Warp reads its annotations)."""
-        m, d, b, model = self.mw, self.dw, self.batch, self.model
-
-        def steps(qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float),
-                  time: wp.array(dtype=float), warmstart: wp.array2d(dtype=float),
-                  ctrl: wp.array3d(dtype=float), mocap_pos: wp.array2d(dtype=wp.vec3),
-                  mocap_quat: wp.array2d(dtype=wp.quat), eq_active: wp.array2d(dtype=bool),
-                  eq_data: wp.array2d(dtype=vec12),
-                  qpos_rows: wp.array3d(dtype=float), qvel_rows: wp.array3d(dtype=float),
-                  time_rows: wp.array2d(dtype=float), sensor_rows: wp.array3d(dtype=float),
-                  warmstart_out: wp.array2d(dtype=float)):
-            wp.copy(d.qpos, qpos)
-            wp.copy(d.qvel, qvel)
-            wp.copy(d.time, time)
-            wp.copy(d.qacc_warmstart, warmstart)
-            if model.nmocap:
-                wp.copy(d.mocap_pos, mocap_pos)
-                wp.copy(d.mocap_quat, mocap_quat)
-            if model.neq:
-                wp.copy(d.eq_active, eq_active)
-                wp.copy(m.eq_data, eq_data)
-            for k in range(ctrl.shape[0]):
-                if model.nu:
-                    wp.launch(_take_row, dim=(b, model.nu), inputs=[k, ctrl, d.ctrl])
-                mjw.step(m, d)
-                wp.launch(_put_row, dim=(b, model.nq), inputs=[k, d.qpos, qpos_rows])
-                wp.launch(_put_row, dim=(b, model.nv), inputs=[k, d.qvel, qvel_rows])
-                wp.launch(_put_scalar_row, dim=b, inputs=[k, d.time, time_rows])
-                wp.launch(_put_row, dim=(b, model.nsensordata), inputs=[k, d.sensordata, sensor_rows])
-            wp.copy(warmstart_out, d.qacc_warmstart)
-
-        return steps
+        key = f"{model_digest(model)}_{batch}_{naconmax}_{njmax}_{mode.name}"
+        steps = _named(steps_function(model, self.mw, self.dw, batch), f"agnostos_steps_{key}")
+        poses = _named(poses_function(model, self.mw, self.dw), f"agnostos_poses_{key}")
+        self._call = wp.jax_callable(steps, num_outputs=5, graph_mode=mode, vmap_method=None)
+        self._poses = wp.jax_callable(poses, num_outputs=2, graph_mode=mode, vmap_method=None)
 
     def _mocap(self, d: StepData) -> tuple[jax.Array, jax.Array]:
         # Zero-size arrays do not cross the FFI boundary; a scene without mocap bodies (or
@@ -182,4 +214,5 @@ def warp_chunk(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
     return WarpChunk(model, batch, naconmax, njmax, graph_mode)
 
 
-__all__ = ["WarpChunk", "supported", "warp_chunk"]
+__all__ = ["WarpChunk", "model_digest", "poses_function", "steps_function", "supported",
+           "warp_chunk", "workspace"]

@@ -1,0 +1,111 @@
+"""Build the Warp kernels of a run's scenes ahead of time, many at once.
+
+Warp builds a module's kernels the first time one of them launches, one module after the
+other: on a fresh H100 the first scene's step took ~110 s before it ran, each further scene
+size ~15 s more (mjx_notes.md), and every process of a run built what it met.  The modules a
+step launches do not depend on the data, so a *dry run* finds them without building any:
+the K-step call's function runs once per scene with `wp.launch` recording the kernel's
+module instead of launching it (and `capture_while` / `capture_if` taking each branch once),
+then `wp.force_load` builds the modules found, on worker threads (the compiler runs outside
+the GIL).  Built modules land in Warp's kernel cache on disk, where every later process of
+the run, or of a later run, finds them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+import mujoco
+import warp as wp
+
+from agnostos_mjx.physics import warp_chunk
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def launches_recorded(modules: dict[str, Any]) -> Iterator[None]:
+    """Within the block Warp launches nothing: each launch adds its kernel's module to
+    `modules` (by name), and graph-conditional blocks run their bodies once (no launch
+    sets the conditions).  Array copies and allocations still happen."""
+    saved = wp.launch, wp.launch_tiled, wp.capture_while, wp.capture_if
+
+    def record(kernel: Any, *args: Any, **kwargs: Any) -> None:
+        modules.setdefault(kernel.module.name, kernel.module)
+
+    def body_once(condition: Any, while_body: Any, *args: Any, **kwargs: Any) -> None:
+        while_body(*args, **kwargs)
+
+    def both_branches(condition: Any, on_true: Any = None, on_false: Any = None,
+                      *args: Any, **kwargs: Any) -> None:
+        for branch in (on_true, on_false):
+            if branch is not None:
+                branch(*args, **kwargs)
+
+    wp.launch = wp.launch_tiled = record
+    wp.capture_while, wp.capture_if = body_once, both_branches
+    try:
+        yield
+    finally:
+        wp.launch, wp.launch_tiled, wp.capture_while, wp.capture_if = saved
+
+
+def _dry_arguments(fn: Any, shapes: dict[str, tuple[int, ...]]) -> list[Any]:
+    """Zero arrays for `fn`'s annotated arguments, shaped as `shapes` says."""
+    return [wp.zeros(shapes[name], dtype=annotation.dtype)
+            for name, annotation in fn.__annotations__.items() if name != "return"]
+
+
+def scene_modules(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
+                  modules: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The Warp modules the K-step call and the poses call launch for `model` at these
+    sizes (found by a dry run on the current Warp device), added to `modules`."""
+    modules = {} if modules is None else modules
+    b, nq, nv = batch, model.nq, model.nv
+    mocap, weld = max(model.nmocap, 1), max(model.neq, 1)
+    mw, dw = warp_chunk.workspace(model, batch, naconmax, njmax)
+    steps = warp_chunk.steps_function(model, mw, dw, batch)
+    poses = warp_chunk.poses_function(model, mw, dw)
+    step_shapes = {"qpos": (b, nq), "qvel": (b, nv), "time": (b,), "warmstart": (b, nv),
+                   "ctrl": (1, b, max(model.nu, 1)), "mocap_pos": (b, mocap),
+                   "mocap_quat": (b, mocap), "eq_active": (b, weld), "eq_data": (b, weld),
+                   "qpos_rows": (1, b, nq), "qvel_rows": (1, b, nv), "time_rows": (1, b),
+                   "sensor_rows": (1, b, max(model.nsensordata, 1)), "warmstart_out": (b, nv)}
+    pose_shapes = {"qpos": (b, nq), "mocap_pos": (b, mocap), "mocap_quat": (b, mocap),
+                   "xpos": (b, model.nbody), "xquat": (b, model.nbody)}
+    with launches_recorded(modules):
+        steps(*_dry_arguments(steps, step_shapes))
+        poses(*_dry_arguments(poses, pose_shapes))
+    return modules
+
+
+def default_workers() -> int:
+    """Threads building at once: the machine's cores (at most 32)."""
+    return max(1, min(os.cpu_count() or 1, 32))
+
+
+def build_scenes(models: Iterable[mujoco.MjModel], batch: int, naconmax: int, njmax: int,
+                 workers: int | None = None) -> dict[str, float | int]:
+    """Build (or load from Warp's kernel cache) every module the runs of `models` at this
+    batch will launch, `workers` at a time.  Returns what it did: modules, seconds."""
+    t0 = time.perf_counter()
+    modules: dict[str, Any] = {}
+    for model in models:
+        if warp_chunk.supported(model) is None:
+            scene_modules(model, batch, naconmax, njmax, modules)
+    t1 = time.perf_counter()
+    workers = default_workers() if workers is None else workers
+    wp.force_load(device=wp.get_device(), modules=list(modules.values()), max_workers=workers)
+    t2 = time.perf_counter()
+    log.info("warp: %d kernel modules found in %.1f s, built or loaded in %.1f s (%d threads)",
+             len(modules), t1 - t0, t2 - t1, workers)
+    return {"modules": len(modules), "find_s": round(t1 - t0, 2),
+            "build_s": round(t2 - t1, 2), "workers": workers}
+
+
+__all__ = ["build_scenes", "default_workers", "launches_recorded", "scene_modules"]

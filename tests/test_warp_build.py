@@ -1,0 +1,82 @@
+"""Warp's kernels built ahead of time (physics/warp_build.py) and the K-step call's FFI names.
+
+Where warp-lang is installed (on this CPU Warp builds CPU kernels; slow the first time)."""
+
+from __future__ import annotations
+
+import mujoco
+import pytest
+
+from tests.test_k_steps import SCENE
+
+
+@pytest.mark.slow
+def test_dry_run_finds_every_module_a_real_step_loads() -> None:
+    """The dry run launches nothing, yet names every module the real K-step and poses calls
+    then load, so building those ahead of time leaves nothing to build during a run."""
+    wp = pytest.importorskip("warp")
+    import jax.numpy as jnp
+
+    from agnostos_mjx.physics import warp_build
+    from agnostos_mjx.physics.base import StepData
+    from agnostos_mjx.physics.warp_chunk import WarpChunk
+    from tests.test_k_steps import GOALS, _state
+
+    model = mujoco.MjModel.from_xml_string(SCENE)
+    b = len(GOALS)
+    found = warp_build.scene_modules(model, b, 64 * b, 64)
+    assert "mujoco.mjx.third_party.mujoco_warp._src.solver" in found
+    assert "agnostos_mjx.physics.warp_chunk" in found
+    built = warp_build.build_scenes([model], b, 64 * b, 64, workers=2)
+    assert built["modules"] == len(found)
+
+    loaded: set[str] = set()
+    module_type = type(next(iter(found.values())))
+    real_load = module_type.load
+
+    def load(self, *args, **kwargs):
+        loaded.add(self.name)
+        return real_load(self, *args, **kwargs)
+
+    module_type.load = load
+    try:
+        chunk = WarpChunk(model, b, 64 * b, 64)
+        d = StepData.start(_state(model, b, True).physics, model.nsensordata)
+        last, _ = chunk(d, jnp.zeros((3, b, model.nu), jnp.float32))
+        chunk.poses(last)
+    finally:
+        module_type.load = real_load
+    assert "mujoco.mjx.third_party.mujoco_warp._src.solver" in loaded
+    assert loaded <= set(found), f"not found by the dry run: {sorted(loaded - set(found))}"
+    assert wp.launch is not None and wp.launch.__name__ == "launch"  # restored
+
+
+@pytest.mark.slow
+def test_ffi_names_do_not_depend_on_the_order_scenes_are_made() -> None:
+    """Each scene's K-step call gets an FFI name of its own (the model's digest and sizes,
+    counter 0), so a key-action program is the same XLA program in every process and JAX's
+    persistent cache serves it; one shared name took a per-process counter instead."""
+    pytest.importorskip("warp")
+    from agnostos_mjx.physics.warp_chunk import WarpChunk, model_digest
+
+    first = mujoco.MjModel.from_xml_string(SCENE)
+    second = mujoco.MjModel.from_xml_string(SCENE.replace('timestep="0.01"', 'timestep="0.02"'))
+    assert model_digest(first) != model_digest(second)
+    assert model_digest(first) == model_digest(mujoco.MjModel.from_xml_string(SCENE))
+    for model in (second, first):
+        chunk = WarpChunk(model, 3, 64 * 3, 64, graph_mode="NONE")
+        assert chunk._call.name == f"agnostos_steps_{model_digest(model)}_3_192_64_NONE_0"
+        assert chunk._poses.name == f"agnostos_poses_{model_digest(model)}_3_192_64_NONE_0"
+
+
+@pytest.mark.slow
+def test_warmup_builds_the_tasks_kernels() -> None:
+    """warmup's first step on warp: every kernel module of the tasks' scenes, at the run's
+    sizes (the backend's contacts and constraints per world), through the dry run."""
+    pytest.importorskip("warp")
+    from agnostos_mjx import warmup
+
+    one = warmup.build_kernels(["lamp_on"], batch=2, workers=2)
+    both = warmup.build_kernels(["lamp_on", "put_books_on_bookshelf"], batch=2, workers=2)
+    assert 0 < one["modules"] < both["modules"]  # the bookshelf's bigger scene adds modules
+    assert both["workers"] == 2 and both["wall_s"] >= both["build_s"]
