@@ -7,6 +7,8 @@
 #   carry .warp/pK   bash tools/gpu_setup.sh K (K = 0..3); then, no carry:
 #   bash tools/gpu_runs.sh poll        the VLA's progress (any call may add it)
 #   bash tools/gpu_runs.sh warmup      GPU 0: warp warmup of the unseen tasks (fills the caches)
+#   bash tools/gpu_runs.sh kbuild      GPU 0: Warp's kernels of the 23 unseen scenes, each from an
+#                                      empty cache of its own: KTHREADS threads ("16 1")
 #   bash tools/gpu_runs.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
 #   bash tools/gpu_runs.sh warm        GPU 0: the main job again (caches on disk), its
 #                                      time split; then native on GPU 0 (planner auto)
@@ -86,6 +88,11 @@ case "$1" in
     sleep 20; poll ;;
   poll) poll ;;
   warmup) warmup; poll ;;
+  kbuild)
+    for n in ${KTHREADS:-16 1}; do
+      WARP_CACHE_PATH=$R/kcache_$n CUDA_VISIBLE_DEVICES=0 pin python3 -m agnostos_mjx.warmup \
+        --worker kernels --tasks unseen --kernel-threads $n 2>&1 | quiet | tail -1 | tee -a $OUT/kbuild.jsonl
+    done ;;
   fresh)
     t0=$SECONDS
     warmup
@@ -123,5 +130,5 @@ case "$1" in
     vla 0 all ${VLA_PROCS:-16}; vla_collect all ;;
   vla_eval)  # one split per GPU, at once
     vla 0 seen 10 & vla 1 unseen 10 & wait; vla_collect seen unseen ;;
-  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|fresh|warm|ab|subset|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|kbuild|fresh|warm|ab|subset|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
 esac
