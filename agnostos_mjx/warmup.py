@@ -86,9 +86,9 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
             "wall_s": round(t4 - t0, 2)}
 
 
-def build_kernels(names: list[str], batch: int, workers: int | None = None) -> dict:
-    """Warp's kernels of these tasks' scenes at this batch, built in parallel threads
-    (physics/warp_build.py).  Returns its timings."""
+def build_kernels(names: list[str], batch: int, part: int = 0, parts: int = 1) -> dict:
+    """Part `part` of `parts` of Warp's kernels of these tasks' scenes at this batch
+    (physics/warp_build.py; one process per part).  Returns its timings."""
     from agnostos_mjx.physics.mjx_backend import CONSTRAINTS_PER_WORLD, CONTACTS_PER_WORLD
     from agnostos_mjx.physics.warp_build import build_scenes
     from agnostos_mjx.tasks import get_task
@@ -97,7 +97,7 @@ def build_kernels(names: list[str], batch: int, workers: int | None = None) -> d
     t0 = time.perf_counter()
     models = [build_scene(get_task(name)).model for name in names]
     done = build_scenes(models, batch, naconmax=batch * CONTACTS_PER_WORLD,
-                        njmax=CONSTRAINTS_PER_WORLD, workers=workers)
+                        njmax=CONSTRAINTS_PER_WORLD, part=part, parts=parts)
     return {"task": "(Warp kernels)", **done, "wall_s": round(time.perf_counter() - t0, 2)}
 
 
@@ -114,11 +114,10 @@ def one_per_size(names: list[str]) -> list[str]:
 
 
 def _worker(name: str, args: argparse.Namespace, selection: bool = False) -> dict:
-    """warm_task (or with name "kernels", build_kernels of args.tasks) in its own process
-    (its GPU memory and Warp context go away with it)."""
+    """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks)
+    in its own process (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
            "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner,
-           *(["--kernel-threads", str(args.kernel_threads)] if args.kernel_threads else []),
            *(["--worker-selection"] if selection else [])]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
@@ -130,6 +129,21 @@ def _worker(name: str, args: argparse.Namespace, selection: bool = False) -> dic
         tail = "\n".join(proc.stderr.splitlines()[-15:])
         return {"task": name, "error": f"exit {proc.returncode}", "stderr_tail": tail}
     return json.loads(lines[-1])
+
+
+def build_kernels_in_parallel(args: argparse.Namespace) -> dict:
+    """build_kernels of args.tasks in --kernel-jobs processes, each building its share."""
+    from agnostos_mjx.physics.warp_build import default_parts
+
+    t0 = time.perf_counter()
+    parts = args.kernel_jobs or default_parts()
+    with ThreadPoolExecutor(parts) as pool:
+        done = list(pool.map(lambda i: _worker(f"kernels:{i}/{parts}", args), range(parts)))
+    failed = [d for d in done if "error" in d]
+    if failed:
+        return failed[0]
+    return {"task": "(Warp kernels)", "modules": done[0]["modules"], "parts": parts,
+            "build_s": max(d["build_s"] for d in done), "wall_s": round(time.perf_counter() - t0, 2)}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -147,9 +161,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="as eval's --planner")
     p.add_argument("--jobs", type=positive_int, default=8,
                    help="processes building at once after the first task")
-    p.add_argument("--kernel-threads", type=positive_int, default=None, metavar="N",
-                   help="warp: threads building Warp's kernels at once, before anything runs "
-                        "(default: the machine's cores, at most 32; 1: one module at a time)")
+    p.add_argument("--kernel-jobs", type=positive_int, default=None, metavar="N",
+                   help="warp: processes building Warp's kernels at once, before anything "
+                        "runs (default: the machine's cores, at most 16; 1: one process)")
+    p.add_argument("--only-kernels", action="store_true",
+                   help="warp: build Warp's kernels and stop (no task runs, JAX caches nothing)")
     p.add_argument("--every-task", action="store_true",
                    help="warm every task, not one per scene size (fills JAX's cache for each "
                         "task's reset programs too)")
@@ -163,11 +179,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.worker == "kernels":
+    if args.worker and args.worker.startswith("kernels:"):
         from agnostos_mjx.tasks import parse_tasks
 
+        part, parts = (int(x) for x in args.worker.removeprefix("kernels:").split("/"))
         names = [task.name for task in parse_tasks(args.tasks)]
-        print(json.dumps(build_kernels(names, args.batch, args.kernel_threads)))
+        print(json.dumps(build_kernels(names, args.batch, part, parts)))
         return 0
     if args.worker:
         print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner,
@@ -184,9 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     todo = names if args.every_task else one_per_size(names)
     t0 = time.perf_counter()
     results = []
-    if args.backend == "warp":  # every scene's Warp kernels first, many at once
-        results.append(_worker("kernels", args))
+    if args.backend == "warp":  # every scene's Warp kernels first, many processes at once
+        results.append(build_kernels_in_parallel(args))
         log.info("warmup: %s", results[-1])
+        if args.only_kernels:
+            return 1 if "error" in results[-1] else 0
     # alone: it compiles what every task shares (the selection's networks)
     results.append(_worker(todo[0], args, selection=not args.no_selection))
     log.info("warmup: %s", results[-1])

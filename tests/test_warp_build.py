@@ -27,8 +27,14 @@ def test_dry_run_finds_every_module_a_real_step_loads() -> None:
     found = warp_build.scene_modules(model, b, 64 * b, 64)
     assert "mujoco.mjx.third_party.mujoco_warp._src.solver" in found
     assert "agnostos_mjx.physics.warp_chunk" in found
-    built = warp_build.build_scenes([model], b, 64 * b, 64, workers=2)
-    assert built["modules"] == len(found)
+    shares = [warp_build.share(found, i, 3) for i in range(3)]
+    assert sorted(m.name for part in shares for m in part) == sorted(found)  # a partition
+    assert all(shares)
+    with pytest.raises(ValueError, match="part must be"):
+        warp_build.share(found, 3, 3)
+    built = [warp_build.build_scenes([model], b, 64 * b, 64, part=i, parts=3) for i in range(3)]
+    assert [x["built"] for x in built] == [len(part) for part in shares]
+    assert all(x["modules"] == len(found) for x in built)
 
     loaded: set[str] = set()
     module_type = type(next(iter(found.values())))
@@ -76,7 +82,22 @@ def test_warmup_builds_the_tasks_kernels() -> None:
     pytest.importorskip("warp")
     from agnostos_mjx import warmup
 
-    one = warmup.build_kernels(["lamp_on"], batch=2, workers=2)
-    both = warmup.build_kernels(["lamp_on", "put_books_on_bookshelf"], batch=2, workers=2)
+    one = warmup.build_kernels(["lamp_on"], batch=2)
+    both = warmup.build_kernels(["lamp_on", "put_books_on_bookshelf"], batch=2, part=1, parts=2)
     assert 0 < one["modules"] < both["modules"]  # the bookshelf's bigger scene adds modules
-    assert both["workers"] == 2 and both["wall_s"] >= both["build_s"]
+    assert one["built"] == one["modules"] and 0 < both["built"] < both["modules"]
+    assert both["wall_s"] >= both["build_s"]
+
+
+@pytest.mark.slow
+def test_warmup_command_builds_kernels_in_processes(capsys) -> None:
+    """The command's kernel step: --kernel-jobs processes, each its share, one result."""
+    pytest.importorskip("warp")
+    import argparse
+
+    from agnostos_mjx import warmup
+
+    args = argparse.Namespace(tasks="lamp_on", backend="warp", batch=2, planner="auto",
+                              kernel_jobs=2)
+    result = warmup.build_kernels_in_parallel(args)
+    assert result.get("parts") == 2 and result["modules"] > 0, result

@@ -8,7 +8,7 @@
 #   bash tools/gpu_runs.sh poll        the VLA's progress (any call may add it)
 #   bash tools/gpu_runs.sh warmup      GPU 0: warp warmup of the unseen tasks (fills the caches)
 #   bash tools/gpu_runs.sh kbuild      GPU 0: Warp's kernels of the 23 unseen scenes, each from an
-#                                      empty cache of its own: KTHREADS threads ("16 1")
+#                                      empty cache of its own: KJOBS processes ("16 8")
 #   bash tools/gpu_runs.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
 #   bash tools/gpu_runs.sh warm        GPU 0: the main job again (caches on disk), its
 #                                      time split; then native on GPU 0 (planner auto)
@@ -89,9 +89,11 @@ case "$1" in
   poll) poll ;;
   warmup) warmup; poll ;;
   kbuild)
-    for n in ${KTHREADS:-16 1}; do
-      WARP_CACHE_PATH=$R/kcache_$n CUDA_VISIBLE_DEVICES=0 pin python3 -m agnostos_mjx.warmup \
-        --worker kernels --tasks unseen --kernel-threads $n 2>&1 | quiet | tail -1 | tee -a $OUT/kbuild.jsonl
+    for n in ${KJOBS:-16 8}; do
+      t0=$SECONDS
+      WARP_CACHE_PATH=$R/kcache_p$n CUDA_VISIBLE_DEVICES=0 pin python3 -m agnostos_mjx.warmup \
+        --only-kernels --tasks unseen --kernel-jobs $n 2>&1 | quiet | tail -1 | tee -a $OUT/kbuild.log
+      echo "kernels of the unseen scenes, $n processes, wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
     done ;;
   fresh)
     t0=$SECONDS
