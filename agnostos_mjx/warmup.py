@@ -1,27 +1,29 @@
 """Warm a machine's caches before a run, so that the run itself starts warm.
 
-    python -m agnostos_mjx.warmup --tasks unseen --backend warp --jobs 8
+    python -m agnostos_mjx.warmup --tasks unseen --backend warp
 
-On a fresh GPU machine the first MJX-Warp step of a scene builds Warp's CUDA kernels
-(~110 s for the first scene, ~15 s for each further `nv`: the solver's kernels are
-specialised per scene size; mjx_notes.md), one module after another, and every process of
-a `--local-processes` run would build the same kernels at once.  Warp keeps built kernels
-on disk and JAX keeps compiled programs in its persistent cache
-(agnostos_mjx.enable_compilation_cache), so this command does each build once: on warp,
-first every kernel module of every scene, found by a dry run and built on many threads at
-once (physics/warp_build.py); then the first task alone, then one task per distinct scene
-size in parallel processes (`--jobs`), each running what a run runs: reset and settle, one
-key action of the expert, and on warp one rendered frame.  The first task also runs the default policies' demo selection once (X-ICM's
-lang+vis.out dynamics features, which the retrieval baseline uses too): its networks are
-one set of programs per machine, and without this every process of the first run compiled
-them at once (16 s for the sampler alone on an H100, 2026-11-26).  A second run on the same
-machine finds everything built.  Programs that call Warp through JAX's FFI are compiled
-again in every process (JAX does not cache them); those take seconds once the kernels exist.
+On a fresh GPU machine the first MuJoCo Warp step of a scene builds Warp's CUDA kernels,
+one module after another (~110 s for the first scene, ~15 s for each further size;
+mjx_notes.md), and every process of a `--local-processes` run would build the same kernels
+at once.  Warp keeps built kernels on disk and JAX keeps compiled programs in its
+persistent cache (agnostos_mjx.enable_compilation_cache), so this command does each build
+once, two things at the same time:
+- on warp, every kernel module of the tasks' scenes, found by a dry run and built by
+  `--kernel-jobs` processes, each its share (physics/warp_build.py);
+- the default policies' demo selection once (X-ICM's lang+vis.out dynamics features, which
+  the retrieval baseline uses too): its networks are one set of programs per machine, and
+  without this every process of the first run compiled them at once (16 s for the sampler
+  alone on an H100, 2026-11-26).
+Then, with `--task-runs` (the default off warp), tasks run once in parallel processes
+(`--jobs`): reset and settle, one key action of the expert, on warp one rendered frame.
+A second run on the same machine finds everything built.  The key-action programs that
+call Warp through JAX's FFI are cached per scene (physics/warp_chunk.py names them so).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -113,11 +115,13 @@ def one_per_size(names: list[str]) -> list[str]:
     return list(seen.values())
 
 
-def _worker(name: str, args: argparse.Namespace, selection: bool = False) -> dict:
+def _worker(name: str, args: argparse.Namespace, selection: bool = False,
+            backend: str | None = None) -> dict:
     """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks)
     in its own process (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
-           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner,
+           "--backend", backend or args.backend, "--batch", str(args.batch),
+           "--planner", args.planner,
            *(["--worker-selection"] if selection else [])]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
@@ -131,13 +135,19 @@ def _worker(name: str, args: argparse.Namespace, selection: bool = False) -> dic
     return json.loads(lines[-1])
 
 
-def build_kernels_in_parallel(args: argparse.Namespace) -> dict:
-    """build_kernels of args.tasks in --kernel-jobs processes, each building its share."""
-    from agnostos_mjx.physics.warp_build import default_parts
+def default_kernel_jobs() -> int:
+    """Processes building Warp's kernels at once: half the machine's cores, at most 8 (on a
+    16-core H200, 8 processes built the unseen scenes' modules in 21 s, 16 in 33 s)."""
+    return max(1, min((os.cpu_count() or 1) // 2, 8))
 
+
+def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor | None = None
+                              ) -> dict:
+    """build_kernels of args.tasks in --kernel-jobs processes, each building its share."""
     t0 = time.perf_counter()
-    parts = args.kernel_jobs or default_parts()
-    with ThreadPoolExecutor(parts) as pool:
+    parts = args.kernel_jobs or default_kernel_jobs()
+    with contextlib.ExitStack() as stack:
+        pool = pool or stack.enter_context(ThreadPoolExecutor(parts))
         done = list(pool.map(lambda i: _worker(f"kernels:{i}/{parts}", args), range(parts)))
     failed = [d for d in done if "error" in d]
     if failed:
@@ -163,12 +173,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="processes building at once after the first task")
     p.add_argument("--kernel-jobs", type=positive_int, default=None, metavar="N",
                    help="warp: processes building Warp's kernels at once, before anything "
-                        "runs (default: the machine's cores, at most 16; 1: one process)")
-    p.add_argument("--only-kernels", action="store_true",
-                   help="warp: build Warp's kernels and stop (no task runs, JAX caches nothing)")
-    p.add_argument("--every-task", action="store_true",
-                   help="warm every task, not one per scene size (fills JAX's cache for each "
-                        "task's reset programs too)")
+                        "runs (default: half the machine's cores, at most 8; 1: one process)")
+    p.add_argument("--task-runs", choices=("auto", "none", "per-size", "every"), default="auto",
+                   help="which tasks then run once (reset, an expert key action, a frame) to "
+                        "fill JAX's cache with their programs: none, the first task of each "
+                        "scene size, or every task.  auto: none on warp (its kernels are "
+                        "built directly, and a run compiles a task's own programs in seconds), "
+                        "per-size otherwise")
     p.add_argument("--no-selection", action="store_true",
                    help="skip the default policies' demo selection (its networks; for runs "
                         "of other policies, e.g. --policy oracle or reference-vla)")
@@ -198,19 +209,29 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyError, ValueError) as err:
         print(f"warmup: {err.args[0] if err.args else err}", file=sys.stderr)
         return 2
-    todo = names if args.every_task else one_per_size(names)
+    runs = args.task_runs if args.task_runs != "auto" else (
+        "none" if args.backend == "warp" else "per-size")
+    todo = {"none": [], "per-size": one_per_size(names), "every": names}[runs]
     t0 = time.perf_counter()
     results = []
-    if args.backend == "warp":  # every scene's Warp kernels first, many processes at once
-        results.append(build_kernels_in_parallel(args))
-        log.info("warmup: %s", results[-1])
-        if args.only_kernels:
-            return 1 if "error" in results[-1] else 0
-    # alone: it compiles what every task shares (the selection's networks)
-    results.append(_worker(todo[0], args, selection=not args.no_selection))
-    log.info("warmup: %s", results[-1])
+    # At once: every scene's Warp kernels (many processes) and the selection's networks
+    # (what every task of the default policies shares; its programs do not depend on the
+    # physics backend, so on warp they compile over native physics, with no Warp kernel).
+    with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 1) as pool:
+        selection = None
+        if not args.no_selection:
+            backend = "native" if args.backend == "warp" else args.backend
+            selection = pool.submit(_worker, names[0], args, True, backend)
+        if args.backend == "warp":
+            results.append(build_kernels_in_parallel(args, pool))
+            log.info("warmup: %s", results[-1])
+        if selection is not None:
+            results.append(selection.result())
+            log.info("warmup: %s", results[-1])
+            if results[-1].get("backend") == args.backend and todo[:1] == names[:1]:
+                todo = todo[1:]  # that task ran on the run's backend already
     with ThreadPoolExecutor(args.jobs) as pool:
-        for result in pool.map(lambda n: _worker(n, args), todo[1:]):
+        for result in pool.map(lambda n: _worker(n, args), todo):
             log.info("warmup: %s", result)
             results.append(result)
     failed = [r for r in results if "error" in r]

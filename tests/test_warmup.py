@@ -47,3 +47,19 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
         plans = policy.plan(episodes, env, np.arange(2))
     assert len(plans) == 2 and compiled == []
     episodes.close()
+
+
+def test_task_runs_choice(caplog):
+    """--task-runs none with --no-selection warms nothing (and says so); a bad choice is a
+    usage error, not a trace."""
+    import logging
+
+    import pytest
+
+    with caplog.at_level(logging.INFO, logger="agnostos_mjx.warmup"):
+        assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
+                            "--no-selection"]) == 0
+    assert "0 of 0 steps done" in caplog.text
+    with pytest.raises(SystemExit) as exit_:
+        warmup.parse_args(["--task-runs", "sometimes"])
+    assert exit_.value.code == 2

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import time
 from collections.abc import Iterable, Iterator
 from typing import Any
@@ -86,11 +85,6 @@ def scene_modules(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int,
     return modules
 
 
-def default_parts() -> int:
-    """Processes building at once: the machine's cores (at most 16)."""
-    return max(1, min(os.cpu_count() or 1, 16))
-
-
 def share(modules: dict[str, Any], part: int, parts: int) -> list[Any]:
     """Part `part` of `parts` of the modules, balanced by their kernel counts (the largest
     first, each to the lightest part); the same split in every process."""
@@ -125,4 +119,4 @@ def build_scenes(models: Iterable[mujoco.MjModel], batch: int, naconmax: int, nj
             "find_s": round(t1 - t0, 2), "build_s": round(t2 - t1, 2)}
 
 
-__all__ = ["build_scenes", "default_parts", "launches_recorded", "scene_modules", "share"]
+__all__ = ["build_scenes", "launches_recorded", "scene_modules", "share"]
