@@ -44,6 +44,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from agnostos_mjx import warmup
 from agnostos_mjx.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
 from agnostos_mjx.evaluation import processes
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
@@ -68,6 +69,14 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     if cfg.merge:
         setup_logging(cfg.quiet)
         return merge_main(cfg.out)
+    if cfg.backend == "warp" and cfg.num_processes == 1:  # once per machine, many at once
+        setup_logging(cfg.quiet)
+        try:
+            default_policy = cfg.policy in ("auto", "retrieval", "xicm")
+            warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner,
+                                       selection=default_policy and cfg.selection == "auto")
+        except (KeyError, ValueError):
+            pass  # a bad --tasks: the run itself says so
     if cfg.local_processes > 1:
         setup_logging(cfg.quiet)
         if guard is not None and cfg.out:  # the resume hint even if stopping takes long

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import json
 import logging
 import os
@@ -31,6 +32,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from agnostos_mjx.cli import HelpFormatter
@@ -141,9 +143,28 @@ def default_kernel_jobs() -> int:
     return max(1, min((os.cpu_count() or 1) // 2, 8))
 
 
+def kernels_marker(names: list[str], batch: int) -> Path:
+    """The file that says this machine built Warp's kernels of these tasks at this batch
+    (under the agnostos cache, keyed by the Warp and MJX versions and $WARP_CACHE_PATH;
+    if Warp's own cache is wiped, a run builds what it misses as it goes, only slower)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(package: str) -> str:
+        try:
+            return version(package)
+        except PackageNotFoundError:
+            return "none"
+
+    key = json.dumps([installed("warp-lang"), installed("mujoco-mjx"),
+                      os.environ.get("WARP_CACHE_PATH", ""), sorted(names), batch])
+    root = Path(os.environ.get("AGNOSTOS_CACHE") or Path.home() / ".cache" / "agnostos_mjx")
+    return root / "warp_kernels" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+
+
 def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor | None = None
                               ) -> dict:
-    """build_kernels of args.tasks in --kernel-jobs processes, each building its share."""
+    """build_kernels of args.tasks in --kernel-jobs processes, each building its share; on
+    success the machine's marker for these tasks (kernels_marker) is written."""
     t0 = time.perf_counter()
     parts = args.kernel_jobs or default_kernel_jobs()
     with contextlib.ExitStack() as stack:
@@ -152,8 +173,67 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
     failed = [d for d in done if "error" in d]
     if failed:
         return failed[0]
-    return {"task": "(Warp kernels)", "modules": done[0]["modules"], "parts": parts,
-            "build_s": max(d["build_s"] for d in done), "wall_s": round(time.perf_counter() - t0, 2)}
+    result = {"task": "(Warp kernels)", "modules": done[0]["modules"], "parts": parts,
+              "build_s": max(d["build_s"] for d in done),
+              "wall_s": round(time.perf_counter() - t0, 2)}
+    marker = kernels_marker(_task_names(args.tasks), args.batch)
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    tmp = marker.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(result))
+    os.replace(tmp, marker)
+    return result
+
+
+def kernels_and_selection(args: argparse.Namespace, names: list[str], selection: bool
+                          ) -> list[dict]:
+    """At once: on warp every scene's Warp kernels (many processes), and with `selection`
+    the default policies' demo selection on the first task (what every task of those
+    policies shares; its programs do not depend on the physics backend, so on warp they
+    compile over native physics, needing no Warp kernel).  The results, logged."""
+    results = []
+    with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 1) as pool:
+        chosen = None
+        if selection:
+            backend = "native" if args.backend == "warp" else args.backend
+            chosen = pool.submit(_worker, names[0], args, True, backend)
+        if args.backend == "warp":
+            results.append(build_kernels_in_parallel(args, pool))
+            log.info("warmup: %s", results[-1])
+        if chosen is not None:
+            results.append(chosen.result())
+            log.info("warmup: %s", results[-1])
+    return results
+
+
+def _task_names(spec: str) -> list[str]:
+    from agnostos_mjx.tasks import parse_tasks
+
+    return [task.name for task in parse_tasks(spec)]
+
+
+def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False
+                        ) -> dict | None:
+    """Before a warp run: build Warp's kernels of `tasks` in parallel processes (and with
+    `selection` compile the demo selection's networks meanwhile) unless this machine did
+    already (kernels_marker).  Returns the build's result, None if skipped.  A failed build
+    is logged and the run goes on (it then builds what it needs itself)."""
+    import importlib.util
+
+    names = _task_names(tasks)
+    if importlib.util.find_spec("warp") is None or kernels_marker(names, batch).exists():
+        return None  # without warp-lang the run says what is missing
+    args = argparse.Namespace(tasks=tasks, backend="warp", batch=batch, planner=planner,
+                              kernel_jobs=None)
+    log.info("warp: building Warp's kernels of %d scenes in %d processes first, once per "
+             "machine (python -m agnostos_mjx.warmup does it ahead of time)", len(names),
+             default_kernel_jobs())
+    result = kernels_and_selection(args, names, selection)[0]
+    if "error" in result:
+        log.warning("warp: building the kernels ahead failed (%s); the run builds them as it "
+                    "goes\n%s", result["error"], result.get("stderr_tail", ""))
+    else:
+        log.info("warp: %d kernel modules ready in %.0f s", result["modules"], result["wall_s"])
+    return result
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -191,11 +271,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.worker and args.worker.startswith("kernels:"):
-        from agnostos_mjx.tasks import parse_tasks
-
         part, parts = (int(x) for x in args.worker.removeprefix("kernels:").split("/"))
-        names = [task.name for task in parse_tasks(args.tasks)]
-        print(json.dumps(build_kernels(names, args.batch, part, parts)))
+        print(json.dumps(build_kernels(_task_names(args.tasks), args.batch, part, parts)))
         return 0
     if args.worker:
         print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner,
@@ -213,23 +290,9 @@ def main(argv: list[str] | None = None) -> int:
         "none" if args.backend == "warp" else "per-size")
     todo = {"none": [], "per-size": one_per_size(names), "every": names}[runs]
     t0 = time.perf_counter()
-    results = []
-    # At once: every scene's Warp kernels (many processes) and the selection's networks
-    # (what every task of the default policies shares; its programs do not depend on the
-    # physics backend, so on warp they compile over native physics, with no Warp kernel).
-    with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 1) as pool:
-        selection = None
-        if not args.no_selection:
-            backend = "native" if args.backend == "warp" else args.backend
-            selection = pool.submit(_worker, names[0], args, True, backend)
-        if args.backend == "warp":
-            results.append(build_kernels_in_parallel(args, pool))
-            log.info("warmup: %s", results[-1])
-        if selection is not None:
-            results.append(selection.result())
-            log.info("warmup: %s", results[-1])
-            if results[-1].get("backend") == args.backend and todo[:1] == names[:1]:
-                todo = todo[1:]  # that task ran on the run's backend already
+    results = kernels_and_selection(args, names, selection=not args.no_selection)
+    if results and results[-1].get("backend") == args.backend and todo[:1] == names[:1]:
+        todo = todo[1:]  # the selection's task ran on the run's backend already
     with ThreadPoolExecutor(args.jobs) as pool:
         for result in pool.map(lambda n: _worker(n, args), todo):
             log.info("warmup: %s", result)

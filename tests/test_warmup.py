@@ -63,3 +63,33 @@ def test_task_runs_choice(caplog):
     with pytest.raises(SystemExit) as exit_:
         warmup.parse_args(["--task-runs", "sometimes"])
     assert exit_.value.code == 2
+
+
+def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
+    """A warp run builds Warp's kernels in parallel processes first, unless this machine's
+    marker for those tasks and batch says it did; a failed build is logged, not raised."""
+    import importlib.util
+
+    monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",  # as if warp-lang were installed
+                        lambda name, *a: object() if name == "warp" else real_find_spec(name, *a))
+    calls = []
+
+    def fake_worker(name, args, selection=False, backend=None):
+        calls.append(name)
+        return {"task": "(Warp kernels)", "modules": 7, "built": 3, "build_s": 1.0}
+
+    monkeypatch.setattr(warmup, "_worker", fake_worker)
+    monkeypatch.setattr(warmup, "default_kernel_jobs", lambda: 2)
+    first = warmup.ensure_warp_kernels("lamp_on,lamp_off", 75)
+    assert first["modules"] == 7 and sorted(calls) == ["kernels:0/2", "kernels:1/2"]
+    assert warmup.kernels_marker(["lamp_off", "lamp_on"], 75).exists()
+    assert warmup.ensure_warp_kernels("lamp_off,lamp_on", 75) is None  # built already
+    assert len(calls) == 2
+    assert warmup.ensure_warp_kernels("lamp_on", 75) is not None  # other tasks: not yet
+    monkeypatch.setattr(warmup, "_worker", lambda *a, **k: {"task": "kernels:0/2",
+                                                            "error": "exit 1", "stderr_tail": ""})
+    failed = warmup.ensure_warp_kernels("lamp_on", 16)
+    assert failed["error"] == "exit 1"
+    assert not warmup.kernels_marker(["lamp_on"], 16).exists()

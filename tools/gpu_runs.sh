@@ -10,6 +10,8 @@
 #   bash tools/gpu_runs.sh kbuild      GPU 0: Warp's kernels of the 23 unseen scenes, each from an
 #                                      empty cache of its own: KJOBS processes ("16 8")
 #   bash tools/gpu_runs.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
+#   bash tools/gpu_runs.sh fresh1      GPU 0, a fresh machine: the main job alone (warp, 8 processes,
+#                                      MPS; it builds Warp's kernels itself first), then warm
 #   bash tools/gpu_runs.sh warm        GPU 0: the main job again (caches on disk), its
 #                                      time split; then native on GPU 0 (planner auto)
 #   bash tools/gpu_runs.sh native_host GPU 0: native with the numpy planner
@@ -100,6 +102,9 @@ case "$1" in
     warmup
     CUDA_VISIBLE_DEVICES=0 main fresh warp --local-processes 8 --mps on
     echo "fresh total (warmup + main job) $((SECONDS - t0)) s" | tee -a $OUT/walls.txt; poll ;;
+  fresh1)
+    CUDA_VISIBLE_DEVICES=0 main fresh1 warp --local-processes 8 --mps on
+    CUDA_VISIBLE_DEVICES=0 main warm1 warp --local-processes 8 --mps on ;;
   warm)
     CUDA_VISIBLE_DEVICES=0 main warm warp --local-processes 8 --mps on
     poll
@@ -132,5 +137,5 @@ case "$1" in
     vla 0 all ${VLA_PROCS:-16}; vla_collect all ;;
   vla_eval)  # one split per GPU, at once
     vla 0 seen 10 & vla 1 unseen 10 & wait; vla_collect seen unseen ;;
-  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|kbuild|fresh|warm|ab|subset|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|kbuild|fresh|fresh1|warm|ab|subset|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
 esac
