@@ -71,12 +71,9 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         return merge_main(cfg.out)
     if cfg.backend == "warp" and cfg.num_processes == 1:  # once per machine, many at once
         setup_logging(cfg.quiet)
-        try:
-            default_policy = cfg.policy in ("auto", "retrieval", "xicm")
-            warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner,
-                                       selection=default_policy and cfg.selection == "auto")
-        except (KeyError, ValueError):
-            pass  # a bad --tasks: the run itself says so
+        default_policy = cfg.policy in ("auto", "retrieval", "xicm")
+        warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner,
+                                   selection=default_policy and cfg.selection == "auto")
     if cfg.local_processes > 1:
         setup_logging(cfg.quiet)
         if guard is not None and cfg.out:  # the resume hint even if stopping takes long

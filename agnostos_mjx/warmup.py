@@ -143,10 +143,12 @@ def default_kernel_jobs() -> int:
     return max(1, min((os.cpu_count() or 1) // 2, 8))
 
 
-def kernels_marker(names: list[str], batch: int) -> Path:
-    """The file that says this machine built Warp's kernels of these tasks at this batch
-    (under the agnostos cache, keyed by the Warp and MJX versions and $WARP_CACHE_PATH;
-    if Warp's own cache is wiped, a run builds what it misses as it goes, only slower)."""
+def kernels_marker(tasks: str, batch: int) -> Path:
+    """The file that says this machine built Warp's kernels of `tasks` (the --tasks text) at
+    this batch (under the agnostos cache, keyed by the Warp and MJX versions and
+    $WARP_CACHE_PATH; if Warp's own cache is wiped, a run builds what it misses as it goes,
+    only slower).  Needs no task import: a run's parent process must not start JAX on the
+    GPU (JAX would take most of its memory from the run's processes)."""
     from importlib.metadata import PackageNotFoundError, version
 
     def installed(package: str) -> str:
@@ -156,9 +158,36 @@ def kernels_marker(names: list[str], batch: int) -> Path:
             return "none"
 
     key = json.dumps([installed("warp-lang"), installed("mujoco-mjx"),
-                      os.environ.get("WARP_CACHE_PATH", ""), sorted(names), batch])
+                      os.environ.get("WARP_CACHE_PATH", ""), tasks, batch])
     root = Path(os.environ.get("AGNOSTOS_CACHE") or Path.home() / ".cache" / "agnostos_mjx")
     return root / "warp_kernels" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+
+
+def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False
+                        ) -> int | None:
+    """Before a warp run: this command's kernel step (Warp's kernels of `tasks` in parallel
+    processes, and with `selection` the demo selection's networks meanwhile) in a process
+    of its own, unless this machine did it already (kernels_marker).  Returns its exit
+    code, None if skipped.  A failed build is logged and the run goes on (it then builds
+    what it needs as it goes)."""
+    import importlib.util
+
+    if importlib.util.find_spec("warp") is None or kernels_marker(tasks, batch).exists():
+        return None  # without warp-lang the run says what is missing
+    log.info("warp: building Warp's kernels of the tasks' scenes in %d processes first, once "
+             "per machine (python -m agnostos_mjx.warmup does it ahead of time)",
+             default_kernel_jobs())
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", "warp",
+           "--batch", str(batch), "--planner", planner, "--task-runs", "none",
+           *([] if selection else ["--no-selection"])]
+    code = subprocess.run(cmd).returncode
+    if code:
+        log.warning("warp: building the kernels ahead failed (exit %d); the run builds them "
+                    "as it goes", code)
+    else:
+        log.info("warp: kernels ready in %.0f s", time.perf_counter() - t0)
+    return code
 
 
 def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor | None = None
@@ -176,7 +205,7 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
     result = {"task": "(Warp kernels)", "modules": done[0]["modules"], "parts": parts,
               "build_s": max(d["build_s"] for d in done),
               "wall_s": round(time.perf_counter() - t0, 2)}
-    marker = kernels_marker(_task_names(args.tasks), args.batch)
+    marker = kernels_marker(args.tasks, args.batch)
     marker.parent.mkdir(parents=True, exist_ok=True)
     tmp = marker.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(result))
@@ -209,31 +238,6 @@ def _task_names(spec: str) -> list[str]:
     from agnostos_mjx.tasks import parse_tasks
 
     return [task.name for task in parse_tasks(spec)]
-
-
-def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False
-                        ) -> dict | None:
-    """Before a warp run: build Warp's kernels of `tasks` in parallel processes (and with
-    `selection` compile the demo selection's networks meanwhile) unless this machine did
-    already (kernels_marker).  Returns the build's result, None if skipped.  A failed build
-    is logged and the run goes on (it then builds what it needs itself)."""
-    import importlib.util
-
-    names = _task_names(tasks)
-    if importlib.util.find_spec("warp") is None or kernels_marker(names, batch).exists():
-        return None  # without warp-lang the run says what is missing
-    args = argparse.Namespace(tasks=tasks, backend="warp", batch=batch, planner=planner,
-                              kernel_jobs=None)
-    log.info("warp: building Warp's kernels of %d scenes in %d processes first, once per "
-             "machine (python -m agnostos_mjx.warmup does it ahead of time)", len(names),
-             default_kernel_jobs())
-    result = kernels_and_selection(args, names, selection)[0]
-    if "error" in result:
-        log.warning("warp: building the kernels ahead failed (%s); the run builds them as it "
-                    "goes\n%s", result["error"], result.get("stderr_tail", ""))
-    else:
-        log.info("warp: %d kernel modules ready in %.0f s", result["modules"], result["wall_s"])
-    return result
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

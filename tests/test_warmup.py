@@ -66,30 +66,61 @@ def test_task_runs_choice(caplog):
 
 
 def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
-    """A warp run builds Warp's kernels in parallel processes first, unless this machine's
-    marker for those tasks and batch says it did; a failed build is logged, not raised."""
+    """A warp run first runs the warm-up's kernel step in a process of its own, unless this
+    machine's marker for those tasks and batch says it did; the kernel step writes the
+    marker only when every part succeeded."""
     import importlib.util
+    import subprocess
+    import types
 
     monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
     real_find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",  # as if warp-lang were installed
                         lambda name, *a: object() if name == "warp" else real_find_spec(name, *a))
-    calls = []
+    commands = []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: (
+        commands.append(cmd), types.SimpleNamespace(returncode=0))[1])
+    assert warmup.ensure_warp_kernels("lamp_on,lamp_off", 75, selection=False) == 0
+    assert commands[-1][1:3] == ["-m", "agnostos_mjx.warmup"]
+    assert "--no-selection" in commands[-1] and "none" in commands[-1]
+    warmup.ensure_warp_kernels("lamp_on,lamp_off", 75, selection=True)
+    assert "--no-selection" not in commands[-1]
 
-    def fake_worker(name, args, selection=False, backend=None):
-        calls.append(name)
-        return {"task": "(Warp kernels)", "modules": 7, "built": 3, "build_s": 1.0}
-
-    monkeypatch.setattr(warmup, "_worker", fake_worker)
+    # the kernel step (its parts faked) writes the marker; then the run skips it
+    monkeypatch.setattr(warmup, "_worker", lambda name, *a, **k: {
+        "task": "(Warp kernels)", "modules": 7, "built": 3, "build_s": 1.0})
     monkeypatch.setattr(warmup, "default_kernel_jobs", lambda: 2)
-    first = warmup.ensure_warp_kernels("lamp_on,lamp_off", 75)
-    assert first["modules"] == 7 and sorted(calls) == ["kernels:0/2", "kernels:1/2"]
-    assert warmup.kernels_marker(["lamp_off", "lamp_on"], 75).exists()
-    assert warmup.ensure_warp_kernels("lamp_off,lamp_on", 75) is None  # built already
-    assert len(calls) == 2
-    assert warmup.ensure_warp_kernels("lamp_on", 75) is not None  # other tasks: not yet
+    args = warmup.parse_args(["--tasks", "lamp_on,lamp_off", "--batch", "75"])
+    assert warmup.build_kernels_in_parallel(args)["modules"] == 7
+    assert warmup.kernels_marker("lamp_on,lamp_off", 75).exists()
+    n = len(commands)
+    assert warmup.ensure_warp_kernels("lamp_on,lamp_off", 75) is None and len(commands) == n
+    assert not warmup.kernels_marker("lamp_on,lamp_off", 16).exists()  # per batch
     monkeypatch.setattr(warmup, "_worker", lambda *a, **k: {"task": "kernels:0/2",
                                                             "error": "exit 1", "stderr_tail": ""})
-    failed = warmup.ensure_warp_kernels("lamp_on", 16)
-    assert failed["error"] == "exit 1"
-    assert not warmup.kernels_marker(["lamp_on"], 16).exists()
+    args = warmup.parse_args(["--tasks", "lamp_on", "--batch", "75"])
+    assert warmup.build_kernels_in_parallel(args)["error"] == "exit 1"
+    assert not warmup.kernels_marker("lamp_on", 75).exists()
+
+
+def test_the_parent_of_a_warp_run_does_not_start_jax():
+    """The run's parent process checks the marker and starts the kernel step without
+    starting JAX: on a GPU, JAX there would take most of the memory from the run's
+    processes (a fresh H200 run's 8 processes all failed with CUDA out of memory)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import importlib.util, subprocess, types\n"
+        "real = importlib.util.find_spec\n"
+        "importlib.util.find_spec = lambda n, *a: object() if n == 'warp' else real(n, *a)\n"
+        "subprocess.run = lambda *a, **k: types.SimpleNamespace(returncode=0)\n"
+        "from agnostos_mjx import eval as _\n"
+        "from agnostos_mjx import warmup\n"
+        "assert warmup.ensure_warp_kernels('unseen', 75, selection=True) == 0\n"
+        "from jax._src import xla_bridge\n"
+        "print('backends', sorted(xla_bridge._backends))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env={**__import__("os").environ, "AGNOSTOS_CACHE": "/nonexistent/x"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "backends []" in out.stdout

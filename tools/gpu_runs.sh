@@ -104,7 +104,7 @@ case "$1" in
     echo "fresh total (warmup + main job) $((SECONDS - t0)) s" | tee -a $OUT/walls.txt; poll ;;
   fresh1)
     CUDA_VISIBLE_DEVICES=0 main fresh1 warp --local-processes 8 --mps on
-    CUDA_VISIBLE_DEVICES=0 main warm1 warp --local-processes 8 --mps on ;;
+    [ -z "$WARM" ] || CUDA_VISIBLE_DEVICES=0 main warm1 warp --local-processes 8 --mps on ;;
   warm)
     CUDA_VISIBLE_DEVICES=0 main warm warp --local-processes 8 --mps on
     poll
