@@ -22,7 +22,8 @@ BACKENDS = ("auto", "native", "jax", "warp")
 # with warm caches (eval/reports/gpu_h100_x2_session15), so `auto` keeps native at batch 75.
 # With MuJoCo Warp stepped directly, K steps per FFI call, on one 16-core H100: warp 128 s with
 # 8 processes, 118 s with 12-16, native 118 s with 8 (eval/reports/gpu_h100_session17): still no
-# faster, so still native.
+# faster, so still native.  On a one-GPU H200 host (eval/reports/gpu_session18): warp 133 s
+# warm, native 123 s: native again.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
