@@ -254,7 +254,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--planner", default="auto", choices=("auto", "host", "device"),
                    help="as eval's --planner")
     p.add_argument("--jobs", type=positive_int, default=8,
-                   help="processes building at once after the first task")
+                   help="processes running tasks at once (--task-runs)")
     p.add_argument("--kernel-jobs", type=positive_int, default=None, metavar="N",
                    help="warp: processes building Warp's kernels at once, before anything "
                         "runs (default: half the machine's cores, at most 8; 1: one process)")
