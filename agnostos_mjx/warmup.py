@@ -106,8 +106,8 @@ def build_kernels(names: list[str], batch: int, part: int = 0, parts: int = 1) -
 
 
 def one_per_size(names: list[str]) -> list[str]:
-    """The first task of each distinct scene size (`nv`): Warp's kernels are specialised per
-    size, so the others reuse what that one builds."""
+    """The first task of each distinct scene size (`nv`): `--task-runs per-size` runs these,
+    a sample of the programs the run's tasks compile (programs specialise on sizes)."""
     from agnostos_mjx.tasks import get_task
     from agnostos_mjx.world import build_scene
 
@@ -283,10 +283,8 @@ def main(argv: list[str] | None = None) -> int:
                                    args.worker_selection)))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    from agnostos_mjx.tasks import parse_tasks
-
     try:
-        names = [task.name for task in parse_tasks(args.tasks)]
+        names = _task_names(args.tasks)
     except (KeyError, ValueError) as err:
         print(f"warmup: {err.args[0] if err.args else err}", file=sys.stderr)
         return 2

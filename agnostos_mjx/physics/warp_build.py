@@ -8,7 +8,7 @@ the K-step call's function runs once per scene with `wp.launch` recording the ke
 module instead of launching it (and `capture_while` / `capture_if` taking each branch once).
 Then `part` of `parts` processes each build their share of the modules found (the same
 list in every process).  Threads do not help: on an H100, 16 threads built the 100 modules
-of the 23 unseen scenes in 66 s against 76 s for one (eval/reports/gpu_h100_session18).
+of the 23 unseen scenes in 66 s against 76 s for one (eval/reports/gpu_session18).
 Built modules land in Warp's kernel cache on disk, where every later process of the run, or
 of a later run, finds them.
 """
