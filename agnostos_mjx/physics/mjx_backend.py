@@ -26,10 +26,10 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from agnostos_mjx import sharding
 from agnostos_mjx.physics.base import STATE_FIELDS, PhysicsState, StepData, check_steps
+from agnostos_mjx.physics.quiet_mjx import mjx
 
 log = logging.getLogger(__name__)
 

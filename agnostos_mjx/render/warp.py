@@ -82,7 +82,8 @@ class WarpRenderer:
     ) -> None:
         import jax  # lazy: keeps this module importable without warp/CUDA
         import jax.numpy as jnp
-        from mujoco import mjx
+
+        from agnostos_mjx.physics.quiet_mjx import mjx
 
         self.width, self.height, self.nworld = int(width), int(height), int(nworld)
         self.camera_names = tuple(cameras) if cameras is not None else camera_names(model)
@@ -150,7 +151,8 @@ class WarpRenderer:
         """A warp ``mjx.Data`` batch of ``nworld`` worlds, made once (its state is replaced)."""
         import jax
         import jax.numpy as jnp
-        from mujoco import mjx
+
+        from agnostos_mjx.physics.quiet_mjx import mjx
 
         if self._template is None:
             make = lambda _: mjx.make_data(self._model, impl="warp",  # noqa: E731
@@ -165,7 +167,8 @@ class WarpRenderer:
         (every task scene), else a full ``forward``."""
         import jax
         import jax.numpy as jnp
-        from mujoco import mjx
+
+        from agnostos_mjx.physics.quiet_mjx import mjx
 
         mx = self.mx
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731

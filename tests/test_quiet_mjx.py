@@ -1,0 +1,31 @@
+"""A CPU run says nothing about warp-lang: mujoco-mjx's import prints 'Failed to import
+warp' without it, and agnostos_mjx.physics.quiet_mjx (our one import of mjx) drops exactly
+those lines."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+# What a CPU evaluation imports (runtime -> the MJX backend), then a tiny MJX model built.
+TINY_RUN = textwrap.dedent("""
+    import mujoco
+    import agnostos_mjx.runtime.env
+    from agnostos_mjx.physics.mjx_backend import MjxBackend
+    from agnostos_mjx.physics.quiet_mjx import mjx
+
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body><freejoint/><geom size=".1"/></body></worldbody></mujoco>')
+    backend = MjxBackend(model, impl="jax")
+    data = mjx.make_data(backend.mx)
+    print("nq", int(data.qpos.shape[0]))
+""")
+
+
+def test_mjx_import_prints_no_warp_complaint() -> None:
+    run = subprocess.run([sys.executable, "-c", TINY_RUN], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "Failed to import" not in run.stdout + run.stderr
+    assert run.stdout == "nq 7\n"  # the program's own output still gets through
