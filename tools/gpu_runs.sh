@@ -1,38 +1,35 @@
 #!/bin/bash
-# Issues 26, 28 and 29 on a lent GPU host, device calls back to back (stages of one session;
-# the machine goes back after 30 s without a call). On a 2-GPU host: the reference VLA
-# trains on GPU 1 in the background while GPU 0 runs main jobs, then both GPUs run the main
-# job (issue 29) and GPU 0 evaluates the VLA.
-#   carry .gl .whl   bash tools/gpu_setup.sh base && bash tools/gpu_runs.sh vla_start
-#   carry .warp/pK   bash tools/gpu_setup.sh K (K = 0..3); then, no carry:
-#   bash tools/gpu_runs.sh poll        the VLA's progress (any call may add it)
-#   bash tools/gpu_runs.sh warmup      GPU 0: warp warmup of the unseen tasks (fills the caches)
-#   bash tools/gpu_runs.sh kbuild      GPU 0: Warp's kernels of the 23 unseen scenes, each from an
-#                                      empty cache of its own: KJOBS processes ("16 8")
-#   bash tools/gpu_runs.sh fresh       GPU 0: warmup + the main job, warp, 8 processes, MPS
-#   bash tools/gpu_runs.sh fresh1      GPU 0, a fresh machine: the main job alone (warp, 8 processes,
-#                                      MPS; it builds Warp's kernels itself first), then warm
-#   bash tools/gpu_runs.sh warm        GPU 0: the main job again (caches on disk), its
-#                                      time split; then native on GPU 0 (planner auto)
-#   bash tools/gpu_runs.sh native_host GPU 0: native with the numpy planner
-#   bash tools/gpu_runs.sh scale       warp, then native: the main job on both GPUs (16
-#                                      processes) and on GPU 0 (8 processes), in one call
-#   bash tools/gpu_runs.sh ab          GPU 0: the device key action, MJX's step (WARP:16) against
-#                                      MuJoCo Warp called directly, K steps per FFI call (DIRECT)
-#   bash tools/gpu_runs.sh subset L    GPU 0, ONE process: the main job's put_rubbish_in_bin,
-#                                      lamp_on, put_knife_on_chopping_board and
-#                                      take_usb_out_of_computer, into main_subset_L (with
-#                                      AGNOSTOS_WARP_STEPS / _CHUNK_GRAPH_MODE set for A/B)
-#   bash tools/gpu_runs.sh obs         warp observation benchmark at 1,024 worlds: GPU 0
-#                                      alone, then one process per GPU at once
-#   bash tools/gpu_runs.sh vla_eval1   the VLA on ONE H100: seen + unseen as one run, 16
-#                                      processes, 3 seeds x 25, --compare RVT2 (GPU 0)
-#   bash tools/gpu_runs.sh vla_eval    the VLA: seen tasks on GPU 0, unseen on GPU 1, at
-#                                      once, 10 processes each (both via train/vla_gpu.sh)
+# The benchmarks of eval/reports on a lent GPU host, one stage per device call (the machine
+# goes back after a while without a call; stages that share a machine reuse its caches).
+# Setup first (tools/gpu_setup.sh):
+#   carry .gl .whl   bash tools/gpu_setup.sh base  (or gl, then whl)
+#   carry .warp/pK   bash tools/gpu_setup.sh K     (K = 0..3; warp only)
+# Stages (OUT: the folder that comes back; runs live in /tmp/agnostos):
+#   fresh1       GPU 0, a fresh machine: the main job alone (warp, 8 processes, MPS; it builds
+#                Warp's kernels itself first); WARM=1 runs it once more, warm
+#   fresh        GPU 0: python -m agnostos_mjx.warmup (warp), then the main job as fresh1
+#   warm         GPU 0: the main job again (caches on disk), then native, 8 processes
+#   native_host  GPU 0: native, 8 processes, with the numpy planner
+#   scale        warp, then native: the main job on all GPUs (16 processes) and on GPU 0 (8)
+#   kbuild       GPU 0: Warp's kernels of the 23 unseen scenes, each from an empty cache,
+#                with KJOBS processes ("16 8" by default)
+#   warmup       GPU 0: python -m agnostos_mjx.warmup --tasks unseen --backend warp
+#   obs          observation benchmark: GPU 0 alone, then one process per GPU at once
+#                (OBS_ARGS, default "--batches 1024 --renderers warp")
+#   bank         the seen bank, 18 tasks x 200 demos, native, 16 worker processes + EGL
+#   export       the VLA export of the 3,600 seen demos, 16 workers
+#   vla_start    the reference VLA's data, precision profile and training on GPU 1 (or the only
+#                GPU), detached (train/vla_gpu.sh train); poll shows its progress
+#   vla_eval1    the VLA on GPU 0: seen + unseen as one run, 16 processes, --compare RVT2
+#   vla_eval     the VLA: seen tasks on GPU 0, unseen on GPU 1, at once, 10 processes each
+# Every main job is python -m agnostos_mjx.eval --batch 75 --resume --quiet --compare "X-ICM 7B"
+# plus the stage's flags, into $R/main_LABEL (at most LIMIT_S s; rerun to resume); its wall
+# goes to $OUT/walls.txt and its folder, as a .tgz, to $OUT.
 # CPUS=0-15 pins a stage's processes to those cores (taskset), e.g. to run as a 16-core
-# one-H100 host (the nvidia-h100-x1 kind) on one GPU of a 32-core 2-GPU host; vla_start
-# pins itself to VLA_CPUS (the other half of the cores on a host with >= 32).
-# Runs live in /tmp/agnostos; each stage copies its results to $OUT.
+# one-GPU host on one GPU of a 32-core 2-GPU host; vla_start pins itself to VLA_CPUS (the
+# other half of the cores on a host with >= 32).
+# A stage run under `timeout` can leave the run's worker processes alive (they start with setsid);
+# a later stage on the same machine then fails with CUDA errors.
 set -e
 : "${OUT:?set OUT}"
 export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl AGNOSTOS_JAX_CACHE=/tmp/agnostos/jax_cache
@@ -116,26 +113,33 @@ case "$1" in
     LIMIT_S=${NATIVE_S:-150} main scale2_native native --local-processes 16
     CUDA_VISIBLE_DEVICES=0 LIMIT_S=${NATIVE_S:-150} main scale1_native native --local-processes 8
     poll ;;
-  ab) CUDA_VISIBLE_DEVICES=0 pin python3 tools/warp_phase_ab.py --tasks ${AB_TASKS:-lamp_on,put_rubbish_in_bin} \
-      --batch 75 --variants ${AB_VARIANTS:-WARP:16,DIRECT:16,DIRECT:32} --out $OUT/ab_75.json 2>&1 | quiet | tail -12 ;;
-  subset) CUDA_VISIBLE_DEVICES=0 main subset_${2:?label} warp \
-      --tasks put_rubbish_in_bin,lamp_on,put_knife_on_chopping_board,take_usb_out_of_computer
-    python3 -m agnostos_mjx.evaluation.timings $R/main_subset_$2 ;;
   native_host) CUDA_VISIBLE_DEVICES=0 LIMIT_S=${LIMIT_S:-420} main native_host native \
       --local-processes 8 --planner host; poll ;;
   obs)
     bench() {  # bench GPU LABEL
-      CUDA_VISIBLE_DEVICES=$1 python3 -m agnostos_mjx.observation_bench --batches 1024 \
-        --renderers warp --out "$OUT/obs_$2.json" > "$OUT/obs_$2.log" 2>&1
+      CUDA_VISIBLE_DEVICES=$1 python3 -m agnostos_mjx.observation_bench ${OBS_ARGS:---batches 1024 --renderers warp} \
+        --out "$OUT/obs_$2.json" > "$OUT/obs_$2.log" 2>&1
       echo "observation bench $2 exit $?" | tee -a $OUT/walls.txt
     }
     bench 0 gpu0_alone
     n=$(nvidia-smi -L | grep -c '^GPU')
     for k in $(seq 0 $((n - 1))); do bench $k "gpu${k}_of_$n" & done; wait
     tail -n 3 "$OUT"/obs_*.log ;;
+  bank)
+    t0=$SECONDS
+    pin python3 -m agnostos_mjx.data.generate --out $R/bank --tasks seen --demos ${DEMOS:-200} --batch 50 \
+      --workers 16 --backend native --quiet 2>&1 | quiet | tail -30
+    echo "seen bank wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
+    mkdir -p "$OUT/bank"; cp $R/bank/report.md $R/bank/manifest.json "$OUT/bank/" ;;
+  export)
+    t0=$SECONDS
+    pin python3 -m agnostos_mjx.data.export --out $R/export --tasks seen --demos ${DEMOS:-200} --size 128 \
+      --workers 16 2>&1 | quiet | tail -5
+    echo "export wall $((SECONDS - t0)) s, $(du -sb $R/export | cut -f1) bytes" | tee -a $OUT/walls.txt
+    cp $R/export/manifest.json "$OUT/export_manifest.json" ;;
   vla_eval1)  # one H100: GPU 0 (and, with CPUS, its share of the cores), both splits as one run
     vla 0 all ${VLA_PROCS:-16}; vla_collect all ;;
   vla_eval)  # one split per GPU, at once
     vla 0 seen 10 & vla 1 unseen 10 & wait; vla_collect seen unseen ;;
-  *) echo "usage: bash tools/gpu_runs.sh vla_start|poll|warmup|kbuild|fresh|fresh1|warm|ab|subset|native_host|scale|obs|vla_eval1|vla_eval" >&2; exit 2 ;;
+  *) echo "usage: bash tools/gpu_runs.sh fresh1|fresh|warm|native_host|scale|kbuild|warmup|obs|bank|export|vla_start|poll|vla_eval1|vla_eval" >&2; exit 2 ;;
 esac

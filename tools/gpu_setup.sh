@@ -15,7 +15,7 @@
 #   carry .warp/pK  bash tools/gpu_setup.sh K [N]  part K of warp-lang (K = 0..N, N = 3 by
 #                                                  default); the last part assembles it
 # Native-only work (no warp backend) needs the first call only. Then
-# export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_run.sh, tools/gpu_floor.sh and
+# export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_runs.sh and
 # train/vla_gpu.sh do).  Making the carried folders (on this machine, all ignored):
 #   .whl:     pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp
 #             mujoco==4.0.0 mujoco-core==4.0.0 mujoco-mjx==3.17.0 trimesh==5.2.0 PyOpenGL==3.1.9

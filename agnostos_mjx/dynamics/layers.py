@@ -157,8 +157,8 @@ def cheap_tracer_attribute_errors() -> Iterator[None]:
     through every equation traced so far (``_origin_msg``); ``getattr`` swallows the
     message.  Over the dynamics model's ~1,600 draws that walk took 19 of the 22 s of
     building its abstract model on a 2-core CPU with jax 0.10.2 / flax 0.12.8 (every
-    process loading the shipped model paid it), 2.9 s without; the lent GPUs' jax 0.11.2
-    loads it in 1.3 s either way (tools/load_time.py).  Here the message is left empty
+    process loading the shipped model paid it), 2.9 s without; with jax 0.11.2 it takes
+    1.3 s either way.  Here the message is left empty
     while a constructor is traced; where JAX lacks that method, nothing changes."""
     try:
         from jax._src.interpreters import partial_eval
