@@ -15,8 +15,7 @@ both runs hold; episodes only one run holds are counted and left out.  A task th
 but with no common episode (other seeds or episode indices) falls back to unpaired reporting:
 each run's own episodes, no McNemar test, an unpaired bootstrap.  The report says so.
 
-    python -m agnostos_mjx.compare eval/reports/default_dynamics_h200/native \\
-        eval/reports/default_dynamics_h200/warp --labels native,warp --out diff.md
+    python -m agnostos_mjx.compare runs/native runs/warp --labels native,warp --out diff.md
 
 Success rates are in percent in the tables and the JSON; p-values are fractions.
 """

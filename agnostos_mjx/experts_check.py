@@ -23,7 +23,7 @@ from agnostos_mjx.evaluation.records import load_records
 from agnostos_mjx.evaluation.run import evaluate
 from agnostos_mjx.tasks import parse_tasks
 
-DEFAULT_OUT = Path("eval/reports/oracle_per_variation")
+DEFAULT_OUT = Path("eval/reports/oracle_per_variation_cpu_2core")
 THRESHOLD = 95.0  # % per variation, issue 14
 
 

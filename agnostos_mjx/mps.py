@@ -3,7 +3,7 @@
 Processes that share a GPU without CUDA MPS time-slice it: on an H100, 8 processes of
 75 worlds each took 4.1 ms per physics step (0.145 M world-steps/s together, slower than
 one process), and 0.9 ms each (0.64 M world-steps/s, 4x more) under MPS
-(/work/shared/spec/mjx_notes.md, "Several processes").  This module decides where each
+(docs/performance.md).  This module decides where each
 process runs and, for ``--mps auto|on``, starts one MPS control daemon per shared GPU.
 Only the standard library is used: the launcher must not start JAX.
 

@@ -18,7 +18,7 @@ Examples::
 
     python -m agnostos_mjx.observation_bench --quick          # CPU, batch 75, one task
     python -m agnostos_mjx.observation_bench --quick --render-threads 1,2 --repeats 10
-    python -m agnostos_mjx.observation_bench --out eval/reports/observation_bench_h100.json
+    python -m agnostos_mjx.observation_bench --out observation_bench.json
 """
 
 from __future__ import annotations

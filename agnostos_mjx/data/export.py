@@ -37,8 +37,8 @@ all five even when its ObservationConfig asks for fewer, so a ``--cameras`` subs
 for readers of our own (:func:`read_episode`, which needs no rlbench).  Upstream RLBench's
 ``get_stored_demos`` has no ``all_variations`` and reads ``<task>/variation<v>/episodes``:
 symlink our episodes there.  Checked with these readers (images, depth, point clouds,
-masks, poses against ours): eval/reports/rlbench_reader_check
-(``python eval/reports/rlbench_reader_check/check.py --reader-python <numpy 1.x python>``).
+masks, poses against ours): ``python eval/reports/rlbench_reader_check/check.py
+--reader-python <numpy 1.x python>``.
 
 Frames: by default the keyframes only, the scene after reset and after every expert key
 action (our experts act in RLBench's waypoints).  PerAct's ``keypoint_discovery`` heuristic
@@ -56,9 +56,9 @@ physics state of their step (no extra simulation: the native backend's rollout r
 every step), with that step's joint velocities, gripper and object poses.  A dense episode
 also holds ``keyframes.json``, the indices of its keyframes (``read_episode``'s
 "keyframes"; RLBench's readers ignore the file).  Cost: ~190 frames per seen-task demo
-instead of ~8.7 (22x the images and bytes, ~10x the time;
-eval/reports/export_estimate_cpu_2core.md).  PerAct's heuristic on dense episodes (18 seen
-tasks x 1 demo, same report; tests/test_export.py::test_dense_frames for open_drawer):
+instead of ~8.7 (22x the images and bytes, ~10x the time; docs/performance.md).  PerAct's
+heuristic on dense episodes (18 seen tasks x 1 demo, eval/reports/export_cpu_2core;
+tests/test_export.py::test_dense_frames for open_drawer):
 116 of 122 key actions get a keypoint among their own frames, with the keyframe's gripper
 state and within 3.3 mm and 0.4 deg of its gripper pose: the heuristic marks the first
 frame of the rest that ends a move (all joints < 0.1 rad/s), then every 5th frame of it, so
@@ -140,7 +140,7 @@ BYTES_PER_CAMERA_FRAME_128 = 30_000
 SEEN_KEY_ACTIONS = 7.7
 SEEN_DEMO_SECONDS = 9.25
 TIMESTEP = 0.005
-# Time on 2 shared CPU cores (eval/reports/export_estimate_cpu_2core.md): per task (scene,
+# Time on 2 shared CPU cores (docs/performance.md): per task (scene,
 # compiles), per demo (reset + expert physics, no images; seen-task mean at batch 4) and
 # rendering + PNG writing per camera-frame (4 cameras, rgb, depth, segmentation, 128 px).
 CPU_TASK_SETUP_S = 3.0

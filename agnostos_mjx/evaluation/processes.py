@@ -7,9 +7,8 @@ free it takes the next task no other process has taken, longest expected first
 process would have written them (summary.merge).
 
 Why: with MJX-Warp at the protocol's batch of 75 a physics step leaves the GPU mostly idle
-(its cost is latency, not work), so tasks run side by side: on one H100 the main job took
-407 s as 8 processes with warm caches, where physics alone bounds one process at >= 170 s
-and a cold single process took 985 s (eval/reports/gpu_h100_session14).  Each
+(its cost is latency, not work), so tasks run side by side: on one H100 host the warm main
+job takes 138 s as 8 warp processes under MPS (docs/performance.md).  Each
 process gets ``0.6 / K`` of its GPU's memory for JAX, K being the most processes on one GPU,
 unless ``--gpu-mem-fraction`` says otherwise (Warp allocates its CUDA graphs outside JAX's
 pool; 0.9 / 8 ran out).

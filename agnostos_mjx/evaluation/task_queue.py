@@ -3,7 +3,7 @@
 A fixed split (process I runs tasks I, I+N, ...) leaves processes idle while others still
 work: in the main job on a 2 x H100 host, 16 processes had 1 or 2 of the 23 tasks each, and
 the slowest needed 81.6 s of task time against a mean of 56.5 s
-(eval/reports/gpu_h100_x2_session15).  Here each process takes the next task no process has
+(docs/performance.md).  Here each process takes the next task no process has
 taken yet, in the order of `EXPECTED_S` (longest first: the short tasks fill the gaps at the
 end), so the run ends when the last task does.
 
@@ -30,9 +30,10 @@ T = TypeVar("T")
 # Seconds for 75 episodes of each task on a 2 x H100 host (32 cores), by backend, without
 # the ~10 s (warp) or ~5 s (native) that the first task of a process adds for compiling;
 # only their order matters, and a task not listed counts as the median of its backend.
-# warp: the unseen tasks of the warm main job (eval/reports/gpu_h100_x2_session15/main_warm);
-# native: the unseen ones of the main job (main_native_host) and the seen ones with the
-# reference VLA (eval/reports/reference_vla/gpu_h100_full/eval_seen).
+# warp: the unseen tasks of the warm main job (timings.jsonl in
+# eval/reports/main_job_h100_x2/main_warm); native: the unseen ones of the main job
+# (main_native_host) and the seen ones with the reference VLA
+# (eval/reports/reference_vla/gpu_h100_full/eval_seen).
 EXPECTED_S = {
     "warp": {
         "put_toilet_roll_on_stand": 47, "put_knife_on_chopping_board": 44,

@@ -43,8 +43,7 @@ log = logging.getLogger(__name__)
 DEFAULT_CONTROL_HZ = 20.0  # RLBench's and LIBERO's observation rate
 # The default budget: the task's key-action budget (25 for every task) x 2 s, an upper
 # bound of the expert's mean key action (1.2-2.1 s per seen task): 50 s, 1000 control steps
-# at 20 Hz, which covers the longest oracle episode of any seen task (place_cups, 44.5 s;
-# eval/reports/oracle_seen).
+# at 20 Hz, which covers the longest oracle episode of any seen task (place_cups, 44.5 s).
 SECONDS_PER_KEY_ACTION = 2.0
 GRIPPER_TOL = 1e-6  # m: finger targets this close are equal (float32 on the device)
 

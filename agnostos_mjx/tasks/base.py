@@ -3,7 +3,7 @@
 A task declares its scene (via builders), the objects named in X-ICM's text,
 language templates per variation, a jittable initial-state sampler, success
 and failure conditions, and expert waypoints relative to its objects.  The
-runtime (episode.py) knows nothing task-specific.
+runtime (agnostos_mjx/runtime/) knows nothing task-specific.
 """
 
 from __future__ import annotations

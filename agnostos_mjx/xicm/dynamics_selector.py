@@ -19,7 +19,7 @@ from agnostos_mjx.xicm.query import Query, top_k
 
 log = logging.getLogger("agnostos_mjx.xicm")
 # DDIM steps of a query's vis.out.  Measured against the shipped model's 50 on 1,800 seen
-# demos (eval/reports/sampling_steps_h100, `python -m agnostos_mjx.train.sampling_steps`):
+# demos (docs/performance.md, `python -m agnostos_mjx.train.sampling_steps`):
 # 10 steps keep the held-out prediction error (54.5% vs 54.3% below copying the first
 # frame) and the leave-one-out same-task fraction (0.947 vs 0.946), share 97.8% of the
 # top-18 with 50 steps, and cost a fifth; 5 steps lose prediction quality (51.3%) and
@@ -67,7 +67,7 @@ class DynamicsSelector:
 
         if jax.default_backend() == "cpu" and "vis.out" in self.parts:
             # 2-core x86: 0.30-0.37 s per query at 10 steps in the evaluation's batches
-            # (eval/reports/cpu_query_features_2core.md), i.e. ~0.07 core-s per step.
+            # (docs/performance.md), i.e. ~0.07 core-s per step.
             log.info("dynamics features run on the CPU here: about %.2f s per query per core "
                      "(%d DDIM steps x 3 guided passes), once per (re)plan; --selection text "
                      "is the fast model-free mode", 0.07 * sample_steps, sample_steps)

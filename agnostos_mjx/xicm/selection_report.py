@@ -6,7 +6,7 @@ rendered from the front camera and the top-K demos are selected exactly as the p
 seen tasks over all selected demos, the majority task's share, and how stable that is across
 scenes: in how many scenes the same seen task holds the most demos.
 
-    python -m agnostos_mjx.xicm.selection_report --out eval/reports/selection_histogram
+    python -m agnostos_mjx.xicm.selection_report --out selection_report
 """
 
 from __future__ import annotations

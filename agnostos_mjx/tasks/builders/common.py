@@ -4,7 +4,7 @@ spawning objects on a plane of the task root.
 
 Why these exist: RLBench carries objects by a kinematic attach and checks
 success with proximity-sensor volumes; here a graspable is a free body (held
-by a weld on close, see episode.py) and a volume is an invisible box site read
+by a weld on close, see runtime/key_action.py) and a volume is an invisible box site read
 by `conditions.Detected`.  MuJoCo free joints must hang off the world body, so
 a task creates its free bodies at the origin and its sampler places them in
 world coordinates by composing the task root's pose with a local one.
