@@ -57,8 +57,8 @@ every step), with that step's joint velocities, gripper and object poses.  A den
 also holds ``keyframes.json``, the indices of its keyframes (``read_episode``'s
 "keyframes"; RLBench's readers ignore the file).  Cost: ~190 frames per seen-task demo
 instead of ~8.7 (22x the images and bytes, ~10x the time; docs/performance.md).  PerAct's
-heuristic on dense episodes (18 seen tasks x 1 demo, eval/reports/export_cpu_2core;
-tests/test_export.py::test_dense_frames for open_drawer):
+heuristic on dense episodes (18 seen tasks x 1 demo; tests/test_export.py::test_dense_frames
+for open_drawer):
 116 of 122 key actions get a keypoint among their own frames, with the keyframe's gripper
 state and within 3.3 mm and 0.4 deg of its gripper pose: the heuristic marks the first
 frame of the rest that ends a move (all joints < 0.1 rad/s), then every 5th frame of it, so
