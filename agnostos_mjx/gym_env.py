@@ -55,7 +55,7 @@ each world's frame of ``render_camera`` (uint8 H x W x 3; lerobot-eval's videos)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -88,6 +88,7 @@ ROTATION_BOUNDS = {"quat": 1.0, "euler": np.pi, "axis_angle": np.pi, "rot6d": 1.
 # Reset options: explicit scenes, and the flag lerobot-eval's rollout passes to mark a new
 # rollout (for its FreezeAfterEpisodeEnd wrapper; ignored here).
 KNOWN_OPTIONS = {"episode_keys", "variations", "lerobot_new_rollout"}
+STATE_KEY = "observation.state"  # the export's (and LeRobot's) state feature
 
 
 @dataclass(frozen=True)
@@ -158,10 +159,60 @@ def lerobot_features(opts: EnvOptions) -> dict[str, tuple[str, tuple[int, ...], 
     key LeRobot maps it to): the plug-in's ``features`` and ``features_map``, so the
     policy sees the export's keys."""
     out = {"action": ("ACTION", (opts.action_dim,), "action"),
-           "agent_pos": ("STATE", (opts.state_dim,), "observation.state")}
+           "agent_pos": ("STATE", (opts.state_dim,), STATE_KEY)}
     for cam in opts.cameras:
         out[f"pixels/{cam}"] = ("VISUAL", (opts.size, opts.size, 3), IMAGE_PREFIX + cam)
     return out
+
+
+def options_for_policy(features: Mapping[str, Sequence[int]] | None,
+                       **options: Any) -> EnvOptions:
+    """EnvOptions that give a LeRobot policy the inputs it was trained on.
+
+    `features`: the policy's feature shapes, inputs and ``action`` (LeRobot's
+    ``input_features`` and ``output_features``), or None for no policy.  ``cameras`` and
+    ``size`` left out (or None) come from its ``observation.images.<camera>`` inputs, shape
+    (3, N, N); given ones, and ``state`` / ``rotation``, are checked against its
+    ``observation.state`` and ``action`` sizes.  A policy fed other inputs than it was
+    trained on still runs and scores 0% without a word, so any feature the env cannot give
+    is a ValueError, in one line, that names it."""
+    images: dict[str, int] = {}
+    problems: list[str] = []
+    for key, shape in (features or {}).items():
+        shape = tuple(int(s) for s in shape)
+        camera = key.removeprefix(IMAGE_PREFIX)
+        if key in (STATE_KEY, "action"):
+            continue
+        if camera == key:
+            problems.append(f"{key} {shape} (the env gives {IMAGE_PREFIX}<camera> and "
+                            f"{STATE_KEY})")
+        elif camera not in CAMERAS:
+            problems.append(f"{key} (no such camera; ours: {', '.join(CAMERAS)})")
+        elif len(shape) != 3 or shape[0] != 3 or shape[1] != shape[2]:
+            problems.append(f"{key} {shape} (the env renders RGB squares, (3, N, N))")
+        else:
+            images[camera] = shape[1]
+    given = [k for k in ("cameras", "size") if options.get(k) is not None]
+    if "cameras" not in given and images:
+        options["cameras"] = tuple(images)
+    if "size" not in given and images:
+        options["size"] = max(images.values())  # unequal sizes are reported below
+    opts = EnvOptions(**{k: v for k, v in options.items()
+                         if v is not None or k not in ("cameras", "size")})
+    problems += [f"{IMAGE_PREFIX}{cam} (3, {n}, {n})" for cam, n in images.items()
+                 if cam not in opts.cameras or n != opts.size]
+    wants = {STATE_KEY: (opts.state_dim,), "action": (opts.action_dim,)}
+    for key, shape in wants.items():
+        if key in (features or {}) and tuple(features[key]) != shape:
+            problems.append(f"{key} {tuple(features[key])}")
+    if problems:
+        hint = f"; leave {' and '.join(given)} unset to take the policy's" if given else ""
+        raise ValueError(
+            f"the policy wants what this env does not give: {'; '.join(problems)} (the env "
+            f"gives cameras {','.join(opts.cameras)} at {opts.size} px, {STATE_KEY} "
+            f"({opts.state_dim},) for state {opts.state}, action ({opts.action_dim},) for "
+            f"rotation {opts.rotation}){hint}")
+    return opts
 
 
 def resolve_tasks(spec: str) -> dict[str, list[str]]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import re
 import sys
 import tomllib
 from pathlib import Path
@@ -25,6 +26,7 @@ from agnostos_mjx.gym_env import (  # noqa: E402
     EnvOptions,
     lerobot_features,
     make_suites,
+    options_for_policy,
     resolve_tasks,
 )
 from agnostos_mjx.runtime.outcome import Outcome  # noqa: E402
@@ -234,6 +236,158 @@ def test_suites_features_and_plugin_package() -> None:
             sys.path.remove(str(PLUGIN))
         assert lerobot_env_agnostos.AgnostosVectorEnv is AgnostosVectorEnv
         assert not hasattr(lerobot_env_agnostos, "AgnostosEnvConfig")
+
+
+# A policy trained on the export's front + wrist cameras at 64 px (LeRobot's feature shapes).
+ACT_64 = {"observation.images.front": (3, 64, 64), "observation.images.wrist": (3, 64, 64),
+          "observation.state": (8,), "action": (8,)}
+
+
+def test_options_take_the_policys_cameras_and_size() -> None:
+    """Cameras and size left unset come from the policy's image inputs, so the env gives
+    exactly the keys and shapes it was trained on; without a policy, the export's
+    defaults; given options that cover the policy's inputs stand."""
+    opts = options_for_policy(ACT_64)
+    assert (opts.cameras, opts.size) == (("front", "wrist"), 64)
+    given = {policy: (shape[2], *shape[:2]) if len(shape) == 3 else shape
+             for _, shape, policy in lerobot_features(opts).values()}
+    assert given == ACT_64  # HWC images as preprocess_observation turns them into CHW
+    opts = options_for_policy(None)
+    assert (len(opts.cameras), opts.size) == (5, 224)
+    opts = options_for_policy(ACT_64, cameras="wrist,front,overhead", size=64)
+    assert (opts.cameras, opts.size) == (("wrist", "front", "overhead"), 64)
+    euler = {"observation.images.wrist": (3, 32, 32), "observation.state": (7,),
+             "action": (7,)}
+    opts = options_for_policy(euler, state="xicm", rotation="euler", cameras=None, size=None)
+    assert (opts.cameras, opts.size, opts.state_dim, opts.action_dim) == (("wrist",), 32, 7, 7)
+
+
+@pytest.mark.parametrize("policy,options,named", [
+    (ACT_64, dict(size=224), [r"observation.images.front \(3, 64, 64\)",
+                              r"observation.images.wrist \(3, 64, 64\)", "leave size unset"]),
+    (ACT_64, dict(cameras="front"), [r"observation.images.wrist \(3, 64, 64\)",
+                                     "leave cameras unset"]),
+    (ACT_64, dict(rotation="euler"), [r"action \(8,\)", "rotation euler"]),
+    (ACT_64, dict(state="xicm"), [r"observation.state \(8,\)", "state xicm"]),
+    ({**ACT_64, "observation.images.top": (3, 64, 64)}, {}, ["observation.images.top",
+                                                             "no such camera"]),
+    ({**ACT_64, "observation.environment_state": (4,)}, {},
+     [r"observation.environment_state \(4,\)"]),
+    ({"observation.images.front": (3, 64, 48)}, {}, [r"\(3, 64, 48\)", "RGB squares"]),
+    ({"observation.images.front": (3, 64, 64), "observation.images.wrist": (3, 32, 32)}, {},
+     [r"observation.images.wrist \(3, 32, 32\)"]),
+])
+def test_a_policy_the_env_cannot_feed_is_a_one_line_error(policy, options, named) -> None:
+    """Never a silent 0%: each input the env cannot give is named, in one line."""
+    with pytest.raises(ValueError, match="the policy wants what this env does not give") as e:
+        options_for_policy(policy, **options)
+    message = str(e.value)
+    assert "\n" not in message
+    for pattern in named:
+        assert re.search(pattern, message), (pattern, message)
+
+
+# Just what lerobot_env_agnostos.configuration_agnostos imports from lerobot, so the
+# plug-in's config runs here without lerobot or torch; policy configs as config.json.
+FAKE_LEROBOT = {
+    "lerobot/__init__.py": "",
+    "lerobot/envs/__init__.py": "",
+    "lerobot/configs/__init__.py": """
+import enum
+from dataclasses import dataclass
+
+FeatureType = enum.Enum("FeatureType", "STATE VISUAL ENV ACTION")
+
+@dataclass
+class PolicyFeature:
+    type: FeatureType
+    shape: tuple
+""",
+    "lerobot/configs/parser.py": """
+import sys
+
+def get_path_arg(field):
+    opt = f"--{field}.path="
+    return next((a[len(opt):] for a in sys.argv[1:] if a.startswith(opt)), None)
+
+def get_cli_overrides(field):
+    return []
+""",
+    "lerobot/configs/policies.py": """
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+class PreTrainedConfig:
+    @classmethod
+    def from_pretrained(cls, path, cli_overrides=()):
+        cfg = json.loads((Path(path) / "config.json").read_text())
+        feats = lambda d: {k: SimpleNamespace(shape=v["shape"]) for k, v in d.items()}
+        return SimpleNamespace(input_features=feats(cfg["input_features"]),
+                               output_features=feats(cfg["output_features"]))
+""",
+    "lerobot/envs/configs.py": """
+from dataclasses import dataclass, field
+
+@dataclass
+class EnvConfig:
+    task: str | None = None
+    fps: int = 30
+    features: dict = field(default_factory=dict)
+    features_map: dict = field(default_factory=dict)
+
+    @classmethod
+    def register_subclass(cls, name):
+        return lambda sub: sub
+""",
+}
+CONFIG_RUN = """
+import json, sys
+from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
+try:
+    cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
+except ValueError as e:
+    print(json.dumps({"error": str(e)}))
+else:
+    print(json.dumps({"cameras": cfg.cameras, "size": cfg.size,
+                      "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
+"""
+
+
+def test_plugin_config_takes_the_policy_of_the_command_line(tmp_path) -> None:
+    """The plug-in's EnvConfig reads the policy that ``--policy.path`` names, as
+    lerobot-eval does, and builds its cameras, size and features from it, or stops with
+    the one-line error (lerobot's side faked: FAKE_LEROBOT)."""
+    import json
+    import os
+    import subprocess
+
+    for name, text in FAKE_LEROBOT.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    policy = tmp_path / "pretrained_model"
+    policy.mkdir()
+    shapes = lambda keys: {k: {"shape": list(ACT_64[k])} for k in keys}  # noqa: E731
+    (policy / "config.json").write_text(json.dumps({
+        "input_features": shapes([k for k in ACT_64 if k != "action"]),
+        "output_features": shapes(["action"])}))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(PLUGIN)])}
+
+    def config(options: dict, *argv: str) -> dict:
+        run = subprocess.run([sys.executable, "-c", CONFIG_RUN, json.dumps(options), *argv],
+                             capture_output=True, text=True, env=env, timeout=300)
+        assert run.returncode == 0, run.stderr[-3000:]
+        return json.loads(run.stdout.splitlines()[-1])
+
+    eval_argv = ("--env.type=agnostos", f"--policy.path={policy}", "--policy.device=cpu")
+    got = config({}, *eval_argv)
+    assert (got["cameras"], got["size"]) == ("front,wrist", 64)
+    assert got["features"] == {"action": [8], "agent_pos": [8], "pixels/front": [64, 64, 3],
+                               "pixels/wrist": [64, 64, 3]}
+    got = config({"size": 224}, *eval_argv)
+    assert "observation.images.front (3, 64, 64)" in got["error"]
+    got = config({})  # no policy on the command line: the export's defaults
+    assert (got["cameras"].count(","), got["size"]) == (4, 224)
 
 
 @pytest.mark.parametrize("call,match", [

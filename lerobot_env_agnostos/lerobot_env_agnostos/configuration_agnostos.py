@@ -1,18 +1,39 @@
 """LeRobot's ``EnvConfig`` of type ``agnostos`` (``--env.type=agnostos``): its fields are
 agnostos_mjx.gym_env.EnvOptions' (the LeRobot export's layout flags and how episodes run),
 ``features`` / ``features_map`` name the export's keys, and ``create_envs`` returns
-``{suite: {task_id: AgnostosVectorEnv}}``.  Checked against lerobot 0.6.1's
-src/lerobot/envs/configs.py (EnvConfig, create_envs) and scripts/lerobot_eval.py (rollout)."""
+``{suite: {task_id: AgnostosVectorEnv}}``.
+
+The cameras and image size default to the policy's: lerobot-eval builds this config
+before it loads the policy, and builds the envs from it before the policy sees an
+observation, so the config reads the policy's features itself, from ``--policy.path`` as
+lerobot-eval does (``EvalPipelineConfig.__post_init__``), and stops on any input the env
+cannot give.  Checked against lerobot 0.6.1's src/lerobot/envs/configs.py (EnvConfig,
+create_envs), configs/eval.py, envs/utils.py (preprocess_observation) and
+scripts/lerobot_eval.py (eval_main, rollout)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.configs import FeatureType, PolicyFeature, parser
 from lerobot.envs.configs import EnvConfig
 
-from agnostos_mjx.gym_env import EnvOptions, lerobot_features, make_suites, resolve_tasks
-from agnostos_mjx.observation import CAMERAS
+from agnostos_mjx.gym_env import lerobot_features, make_suites, options_for_policy, resolve_tasks
+
+
+def policy_features() -> dict[str, tuple[int, ...]] | None:
+    """Shapes of the input and output features of the policy named by ``--policy.path``
+    (lerobot-eval's, or lerobot-train's to fine-tune), read as lerobot-eval reads it; None
+    when the command names none."""
+    path = parser.get_path_arg("policy")
+    if not path:
+        return None
+    from lerobot.configs.policies import PreTrainedConfig
+
+    cfg = PreTrainedConfig.from_pretrained(path, cli_overrides=parser.get_cli_overrides("policy")
+                                           or [])
+    return {key: tuple(ft.shape) for key, ft in {**cfg.input_features,
+                                                **cfg.output_features}.items()}
 
 
 @EnvConfig.register_subclass("agnostos")
@@ -20,12 +41,14 @@ from agnostos_mjx.observation import CAMERAS
 class AgnostosEnvConfig(EnvConfig):
     """``task``: a task, a suite (seen, level1, level2, unseen) or a comma-separated mix.
     ``cameras`` (comma-separated), ``size``, ``state``, ``rotation``: the export's flags of
-    the training data.  The rest: agnostos_mjx.gym_env's module docstring."""
+    the training data; ``cameras`` and ``size`` default to the policy's image inputs (all
+    five cameras at 224 px without a policy).  The rest: agnostos_mjx.gym_env's module
+    docstring."""
 
     task: str | None = "unseen"
     fps: int = 10  # the export's nominal keyframe rate
-    cameras: str = ",".join(CAMERAS)
-    size: int = 224
+    cameras: str | None = None
+    size: int | None = None
     state: str = "rlbench"
     rotation: str = "quat"
     control_mode: str = "keyaction"
@@ -41,7 +64,9 @@ class AgnostosEnvConfig(EnvConfig):
     features_map: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        opts = EnvOptions(**self.gym_kwargs)  # a ValueError names a bad option
+        # a ValueError names a bad option, or the policy's inputs this env cannot give
+        opts = options_for_policy(policy_features(), **self.gym_kwargs)
+        self.cameras, self.size = ",".join(opts.cameras), opts.size
         resolve_tasks(self.task or "")
         for key, (kind, shape, policy_key) in lerobot_features(opts).items():
             self.features[key] = PolicyFeature(type=FeatureType[kind], shape=shape)
