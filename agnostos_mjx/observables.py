@@ -1,7 +1,7 @@
 """Named views into MuJoCo sensor data: everything task logic and policies read.
 
 Every backend returns the same `sensordata` array per physics step; a static
-`Layout` maps names ("tip_pos", "drawer_bottom_joint.q", "button0.pos", ...) to
+`Layout` maps names ("tip.pos", "drawer_bottom_joint.q", "button0.pos", ...) to
 slices of it, so conditions and policies never touch backend internals.
 """
 
@@ -37,9 +37,9 @@ class Layout:
 
 @jax.tree_util.register_pytree_node_class
 class Observation:
-    """Sensor data (any leading batch/time shape) plus per-world extras.
+    """Sensor data (any leading batch/time shape) plus per-world `attached`:
 
-    `extras` holds observables that do not come from sensors: which graspable
+    observables that do not come from sensors: which graspable
     objects are attached to the gripper (the RLBench kinematic grasp).
     """
 

@@ -25,7 +25,7 @@ Compared with the shared `tools/import_cycles.py` (the project's ad-hoc tool): w
 `import_graph(..., type_checking=True)` both find the same cycles on today's tree (this
 graph has a few more edges, from packages to their own submodules, which the tool skips;
 none closes a cycle).  The rule here leaves TYPE_CHECKING imports out, so a cycle the
-tool lists only through such an import (observation -> episode is one) is not reported.
+tool lists only through such an import is not reported.
 """
 
 from __future__ import annotations

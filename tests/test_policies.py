@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-# tasks before episode: importing episode first trips a world <-> tasks import cycle
 from agnostos_mjx.tasks import get_task
 
 # isort: split

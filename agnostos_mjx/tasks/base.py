@@ -49,8 +49,9 @@ class Placement:
 @jax.tree_util.register_dataclass
 @dataclass
 class KeyActions:
-    """A padded list of key actions for one world: tip position (K, 3),
-    quaternion (K, 4, wxyz), gripper open amount (K,) in [0, 1], validity (K,)."""
+    """Key actions with a leading axis: one per world of a batch (B, ...) when a policy
+    acts, or a padded list for one world (K, ...) when an expert plans.  Tip position
+    (., 3), quaternion (., 4, wxyz), gripper open amount (.,) in [0, 1], validity (.,)."""
 
     pos: jnp.ndarray
     quat: jnp.ndarray
