@@ -104,6 +104,24 @@ def test_packed_features_keep_similarities_and_rankings():
     assert overlap > 0.95
 
 
+def test_a_bank_normalised_once_gives_the_same_similarities_bit_for_bit():
+    """The selector normalises the memory once per run; the similarities must be exactly
+    those of normalising both sides on every call (records stay identical)."""
+    from agnostos_mjx.dynamics.features import normalised, normalised_similarity, similarity
+
+    rng = np.random.default_rng(1)
+    bank = {p: rng.normal(size=(200, 32)).astype(np.float32) for p in ("lang", "vis.out")}
+    query = {p: rng.normal(size=(7, 32)).astype(np.float32) for p in ("lang", "vis.out")}
+    for metric in ("cosine", "dot"):
+        prepared = normalised(bank, "lang+vis.out", metric)
+        once = normalised_similarity(normalised(query, "lang+vis.out", metric), prepared, metric)
+        assert np.array_equal(once, similarity(query, bank, "lang+vis.out", metric))
+    with pytest.raises(ValueError, match="unknown metric"):
+        normalised(bank, "lang", "euclid")
+    with pytest.raises(ValueError, match="no similarity"):
+        normalised(bank, "random")
+
+
 def test_shipped_model_selects_demos_of_the_querys_task(memory, bank_dir):
     """The shipped export and memory, end to end on CPU: a push_buttons first frame and
     instruction (from the tiny test bank, other seeds) retrieves push_buttons demos."""

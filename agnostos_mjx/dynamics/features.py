@@ -57,6 +57,33 @@ def parse_mode(mode: str) -> tuple[str, ...]:
     return parts
 
 
+def normalised(features: dict[str, np.ndarray], mode: str, metric: str = "cosine"
+               ) -> dict[str, np.ndarray]:
+    """The rows `similarity` compares: per part of `mode`, float64 and, for cosine,
+    L2-normalised.  A fixed bank (the seen-demo memory) is prepared once per run."""
+    parts = parse_mode(mode)
+    if not parts:
+        raise ValueError("'random' has no similarity")
+    if metric not in ("cosine", "dot"):
+        raise ValueError(f"unknown metric {metric!r} (cosine or dot)")
+    out = {}
+    for p in parts:
+        x = np.atleast_2d(features[p]).astype(np.float64)
+        if metric == "cosine":
+            x = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+        out[p] = x
+    return out
+
+
+def normalised_similarity(query: dict[str, np.ndarray], bank: dict[str, np.ndarray],
+                          metric: str = "cosine") -> np.ndarray:
+    """`similarity` of rows that `normalised` prepared (the parts are the dicts' keys)."""
+    total = 0.0
+    for p in query:
+        total = total + query[p] @ bank[p].T
+    return total / len(query) if metric == "cosine" else total
+
+
 def similarity(
     query: dict[str, np.ndarray], bank: dict[str, np.ndarray], mode: str, metric: str = "cosine"
 ) -> np.ndarray:
@@ -65,19 +92,8 @@ def similarity(
     cosine: mean over parts of the cosine similarity (= dot product of the
     concatenated, per-part L2-normalised features, divided by the part count);
     dot: the original's unnormalised dot product of the concatenated features."""
-    parts = parse_mode(mode)
-    if not parts:
-        raise ValueError("'random' has no similarity")
-    total = 0.0
-    for p in parts:
-        q, b = np.atleast_2d(query[p]).astype(np.float64), np.atleast_2d(bank[p]).astype(np.float64)
-        if metric == "cosine":
-            q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
-            b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
-        elif metric != "dot":
-            raise ValueError(f"unknown metric {metric!r} (cosine or dot)")
-        total = total + q @ b.T
-    return total / len(parts) if metric == "cosine" else total
+    return normalised_similarity(normalised(query, mode, metric),
+                                 normalised(bank, mode, metric), metric)
 
 
 def select(

@@ -57,7 +57,10 @@ class DynamicsSelector:
         if missing:
             raise ValueError(f"the memory lacks feature(s) {missing}; rebuild it with "
                              "python -m agnostos_mjx.xicm.build_memory --checkpoint ...")
+        from agnostos_mjx.dynamics.features import normalised
+
         self.memory, self.mode, self.metric = memory, mode, metric
+        self._bank = normalised(memory.features, mode, metric)  # once, not per round
         self._lang_cache: dict[str, np.ndarray] = {}
         self.name = mode
         if sample_steps < 1:
@@ -73,7 +76,7 @@ class DynamicsSelector:
                      "is the fast model-free mode", 0.07 * sample_steps, sample_steps)
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
-        from agnostos_mjx.dynamics.features import extract, similarity
+        from agnostos_mjx.dynamics.features import extract, normalised, normalised_similarity
 
         if any(q.frame is None for q in queries):
             raise ValueError("dynamics selection needs each query's front frame")
@@ -83,7 +86,8 @@ class DynamicsSelector:
         feats = extract(self.pipeline, frames, instructions, visual) if visual else {}
         if "lang" in self.parts:
             feats["lang"] = self.lang_features(instructions)
-        sims = similarity(feats, self.memory.features, self.mode, self.metric)
+        sims = normalised_similarity(normalised(feats, self.mode, self.metric), self._bank,
+                                     self.metric)
         return [top_k(s, k) for s in sims]
 
     def lang_features(self, instructions: list[str]) -> np.ndarray:
