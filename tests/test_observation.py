@@ -316,3 +316,13 @@ def test_object_text_report_counts(tmp_path) -> None:
     assert row["indices"] == 3 * (row["objects"] - row["omitted_objects"]) > 0
     assert "| **all** |" in (tmp_path / "object_text.md").read_text()
     assert rep.main(["--tasks", "no_such_task"]) == 2
+
+
+def test_frames_of_a_subset_of_worlds_equal_those_of_the_whole_batch(scene) -> None:
+    """Planning policies render only the worlds they replan: the same pixels."""
+    runner, env, _ = scene
+    whole = runner.render(env, "front", SIZE, SIZE)
+    assert whole.shape == (2, SIZE, SIZE, 3)
+    for worlds in ([1], [0, 1], [1, 0]):
+        part = runner.render(env, "front", SIZE, SIZE, worlds=np.array(worlds))
+        assert np.array_equal(part, whole[worlds])

@@ -56,10 +56,10 @@ def queries_for(policy: PlanningPolicy, episodes: Episodes, env: EnvState, world
     """Selection queries of the worlds being (re)planned: instruction, a seed
     per (episode, replan) and, for dynamics features, the current front frame."""
     frames = None
-    if needs_frames(selection):
-        frames = episodes.render(env, "front", 128, 128)
+    if needs_frames(selection):  # only the worlds being replanned
+        frames = episodes.render(env, "front", 128, 128, worlds=worlds)
     return [Query(policy.instructions[w], policy.plan_seed(w),
-                  None if frames is None else frames[w]) for w in worlds]
+                  None if frames is None else frames[i]) for i, w in enumerate(worlds)]
 
 
 class XICMPolicy(PlanningPolicy):

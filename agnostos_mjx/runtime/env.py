@@ -349,10 +349,10 @@ class Episodes:
 
     # ---- observation ------------------------------------------------------------------
     def render(self, state: EnvState, camera: str = "front", width: int = 128,
-               height: int = 128) -> np.ndarray:
-        """RGB frames (B, H, W, 3) of one camera for every world, with each world's
-        colours (CPU renderer)."""
-        return self.observer.render(state, camera, width, height)
+               height: int = 128, worlds: np.ndarray | None = None) -> np.ndarray:
+        """RGB frames (B, H, W, 3) of one camera for every world (or the `worlds` given),
+        with each world's colours (CPU renderer)."""
+        return self.observer.render(state, camera, width, height, worlds)
 
     def gripper_open(self, state: EnvState) -> np.ndarray:
         """RLBench's gripper_open flag from the finger opening."""

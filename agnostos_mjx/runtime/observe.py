@@ -140,9 +140,10 @@ class Observer:
             labels=scene_labels(self.scene))
 
     def render(self, state: EnvState, camera: str = "front", width: int = 128,
-               height: int = 128) -> np.ndarray:
-        """RGB frames (B, H, W, 3) of one camera for every world, with each world's colours
-        (the CPU renderer, multisampled as RLBench's images)."""
+               height: int = 128, worlds: np.ndarray | None = None) -> np.ndarray:
+        """RGB frames (B, H, W, 3) of one camera for every world, or (len(worlds), ...) for
+        the `worlds` given, with each world's colours (the CPU renderer, multisampled as
+        RLBench's images).  Each world renders alone, so a subset's frames are the same."""
         from agnostos_mjx.render import CpuRenderer
 
         key = ("frames", width, height)
@@ -151,8 +152,12 @@ class Observer:
                 self._renderers.pop(old).close()
             self._renderers[key] = CpuRenderer(self.scene.model, width, height)
         p = state.physics
-        return self._renderers[key].render(np.asarray(p.qpos), np.asarray(p.mocap_pos),
-                                           np.asarray(p.mocap_quat), camera, state.geom_rgba)
+        pick = (lambda x: x) if worlds is None else (lambda x: x[np.asarray(worlds)])
+        rgba = state.geom_rgba
+        if rgba is not None and np.ndim(rgba) == 3:
+            rgba = pick(np.asarray(rgba))
+        return self._renderers[key].render(pick(np.asarray(p.qpos)), pick(np.asarray(p.mocap_pos)),
+                                           pick(np.asarray(p.mocap_quat)), camera, rgba)
 
     def close(self) -> None:
         """Free every renderer made so far (GL contexts, Warp buffers)."""
