@@ -344,13 +344,9 @@ class EnvConfig:
 CONFIG_RUN = """
 import json, sys
 from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
-try:
-    cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
-except ValueError as e:
-    print(json.dumps({"error": str(e)}))
-else:
-    print(json.dumps({"cameras": cfg.cameras, "size": cfg.size,
-                      "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
+cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
+print(json.dumps({"cameras": cfg.cameras, "size": cfg.size,
+                  "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
 """
 
 
@@ -373,20 +369,26 @@ def test_plugin_config_takes_the_policy_of_the_command_line(tmp_path) -> None:
         "output_features": shapes(["action"])}))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(PLUGIN)])}
 
-    def config(options: dict, *argv: str) -> dict:
-        run = subprocess.run([sys.executable, "-c", CONFIG_RUN, json.dumps(options), *argv],
-                             capture_output=True, text=True, env=env, timeout=300)
-        assert run.returncode == 0, run.stderr[-3000:]
-        return json.loads(run.stdout.splitlines()[-1])
+    def config(options: dict, *argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", CONFIG_RUN, json.dumps(options), *argv],
+                              capture_output=True, text=True, env=env, timeout=300)
 
     eval_argv = ("--env.type=agnostos", f"--policy.path={policy}", "--policy.device=cpu")
-    got = config({}, *eval_argv)
+    run = config({}, *eval_argv)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = json.loads(run.stdout)
     assert (got["cameras"], got["size"]) == ("front,wrist", 64)
     assert got["features"] == {"action": [8], "agent_pos": [8], "pixels/front": [64, 64, 3],
                                "pixels/wrist": [64, 64, 3]}
-    got = config({"size": 224}, *eval_argv)
-    assert "observation.images.front (3, 64, 64)" in got["error"]
-    got = config({})  # no policy on the command line: the export's defaults
+    # the policy's inputs not given: the command stops with one line that names them
+    run = config({"size": 224}, *eval_argv)
+    assert run.returncode == 1 and run.stdout == ""
+    assert run.stderr.startswith("--env.type=agnostos: the policy wants what this env does "
+                                 "not give: observation.images.front (3, 64, 64); ")
+    assert run.stderr.count("\n") == 1 and "leave size unset" in run.stderr
+    run = config({})  # no policy on the command line: the export's defaults
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = json.loads(run.stdout)
     assert (got["cameras"].count(","), got["size"]) == (4, 224)
 
 

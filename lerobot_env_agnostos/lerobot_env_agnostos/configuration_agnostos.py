@@ -64,8 +64,15 @@ class AgnostosEnvConfig(EnvConfig):
     features_map: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        # a ValueError names a bad option, or the policy's inputs this env cannot give
-        opts = options_for_policy(policy_features(), **self.gym_kwargs)
+        policy = policy_features()
+        try:  # a ValueError names a bad option, or the policy's inputs this env cannot give
+            opts = options_for_policy(policy, **self.gym_kwargs)
+        except ValueError as e:
+            if policy is None:
+                raise
+            # the policy came from the command line: stop it with one line, not a traceback
+            # of the config parser's
+            raise SystemExit(f"--env.type=agnostos: {e}") from None
         self.cameras, self.size = ",".join(opts.cameras), opts.size
         resolve_tasks(self.task or "")
         for key, (kind, shape, policy_key) in lerobot_features(opts).items():
