@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from agnostos_mjx.settings import configure_jax
+
 log = logging.getLogger("agnostos_mjx.bench")
 
 
@@ -174,6 +176,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     args = build_parser().parse_args(argv)
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s",

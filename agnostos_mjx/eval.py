@@ -1,6 +1,6 @@
 """Evaluate a policy on AGNOSTOS tasks: ``python -m agnostos_mjx.eval``.
 
-The protocol follows X-ICM's evaluation (see the spec, sections 6 and 9):
+The protocol follows X-ICM's evaluation (docs/protocol.md):
 per task and seed a success rate over `--episodes` episodes; per task the
 mean and population std (ddof=0) over seeds; Level-1 / Level-2 / All the
 mean over that group's tasks per seed, then mean and population std over
@@ -28,7 +28,8 @@ This module is the command line; the evaluator is the package agnostos_mjx.evalu
 
 Examples::
 
-    python -m agnostos_mjx.eval                                   # oracle, unseen tasks
+    python -m agnostos_mjx.eval                  # the main job: auto policy (X-ICM with an LLM, else retrieval)
+    python -m agnostos_mjx.eval --policy oracle --tasks all       # the experts on all 41 tasks
     python -m agnostos_mjx.eval --tasks lamp_on --seeds 0 --episodes 4
     python -m agnostos_mjx.eval --policy my_pkg.agent:MyPolicy --policy-arg model=\"qwen\"
     python -m agnostos_mjx.eval --out results/run1 --resume      # finish an interrupted run
@@ -39,12 +40,11 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx import warmup
+from agnostos_mjx import settings, warmup
 from agnostos_mjx.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
 from agnostos_mjx.evaluation import processes
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
@@ -64,6 +64,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     errors, 3 when most requests to a server failed or most episodes ended as policy_error,
     130 when interrupted).  `guard` (the
     command line's) bounds Ctrl-C's delay."""
+    settings.configure_jax()
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse_config(argv)
     if cfg.merge:
@@ -125,9 +126,8 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
     --coordinator (before anything touches a device)."""
     from agnostos_mjx.gpu import apply_memory_limit
 
-    served = cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL")
-    servers = {"remote": served, "openvla": served,
-               "xicm": cfg.llm_url or os.environ.get("AGNOSTOS_LLM_URL")}
+    served = cfg.policy_url or settings.POLICY_URL.get()
+    servers = {"remote": served, "openvla": served, "xicm": cfg.llm_url or settings.LLM_URL.get()}
     try:
         apply_memory_limit(cfg.gpu_mem_fraction, [servers.get(spec)])
     except ValueError as e:
@@ -138,13 +138,19 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
         jax.distributed.initialize(cfg.coordinator, cfg.num_processes, cfg.process_id)
 
 
-if __name__ == "__main__":
-    with InterruptGuard() as _guard:
+def cli() -> int:
+    """The command (``python -m agnostos_mjx.eval``, ``agnostos-eval``): `main` under a
+    Ctrl-C guard; an interrupted run exits at once with 130."""
+    with InterruptGuard() as guard:
         try:
-            _code = main(guard=_guard)
+            code = main(guard=guard)
         except KeyboardInterrupt:  # outside the run (printing the table, say)
-            _guard.announce()
-            _code = 130
-    if _code == 130:
-        hard_exit(_code)  # threads in native code must not delay the exit
-    sys.exit(_code)
+            guard.announce()
+            code = 130
+    if code == 130:
+        hard_exit(code)  # threads in native code must not delay the exit
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -21,6 +21,7 @@ from pathlib import Path
 from agnostos_mjx.evaluation.config import parse_config
 from agnostos_mjx.evaluation.records import load_records
 from agnostos_mjx.evaluation.run import evaluate
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.tasks import parse_tasks
 
 DEFAULT_OUT = Path("eval/reports/oracle_per_variation_cpu_2core")
@@ -76,6 +77,7 @@ def run_variation(task: str, variation: int, run_dir: Path, seeds: str, episodes
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--tasks", default="all", help="task names and/or split names, as in eval")

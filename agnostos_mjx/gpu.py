@@ -19,8 +19,9 @@ import sys
 from collections.abc import Iterable, Mapping
 from urllib.parse import urlparse
 
+from agnostos_mjx.settings import GPU_MEM_FRACTION
+
 log = logging.getLogger(__name__)
-ENV_VAR = "AGNOSTOS_GPU_MEM_FRACTION"
 LOCAL_SERVER_FRACTION = 0.35
 LOCAL_HOSTS = frozenset({"localhost", "127.0.0.1", "::1", "0.0.0.0", "[::1]"})
 XLA_VARS = ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION")
@@ -41,8 +42,8 @@ def memory_env(fraction: float | None, urls: Iterable[str | None],
     """The XLA variables to set (empty: keep JAX's defaults or the user's own)."""
     if fraction is None and any(v in environ for v in XLA_VARS):
         return {}
-    if fraction is None and environ.get(ENV_VAR):
-        fraction = float(environ[ENV_VAR])
+    if fraction is None:
+        fraction = GPU_MEM_FRACTION.get_float(environ)
     if fraction is None and any(map(is_local, urls)):
         fraction = LOCAL_SERVER_FRACTION
     if fraction is None:

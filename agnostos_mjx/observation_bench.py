@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from agnostos_mjx.settings import configure_jax
+
 log = logging.getLogger("agnostos_mjx.observation_bench")
 PERACT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
 TASKS = ("lamp_on", "stack_blocks", "close_fridge")
@@ -174,6 +176,7 @@ def _gpu() -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     from agnostos_mjx.cli import setup_logging, versions
 
     a = build_parser().parse_args(argv)

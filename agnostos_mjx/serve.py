@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from agnostos_mjx.cli import HelpFormatter, setup_logging
+from agnostos_mjx.settings import configure_jax
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     args = build_parser().parse_args(argv)
     setup_logging(args.quiet)
     from agnostos_mjx.gpu import apply_memory_limit

@@ -6,7 +6,7 @@ On a fresh GPU machine the first MuJoCo Warp step of a scene builds Warp's CUDA 
 one module after another (~110 s for the first scene, ~15 s for each further size;
 mjx_notes.md), and every process of a `--local-processes` run would build the same kernels
 at once.  Warp keeps built kernels on disk and JAX keeps compiled programs in its
-persistent cache (agnostos_mjx.enable_compilation_cache), so this command does each build
+persistent cache (agnostos_mjx.settings.configure_jax), so this command does each build
 once, two things at the same time:
 - on warp, every kernel module of the tasks' scenes, found by a dry run and built by
   `--kernel-jobs` processes, each its share (physics/warp_build.py);
@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.evaluation.config import positive_int
+from agnostos_mjx.settings import cache_root, configure_jax
 
 if TYPE_CHECKING:
     from agnostos_mjx.runtime.env import Episodes
@@ -159,8 +160,7 @@ def kernels_marker(tasks: str, batch: int) -> Path:
 
     key = json.dumps([installed("warp-lang"), installed("mujoco-mjx"),
                       os.environ.get("WARP_CACHE_PATH", ""), tasks, batch])
-    root = Path(os.environ.get("AGNOSTOS_CACHE") or Path.home() / ".cache" / "agnostos_mjx")
-    return root / "warp_kernels" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+    return cache_root() / "warp_kernels" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
 
 
 def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False
@@ -273,6 +273,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure_jax()
     args = parse_args(argv)
     if args.worker and args.worker.startswith("kernels:"):
         part, parts = (int(x) for x in args.worker.removeprefix("kernels:").split("/"))

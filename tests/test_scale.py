@@ -113,7 +113,9 @@ np.testing.assert_allclose(out[4][2], out[1][2], rtol=0, atol=1e-3)
 
 def run_on_4_devices(code: str, timeout: float) -> None:
     """Run `code` in a child Python that sees 4 CPU devices; fail with its output."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4",
+    # With this process's XLA flags (conftest's configure_jax) as the package's commands set them.
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"
+    env = {**os.environ, "XLA_FLAGS": flags.strip(),
            "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)

@@ -119,6 +119,7 @@ from agnostos_mjx.data.rlbench_format import (
     is_complete,
 )
 from agnostos_mjx.data.rotations import ROTATIONS
+from agnostos_mjx.settings import configure_jax
 
 # The episode format's API, importable from here as before the split (README, reports):
 __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export",
@@ -338,6 +339,7 @@ def _run_task(cfg: ExportConfig, name: str, threads: int | None = None) -> dict:
 
 
 def _worker_init() -> None:
+    configure_jax()  # a spawned process sets up its JAX as the command did
     # Ctrl-C is the parent's to handle: it stops the workers itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
@@ -509,6 +511,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     from agnostos_mjx.cli import HelpFormatter, setup_logging
     from agnostos_mjx.tasks import parse_tasks
 

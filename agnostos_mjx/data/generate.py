@@ -71,6 +71,7 @@ from agnostos_mjx.data.bank import (
     write_shard,
 )
 from agnostos_mjx.keyframes import discover_keyframes, merge_repeated_keyframes
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.textualise import encode_action
 
 log = logging.getLogger("agnostos_mjx.data")
@@ -386,10 +387,7 @@ _WORKER_THREADS = [1]  # MuJoCo threads per worker, set by _worker_init
 def _worker_init(threads: int) -> None:
     # Native workers keep JAX on the CPU: sixteen processes must not each claim the GPU.
     # XLA reads its flags when the backend starts (after this), jax_platforms likewise.
-    from agnostos_mjx import lower_cpu_optimisation
-
-    if os.environ.get("AGNOSTOS_XLA_TUNE", "1") != "0":
-        lower_cpu_optimisation()
+    configure_jax(cpu=True)
     jax.config.update("jax_platforms", "cpu")
     setup_logging(quiet=True)  # warnings (e.g. given-up demos) still show
     _WORKER_THREADS[0] = threads
@@ -531,6 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     args = build_parser().parse_args(argv)
     setup_logging(args.quiet)
     from agnostos_mjx.tasks import parse_tasks

@@ -50,6 +50,7 @@ from agnostos_mjx.dynamics.features import extract
 from agnostos_mjx.dynamics.layers import GroupNorm, create
 from agnostos_mjx.dynamics.pipeline import Pipeline
 from agnostos_mjx.dynamics.text import tokenize
+from agnostos_mjx.settings import configure_jax
 
 TARGET_STEPS_PER_S = 20.0
 TARGET_QUERIES_PER_S = 75.0
@@ -237,6 +238,7 @@ def main_old_vs_new(a: argparse.Namespace, batches: list[int]) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     a = build_parser().parse_args(argv)
     batches = [int(x) for x in a.batches.split(",") if x.strip()]
     if a.old_vs_new:

@@ -11,11 +11,11 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
 from dataclasses import MISSING, Field, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from agnostos_mjx import settings
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
@@ -316,6 +316,6 @@ def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
                       concurrency=cfg.llm_concurrency, timeout_s=cfg.llm_timeout,
                       server_kind=cfg.llm_server_kind, num_demos=cfg.num_demos)
     if spec in ("remote", "openvla"):
-        kwargs["url"] = cfg.policy_url or os.environ.get("AGNOSTOS_POLICY_URL")
+        kwargs["url"] = cfg.policy_url or settings.POLICY_URL.get()
     kwargs.update(cfg.policy_args)
     return spec, kwargs, note

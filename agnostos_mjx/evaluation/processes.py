@@ -52,6 +52,7 @@ from agnostos_mjx.evaluation import task_queue
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import merge_main
+from agnostos_mjx.settings import GPU_MEM_FRACTION
 
 log = logging.getLogger("agnostos_mjx.eval")
 JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
@@ -178,7 +179,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         if owners:
             log.info("%d tasks stay with the processes that have episodes of them", len(owners))
         child += ["--task-queue", str(queue)]
-        if memory_fraction is None and not os.environ.get("AGNOSTOS_GPU_MEM_FRACTION"):
+        if memory_fraction is None and GPU_MEM_FRACTION.get() is None:
             child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
         for i in range(n):
             logs.append((out / f"proc-{i}.log").open("w"))

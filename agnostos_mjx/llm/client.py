@@ -29,6 +29,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from agnostos_mjx import settings
 from agnostos_mjx.llm import server as srv
 from agnostos_mjx.llm.cache import ResponseCache
 from agnostos_mjx.llm.http import (
@@ -86,14 +87,14 @@ class LLMConfig:
                  ) -> LLMConfig | None:
         """Flags first, then AGNOSTOS_LLM_URL / AGNOSTOS_LLM_MODEL; the key from
         AGNOSTOS_LLM_API_KEY or OPENAI_API_KEY.  None when no URL is configured."""
-        url = url or os.environ.get("AGNOSTOS_LLM_URL")
+        url = url or settings.LLM_URL.get()
         if not url:
             return None
-        model = model or os.environ.get("AGNOSTOS_LLM_MODEL")
+        model = model or settings.LLM_MODEL.get()
         if not model:
             raise LLMConfigError(f"an LLM URL is set ({url}) but no model: pass --llm-model "
                                  "or set AGNOSTOS_LLM_MODEL")
-        key = os.environ.get("AGNOSTOS_LLM_API_KEY") or os.environ.get("OPENAI_API_KEY")
+        key = settings.LLM_API_KEY.get() or os.environ.get("OPENAI_API_KEY")
         return cls(url=url.rstrip("/"), model=model, api_key=key, **kwargs)
 
 

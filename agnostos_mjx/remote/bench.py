@@ -19,6 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from agnostos_mjx.settings import configure_jax
+
 
 def run_batch(runner, policy, batch: int, seed: int) -> tuple[float, int, int, np.ndarray]:
     """(seconds, key actions, steps, outcomes) of one batch of `policy` on `runner`."""
@@ -56,6 +58,7 @@ def start_server() -> tuple[subprocess.Popen, str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.remote.bench")
     p.add_argument("--tasks", default="lamp_on,phone_on_base")
     p.add_argument("--batch", type=int, default=75)

@@ -34,7 +34,6 @@ import asyncio
 import collections
 import concurrent.futures
 import contextlib
-import os
 import ssl
 import threading
 import time
@@ -44,6 +43,7 @@ from urllib.parse import urlparse
 
 import numpy as np
 
+from agnostos_mjx import settings
 from agnostos_mjx.remote import json_wire
 from agnostos_mjx.remote.adapter import (
     BadAnswer,
@@ -484,5 +484,5 @@ class OpenVLAPolicy(RemotePolicy):
 
     def __init__(self, url: str | None = None, preset: str = "openvla", **options: Any
                  ) -> None:
-        super().__init__(url or os.environ.get("AGNOSTOS_POLICY_URL"), preset=preset,
+        super().__init__(url or settings.POLICY_URL.get(), preset=preset,
                          **options)

@@ -17,20 +17,18 @@ import numpy as np
 
 from agnostos_mjx.render.common import CameraImages, camera_names, clip_planes, unknown_camera
 from agnostos_mjx.render.cpu import CpuRenderer
+from agnostos_mjx.settings import RENDER_THREADS
 
-RENDER_THREADS_ENV = "AGNOSTOS_RENDER_THREADS"
+RENDER_THREADS_ENV = RENDER_THREADS.name
 MAX_RENDER_THREADS = 8
 
 
 def render_threads() -> int:
     """Threads for CPU rendering: ``AGNOSTOS_RENDER_THREADS`` if set (>= 1), else the usable
     cores (CPU affinity) capped at ``MAX_RENDER_THREADS``."""
-    env = os.environ.get(RENDER_THREADS_ENV, "").strip()
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            raise ValueError(f"{RENDER_THREADS_ENV} must be an integer, got {env!r}") from None
+    threads = RENDER_THREADS.get_int()
+    if threads is not None:
+        return max(1, threads)
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # no sched_getaffinity (macOS)

@@ -27,6 +27,7 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.pipeline import autoencoder_meta
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.train.common import (
     add_data_flags,
     load_data,
@@ -78,6 +79,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> None:
+    configure_jax()
     args = parser().parse_args(argv)
     chosen = preset(args)
     cfg = apply_flags(args, "ae", chosen.ae)

@@ -28,6 +28,7 @@ import numpy as np
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.features import DEFAULT_K, FeatureIndex, extract, similarity
 from agnostos_mjx.dynamics.pipeline import Pipeline
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.train.common import add_data_flags, load_data
 
 MODE = "lang+vis.out"
@@ -100,6 +101,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    configure_jax()
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.train.sampling_steps",
                                 description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)

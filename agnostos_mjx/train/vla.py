@@ -30,6 +30,7 @@ from flax import nnx
 
 from agnostos_mjx.dynamics.config import TrainConfig, add_flags, apply_flags
 from agnostos_mjx.dynamics.text import tokenize
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.textualise import quat_to_euler_bins
 from agnostos_mjx.train.common import run_parser, train
 from agnostos_mjx.vla.checkpoint import run_meta
@@ -227,6 +228,7 @@ def parser():
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure_jax()
     from agnostos_mjx.tasks import parse_tasks
     from agnostos_mjx.train.vla_data import DataConfig, generate
 

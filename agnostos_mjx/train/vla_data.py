@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from agnostos_mjx.settings import configure_jax
+
 DEFAULT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
 FORMAT = "agnostos-vla-keyframes-1"
 
@@ -201,6 +203,7 @@ def generate(cfg: DataConfig, workers: int = 1) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     from agnostos_mjx.tasks import parse_tasks
 
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.train.vla_data",

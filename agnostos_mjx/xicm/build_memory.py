@@ -19,10 +19,12 @@ from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter, setup_logging
 from agnostos_mjx.data.bank import BankError, DemoBank
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.xicm.memory import DemoMemory, MemoryFileError, default_memory_path
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    configure_jax()
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.xicm.build_memory",
                                 formatter_class=HelpFormatter,
                                 description="Build the seen-demo memory (texts, key actions, "
