@@ -9,21 +9,12 @@ import mujoco
 from agnostos_mjx.physics.base import Backend, PhysicsState
 
 BACKENDS = ("auto", "native", "jax", "warp")
-# `auto` picks MJX-warp only from this many worlds per batch, by measurement (H100 host, lamp_on,
-# oracle, one run per line; eval/reports/gpu_h100_session13): with warp's key action one device
-# program, warp's episodes/s against native MuJoCo on 16 threads are 0.54x at 75 worlds, 1.48x at
-# 256, 1.42x at 512, 2.25x at 1,024 and 6.87x at 4,096; but warp compiles ~10 s of programs per
-# task (native: none), so for a task's few batches native finishes first below ~4,096 worlds
-# (1,024 x 3 seeds: ~11.5 s native vs ~5 s + 10 s warp).  Native is also bit-reproducible,
-# which warp's atomics are not.  Since then warp's key action runs 1.5x-1.8x faster (graph mode
-# WARP, 16 steps per loop iteration) and the main job is fastest as 8 warp processes under MPS
-# (274 s vs native's 786 s single-process, eval/reports/gpu_h100_floor).  But on a 32-core host
-# with both as 8 processes, native finished the main job first: 103-109 s against warp's 140 s
-# with warm caches (eval/reports/gpu_h100_x2_session15), so `auto` keeps native at batch 75.
-# With MuJoCo Warp stepped directly, K steps per FFI call, on one 16-core H100: warp 128 s with
-# 8 processes, 118 s with 12-16, native 118 s with 8 (eval/reports/gpu_h100_session17): still no
-# faster, so still native.  On a one-GPU H200 host (eval/reports/gpu_session18): warp 133 s
-# warm, native 123 s: native again.
+# `auto` picks MJX-warp only from this many worlds per batch.  Warp's episodes/s grow with
+# the batch (on an H100: 0.54x native MuJoCo on 16 threads at 75 worlds, 2.25x at 1,024,
+# 6.87x at 4,096), but warp compiles ~10 s of programs per task and native none, so below
+# ~4,096 worlds native finishes a task's few batches first; the main job (75 worlds) is no
+# faster on warp either, as 8 processes on one H100 or H200 or on a 2 x H100 host
+# (docs/performance.md).  Native is also bit-reproducible, which warp's atomics are not.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 

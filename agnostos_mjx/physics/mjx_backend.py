@@ -18,7 +18,6 @@ import contextlib
 import functools
 import gc
 import logging
-import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -95,16 +94,9 @@ class MjxBackend:
         options = {}
         if impl == "warp":
             # The graph mode of MJX's own FFI calls (`mjx.step`, `mjx.kinematics`), which
-            # the device phases use only with AGNOSTOS_WARP_STEPS=mjx (see
-            # warp_steps_direct).  WARP was 1.5x-1.8x faster per key action than
-            # WARP_STAGED (eval/reports/gpu_h100_floor), but it gave wrong physics on an H100
-            # on 2026-11-26: put_knife_on_chopping_board run after put_rubbish_in_bin and
-            # lamp_on in one process succeeded in 72 of 75 episodes, twice, against 7 with
-            # native MuJoCo and with the direct call (eval/reports/gpu_h100_session17).
-            # AGNOSTOS_WARP_GRAPH_MODE overrides it.
+            # only scenes the direct K-step call does not support use (warp_steps_direct).
             from mujoco.mjx.warp import types as warp_types
 
-            graph_mode = os.environ.get("AGNOSTOS_WARP_GRAPH_MODE", graph_mode)
             options["graph_mode"] = getattr(warp_types.GraphMode, graph_mode)
         self.mx = mjx.put_model(model, impl=impl, **options)
         self.contacts_per_world = contacts_per_world
@@ -224,25 +216,24 @@ class MjxBackend:
 
 
 def warp_steps_direct(model: mujoco.MjModel) -> bool:
-    """Whether the warp backend's device phases step MuJoCo Warp directly, K steps per FFI
-    call (physics/warp_chunk.py; the default), or through MJX's one-call-per-step `mjx.step`
-    (``AGNOSTOS_WARP_STEPS=mjx``, and scenes the direct call does not support)."""
+    """Whether the warp backend steps MuJoCo Warp directly, K steps per FFI call
+    (physics/warp_chunk.py): for every scene that call supports.  It is faster per key
+    action than MJX's one-call-per-step `mjx.step` (docs/performance.md), and gives native
+    MuJoCo's outcomes where `mjx.step` in graph mode WARP gave wrong ones once several tasks
+    ran in one process.  Other scenes step through `mjx.step`, with a warning."""
     from agnostos_mjx.physics import warp_chunk
 
-    choice = os.environ.get("AGNOSTOS_WARP_STEPS", "direct")
-    if choice not in ("direct", "mjx"):
-        raise ValueError(f"AGNOSTOS_WARP_STEPS must be direct or mjx, got {choice!r}")
     why_not = warp_chunk.supported(model)
-    if choice == "mjx" or why_not:
-        _warn_mjx_steps(why_not or "AGNOSTOS_WARP_STEPS=mjx")
-    return choice == "direct" and why_not is None
+    if why_not:
+        _warn_mjx_steps(why_not)
+    return why_not is None
 
 
 @functools.cache
 def _warn_mjx_steps(reason: str) -> None:
-    log.warning("warp: device phases step through MJX's mjx.step (%s); in graph mode WARP it "
-                "gave wrong outcomes once several tasks ran in one process "
-                "(eval/reports/gpu_h100_session17)", reason)
+    log.warning("warp: this scene steps through MJX's mjx.step (the direct call does not "
+                "carry %s); in graph mode WARP mjx.step gave wrong outcomes once several "
+                "tasks ran in one process", reason)
 
 
 def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int
@@ -251,10 +242,7 @@ def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax:
     call, and the poses from its kinematics, so no MJX FFI call is left in a key action."""
     from agnostos_mjx.physics.warp_chunk import warp_chunk
 
-    # AGNOSTOS_WARP_CHUNK_GRAPH_MODE: the K-step call's graph mode (measurements; see
-    # warp_chunk._graph_mode for the default)
-    chunk = warp_chunk(model, batch, naconmax, njmax,
-                       os.environ.get("AGNOSTOS_WARP_CHUNK_GRAPH_MODE", "auto"))
+    chunk = warp_chunk(model, batch, naconmax, njmax)
     return DevicePhysics(load=lambda state: (None, StepData.start(state, model.nsensordata)),
                          step=lambda _, d, u: chunk(d, u[None])[0],
                          poses=lambda _, d: chunk.poses(d), save=lambda state, d: d.saved(state),
@@ -268,9 +256,9 @@ def gc_paused() -> Iterator[None]:
     Warp runs the MJX step as Python code inside an XLA FFI callback and captures it
     into a CUDA graph.  A collection there may free an old XLA executable (e.g. the
     previous task's runner); XLA then unloads its CUDA module, which is illegal while a
-    stream captures, and the capture fails ("Warp CUDA error 901 ... during capture",
-    seen on an H200 in the 19th task of a default run).  The caller waits for the
-    result inside this block, so the callback has finished before collection resumes.
+    stream captures, and the capture fails ("Warp CUDA error 901 ... during capture").
+    The caller waits for the result inside this block, so the callback has finished before
+    collection resumes.
     """
     was_enabled = gc.isenabled()
     gc.disable()

@@ -6,9 +6,9 @@ runs K steps: it copies the batch's state into a MuJoCo Warp `Data` kept on the 
 this (model, batch), steps it K times with per-step controls from a (K, B, nu) array, and
 writes each step's state and sensor rows out.  On a GPU the whole call (copies, K steps,
 records) is one CUDA graph, captured once per call site (graph mode WARP_STAGED, see
-`_graph_mode`) and replayed.  Measured on an H100: 1.10x-1.12x faster per key action than
-`mjx.step`, and the same outcomes as native MuJoCo where `mjx.step` in graph mode WARP gave
-wrong ones (eval/reports/gpu_h100_session17).
+`_graph_mode`) and replayed.  On an H100 it is 1.10x-1.12x faster per key action than
+`mjx.step` (docs/performance.md), with native MuJoCo's outcomes where `mjx.step` in graph
+mode WARP gave wrong ones.
 
 The call is pure in its inputs: everything the next step depends on (qpos, qvel, time, the
 solver's warm start, mocap poses, weld state and data) goes in, so the kept `Data` is only a

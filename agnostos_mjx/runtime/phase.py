@@ -7,9 +7,9 @@ once, the physics runs, then the conditions are scanned over the recorded sensor
 `DevicePhases`: inside one jitted program next to MJX: a `lax.while_loop` over physics
 steps (K per iteration, in one physics call), controls read at each step from the plan,
 conditions checked after every step, a world frozen at its own end (last step, failure, or
-success when episodes stop there), and the loop stops when no world is left moving.  A world that finished mid-phase keeps
-its state at that step here, where the host path steps it to the phase's end; the episode
-is over either way and its final observation is the same.
+success when episodes stop there), and the loop stops when no world is left moving.  A world
+that finished mid-phase keeps its state at that step here, where the host path steps it to
+the phase's end; the episode is over either way and its final observation is the same.
 
 Both report the first success and failure step of each world in the same way (a failure
 counts only before any success), so the key action above them is one piece of code.
@@ -17,7 +17,6 @@ counts only before any success), so the key action above them is one piece of co
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -110,29 +109,17 @@ WARP_STEPS_PER_ITERATION = 16
 
 
 def steps_per_iteration(backend_name: str) -> int:
-    """Physics steps per iteration of a device phase's while loop.
+    """Physics steps per iteration of a device phase's while loop: 16 on warp, else 1.
 
     Each iteration ends with the host reading the loop's condition from the device.  With
     K > 1 an iteration is one physics call of K steps (`DevicePhysics.run_steps`: on warp
     one FFI call, physics/warp_chunk.py), after which the conditions run over the K rows and
     a world that ended inside is set back to its end step: bit for bit the one-step loop's
     result (tests/test_k_steps.py), at one Python FFI callback per K steps instead of one
-    per step.  K = 16, 32 and 64 cost the same on an H100 at 75 worlds (oracle key actions
-    in one process; 16 and 32 also in the 8-process main job, eval/reports/gpu_h100_session17);
-    a finished world idles at most K - 1 steps.  On
-    MJX-jax (CPU tests) one step per iteration keeps the program small.
-    ``AGNOSTOS_STEPS_PER_ITERATION`` overrides it (measurements)."""
-    override = os.environ.get("AGNOSTOS_STEPS_PER_ITERATION")
-    if override:
-        return max(1, int(override))
+    per step.  K = 16, 32 and 64 cost the same on an H100 at 75 worlds, in one process and
+    in the 8-process main job (docs/performance.md); a finished world idles at most K - 1
+    steps.  On MJX-jax (CPU tests) one step per iteration keeps the program small."""
     return WARP_STEPS_PER_ITERATION if backend_name == "warp" else 1
-
-
-def unroll_conditions() -> bool:
-    """Whether a K-step iteration checks the conditions of its K rows unrolled (one program
-    region XLA can fuse across rows) instead of in a counted loop; ``AGNOSTOS_UNROLL_CONDITIONS=1``
-    (measurements: eval/reports/gpu_h100_session17)."""
-    return os.environ.get("AGNOSTOS_UNROLL_CONDITIONS", "0") == "1"
 
 
 class DevicePhases:
@@ -186,9 +173,9 @@ class DevicePhases:
                 end = jnp.where(checked[-1], i, end)
                 return (*check(tuple(checked), sensors), end), None
 
+            # A counted loop over the rows: unrolling it measured the same (docs/performance.md).
             (t, data, carry, s_at, f_at, after, end), _ = jax.lax.scan(
-                row, (t, data, carry, s_at, f_at, live, none), (rows.sensordata, jnp.arange(k)),
-                unroll=k if unroll_conditions() else 1)
+                row, (t, data, carry, s_at, f_at, live, none), (rows.sensordata, jnp.arange(k)))
             at_end = lambda r, old: keep_rows(end >= 0, r[jnp.maximum(end, 0), jnp.arange(b)], old)  # noqa: E731
             d = last.replace(**{f: at_end(getattr(rows, f), getattr(d, f)) for f in STATE_FIELDS})
             return t, d, data, carry, s_at, f_at, after
