@@ -24,12 +24,15 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.xicm.dynamics_selector import (
     QUERY_SAMPLE_STEPS,
     default_checkpoint_path,
     load_pipeline,
 )
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
+
+configure_jax()  # XLA's flags and JAX's compile cache, as the commands set them
 
 # AGNOSTOS_NOTEBOOK_SMALL=1 (the tests): 3 unseen tasks, the policies' 10 DDIM steps.
 SMALL = os.environ.get('AGNOSTOS_NOTEBOOK_SMALL') == '1'
