@@ -5,8 +5,10 @@ code reads them through these objects.  Where a command-line option exists, the 
 wins over the variable.
 
 Importing the package changes nothing in the process.  `configure_jax` is the one place
-that sets XLA's flags and JAX's compile cache: every command-line entry point calls it
-before JAX starts (as do the tests' conftest and the notebooks' first cell).
+that sets XLA's flags and JAX's compile cache: every command that runs JAX calls it first
+thing in its `main` (and in the worker processes it spawns), as do the tests' conftest and
+the notebooks' first cell.  A script of your own that runs JAX calls it before JAX starts
+to get the same compiled programs and numbers as the commands.
 """
 
 from __future__ import annotations
