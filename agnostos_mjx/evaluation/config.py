@@ -250,8 +250,8 @@ class EvalConfig:
                             type=positive_int)
     ddim_steps: int | None = option(
         None, "DDIM steps of a query's dynamics features (default 10: as good as the "
-              "original's 50 for selection and 5x cheaper, see "
-              "eval/reports/sampling_steps_h100)", group=LLM, type=positive_int)
+              "original's 50 for selection and 5x cheaper, see docs/performance.md)",
+        group=LLM, type=positive_int)
     memory: str | None = option(
         None, "seen-demo memory .npz (default: the one shipped with the package)", group=LLM)
     compare: str | None = option(
