@@ -403,9 +403,13 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetad
 root, out, mode = sys.argv[1:4]
 if mode == "convert":  # LeRobot's own v2.1 -> v3.0 converter, in place (root/<repo_id>)
     from pathlib import Path
-    from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
-    convert_dataset(repo_id="local/agnostos", root=str(Path(root).parent.parent),
-                    push_to_hub=False)
+    try:  # lerobot >= 0.5: root is the dataset's folder
+        from lerobot.scripts.convert_dataset_v21_to_v30 import convert_dataset
+        where = Path(root)
+    except ImportError:  # lerobot 0.4: root holds <repo_id>/
+        from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
+        where = Path(root).parent.parent
+    convert_dataset(repo_id="local/agnostos", root=str(where), push_to_hub=False)
 meta = LeRobotDatasetMetadata("local/agnostos", root=root)
 ds = LeRobotDataset("local/agnostos", root=root,
                     delta_timestamps={"action": [k / meta.fps for k in range(3)]})

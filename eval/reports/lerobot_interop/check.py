@@ -5,9 +5,10 @@ Exports 2 seen tasks x 2 demos with ``python -m agnostos_mjx.data.export --forma
 v2.1 from the same staged demos (nothing rendered twice), and reads both back with our
 ``read_lerobot``.  Then, in other Pythons that have lerobot:
 
-* ``--lerobot-python`` (lerobot >= 0.4, v3.0): ``LeRobotDataset(repo_id, root=...)`` on the
-  v3.0 export; and LeRobot's ``convert_dataset_v21_to_v30`` on a copy of the v2.1 export,
-  read with ``LeRobotDataset``, and its files compared here with our v3.0 export's (data
+* ``--lerobot-python`` (lerobot >= 0.4, v3.0; last checked with 0.6.1):
+  ``LeRobotDataset(repo_id, root=...)`` on the v3.0 export; and LeRobot's
+  ``convert_dataset_v21_to_v30`` on a copy of the v2.1 export, read with
+  ``LeRobotDataset``, and its files compared here with our v3.0 export's (data
   rows with the PNG bytes, column types, metadata, statistics) and given to our reader;
 * ``--lerobot21-python`` (lerobot 0.3.3, v2.1, openpi's): ``LeRobotDataset`` on the v2.1
   export.
@@ -20,13 +21,16 @@ the action chunk and its padding flags, timestamp, indices and task.  All runs u
 ``HF_HUB_OFFLINE=1`` with ``HF_HOME`` in the work folder.
 
 Usage (repository root, our environment; the lerobot Pythons are commands, so a
-``PYTHONPATH`` can come along)::
+``PYTHONPATH`` can come along; the README says how each was set up)::
 
     .venv/bin/python eval/reports/lerobot_interop/check.py \\
+        --lerobot-python /tmp/lerobot-venv/bin/python            # lerobot 0.6.1
+    .venv/bin/python eval/reports/lerobot_interop/check.py \\
         --lerobot-python "env PYTHONPATH=/tmp/tvstub /tmp/lrvenv/bin/python" \\
-        --lerobot21-python "env PYTHONPATH=/tmp/lr033:/tmp/tvstub /tmp/lrvenv/bin/python"
+        --lerobot21-python "env PYTHONPATH=/tmp/lr033:/tmp/tvstub /tmp/lrvenv/bin/python" \\
+        --results eval/reports/lerobot_interop/results_lerobot044_033.json  # 0.4.4, 0.3.3
 
-Prints a summary and writes results.json next to this file; ``--keep DIR`` keeps the data.
+Prints a summary and writes results.json next to this file (``--results`` elsewhere); ``--keep DIR`` keeps the data.
 """
 
 from __future__ import annotations
@@ -73,7 +77,8 @@ json.dump({"python": sys.version.split()[0], "codebase_version": _ld.CODEBASE_VE
            **{n: _version(n) for n in ("lerobot", "datasets", "torch", "huggingface_hub",
                                        "pyarrow", "pandas", "numpy")},
            "torchvision": torchvision.__version__, "lerobot_file": lerobot.__file__,
-           "torchvision_file": torchvision.__file__, "info": meta.info,
+           "torchvision_file": torchvision.__file__,
+           "info": meta.info if isinstance(meta.info, dict) else meta.info.to_dict(),  # >= 0.5
            "num_episodes": ds.num_episodes,
            "stats": {f: {s: np.asarray(v).tolist() for s, v in st.items()}
                      for f, st in meta.stats.items()}}, open(out + ".json", "w"))

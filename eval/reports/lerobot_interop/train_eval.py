@@ -7,9 +7,16 @@ agnostos-mjx and the ``lerobot_env_agnostos`` plug-in installed (``pip install -
 1. export 2 seen tasks x 2 demos as a v3.0 LeRobot dataset (our CLI, front + wrist, 64 px,
    default layout: quaternion actions, RLBench state);
 2. ``lerobot-train --policy.type=act --policy.pretrained_backbone_weights=null
-   --policy.device=cpu --steps=20`` on it (loss logged every step: first and last recorded);
+   --policy.device=cpu --steps=20`` on it, ACT's chunk the export's longest episode and one
+   action per step (``--policy.chunk_size=<longest> --policy.n_action_steps=1``; the
+   padding share of ACT's default chunk of 100 and of this one recorded; loss logged every
+   step: first and last recorded);
 3. ``lerobot-eval --env.type=agnostos`` runs that checkpoint on 2 episodes of an unseen task
-   (exit status, LeRobot's eval_info.json, the episode videos' frame counts);
+   without ``--env.cameras`` / ``--env.size``: the plug-in must take front + wrist at 64 px
+   from the policy (the config lerobot-eval logs, the videos' frame size; exit status,
+   LeRobot's eval_info.json, the episode videos' frame counts);
+3b. the same with ``--env.size=224``, which the policy was not trained on: lerobot-eval must
+   exit non-zero with one line naming the policy's inputs the env does not give;
 4. LeRobot's own ``rollout()`` (scripts/lerobot_eval.py) drives the plug-in's envs, made by
    ``make_env`` after ``register_third_party_plugins()``, with a policy that replays each
    world's expert key actions (the export's action rows): LeRobot must count every episode
@@ -18,7 +25,7 @@ agnostos-mjx and the ``lerobot_env_agnostos`` plug-in installed (``pip install -
 
 Usage (repository root, our environment's Python for the export)::
 
-    .venv/bin/python eval/reports/lerobot_interop/train_eval.py --lerobot-bin /tmp/lrenv312/bin
+    .venv/bin/python eval/reports/lerobot_interop/train_eval.py --lerobot-bin /tmp/lerobot-venv/bin
 
 Writes train_eval.json next to this file; ``--keep DIR`` keeps the data and checkpoint.
 """
@@ -115,12 +122,37 @@ def tail(log: Path, lines: int = 15) -> list[str]:
     return keep[-lines:]
 
 
-def video_frames(python: str, paths: list[str]) -> list[int]:
+def video_frames(python: str, paths: list[str]) -> list[list[int]]:
+    """Each video's [frames, width, height]."""
     code = ("import av, sys, json\nout = []\nfor p in sys.argv[1:]:\n"
-            "    with av.open(p) as c:\n        out.append(sum(1 for _ in c.decode(c.streams.video[0])))\n"
+            "    with av.open(p) as c:\n        s = c.streams.video[0]\n"
+            "        out.append([sum(1 for _ in c.decode(s)), s.width, s.height])\n"
             "print(json.dumps(out))")
     proc = subprocess.run([python, "-c", code, *paths], capture_output=True, text=True)
     return json.loads(proc.stdout) if proc.returncode == 0 else []
+
+
+def episode_lengths(dataset: Path) -> list[int]:
+    """Frames per episode of a v3.0 export (meta/episodes)."""
+    import pyarrow.parquet as pq
+
+    return [int(n) for f in sorted((dataset / "meta/episodes").rglob("*.parquet"))
+            for n in pq.read_table(f, columns=["length"])["length"].to_pylist()]
+
+
+def padding(lengths: list[int], chunk: int) -> float:
+    """Share of ACT's action targets that are padding: a frame t of an episode of L frames
+    has min(chunk, L - t) real actions in its chunk."""
+    real = sum(min(chunk, n - t) for n in lengths for t in range(n))
+    return round(1 - real / (chunk * sum(lengths)), 3)
+
+
+def logged_env(log: Path) -> dict:
+    """The env config's cameras and size as lerobot-eval logs them (pformat of its config)."""
+    text = log.read_text(errors="replace")
+    found = {"cameras": re.search(r"'cameras': '([^']*)'", text),
+             "size": re.search(r"'size': (\w+)", text)}
+    return {k: m.group(1) for k, m in found.items() if m}
 
 
 def main() -> int:
@@ -149,9 +181,15 @@ def main() -> int:
                          str(data), "--quiet"], env, work / "export.log")
     out["export"]["command"] = out["export"]["command"].replace(sys.executable, "python")
     info = json.loads((data / "meta/info.json").read_text())
-    out["export"].update(episodes=info["total_episodes"], frames=info["total_frames"])
+    lengths = episode_lengths(data)
+    chunk = max(lengths)
+    out["export"].update(episodes=info["total_episodes"], frames=info["total_frames"],
+                         episode_lengths=lengths,
+                         act_padding={"chunk 100 (ACT's default)": padding(lengths, 100),
+                                      f"chunk {chunk} (longest episode)": padding(lengths, chunk)})
     train = [str(bin_ / "lerobot-train"), "--dataset.repo_id=local/agnostos_seen",
              f"--dataset.root={data}", "--policy.type=act",
+             f"--policy.chunk_size={chunk}", "--policy.n_action_steps=1",
              "--policy.pretrained_backbone_weights=null", "--policy.device=cpu",
              "--policy.push_to_hub=false", f"--steps={STEPS}", "--batch_size=4",
              "--log_freq=1", f"--save_freq={STEPS}", "--num_workers=0",
@@ -164,17 +202,24 @@ def main() -> int:
         out["train"].update(first_loss=first, last_loss=last, loss_fell=last < first)
     ckpt = work / "train/checkpoints/last/pretrained_model"
     out["train"]["checkpoint_files"] = sorted(x.name for x in ckpt.glob("*")) if ckpt.exists() else []
+    # no --env.cameras / --env.size: the plug-in takes the policy's
     evaluate = [str(bin_ / "lerobot-eval"), "--env.type=agnostos", f"--env.task={EVAL_TASK}",
-                f"--env.cameras={','.join(CAMERAS)}", f"--env.size={SIZE}",
                 "--eval.n_episodes=2", "--eval.batch_size=2", f"--policy.path={ckpt}",
                 "--policy.device=cpu", "--seed=0", f"--output_dir={work / 'eval'}"]
     out["eval"] = run(evaluate, env, work / "eval.log")
+    out["eval"]["env_as_logged"] = logged_env(work / "eval.log")
     out["eval"]["log_tail"] = tail(work / "eval.log", 8)
     eval_info = work / "eval/eval_info.json"
     if eval_info.exists():
         overall = json.loads(eval_info.read_text())["overall"]
         out["eval"]["overall"] = {k: v for k, v in overall.items() if "video" not in k}
-        out["eval"]["video_frames"] = video_frames(str(bin_ / "python"), overall["video_paths"])
+        out["eval"]["videos_frames_width_height"] = video_frames(str(bin_ / "python"),
+                                                                 overall["video_paths"])
+    # a size the policy was not trained on: one line, non-zero exit
+    mismatch = [*evaluate[:3], "--env.size=224", *evaluate[3:-1],
+                f"--output_dir={work / 'eval_224'}"]
+    out["eval_224"] = run(mismatch, env, work / "eval_224.log")
+    out["eval_224"]["last_line"] = tail(work / "eval_224.log", 1)
     side = work / "side.py"
     side.write_text(f"TASKS = {REPLAY_TASKS!r}\n" + SIDE)
     out["replay"] = run([str(bin_ / "python"), str(side), str(work / "side.json")], env,
@@ -188,12 +233,20 @@ def main() -> int:
             out[step]["log_tail"] = tail(work / f"{step}.log", 30)
     Path(a.results).write_text(json.dumps(out, indent=2) + "\n")
     replays = out["replay"].get("replay", [])
+    wanted = {"cameras": ",".join(CAMERAS), "size": str(SIZE)}
+    frames = out["eval"].get("videos_frames_width_height", [])
     ok = (all(out[s]["returncode"] == 0 for s in ("export", "train", "eval", "replay"))
           and out["train"].get("loss_fell", False) and replays
-          and all(all(r["successes"]) for r in replays))
+          and all(all(r["successes"]) for r in replays)
+          and out["eval"]["env_as_logged"] == wanted and frames
+          and all(f[1:] == [SIZE, SIZE] for f in frames)
+          and out["eval_224"]["returncode"] != 0
+          and "observation.images.front (3, 64, 64)" in " ".join(out["eval_224"]["last_line"]))
     print(json.dumps({"ok": bool(ok), "first_loss": out["train"].get("first_loss"),
                       "last_loss": out["train"].get("last_loss"),
                       "eval_returncode": out["eval"]["returncode"],
+                      "eval_env": out["eval"]["env_as_logged"],
+                      "eval_224_returncode": out["eval_224"]["returncode"],
                       "replay_successes": [r["successes"] for r in replays]}))
     return 0 if ok else 1
 
