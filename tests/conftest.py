@@ -15,24 +15,19 @@ configure_jax()
 
 TASKS = ("open_drawer", "push_buttons")  # the tiny bank's seen tasks
 
-# Tasks whose resets and expert episodes take longest on 2 CPU cores (6-30 s per expert
-# test, measured with --durations; lamp_on takes under 2 s): their cases of the per-task
-# tests run in the slow suite only, so the default suite stays within 8 minutes while
-# still covering every task family (hinged, buttons, pick-and-place, cups, tools).
-HEAVY_TASKS = frozenset({
-    "take_usb_out_of_computer", "open_grill", "stack_blocks", "put_rubbish_in_bin",
-    "put_groceries_in_cupboard", "place_cups", "unplug_charger",
-    "place_shape_in_shape_sorter", "sweep_to_dustpan_of_size", "put_item_in_drawer",
-    "stack_cups", "close_jar", "place_wine_at_rack_location", "open_drawer",
-    "put_toilet_roll_on_stand", "water_plants", "slide_block_to_color_target",
-    "insert_onto_square_peg", "put_books_on_bookshelf", "light_bulb_in", "reach_and_drag",
-    "straighten_rope", "put_money_in_safe", "meat_off_grill",
+# The per-task tests (resets, seeds, expert success) run every task in the slow suite and,
+# in the default suite, one task per mechanism: a button (lamp_on), several buttons in order
+# (push_buttons), a hinged door (close_fridge), pick-and-place into a volume
+# (phone_on_base) and a failure condition (beat_the_buzz).
+DEFAULT_SUITE_TASKS = frozenset({
+    "lamp_on", "push_buttons", "close_fridge", "phone_on_base", "beat_the_buzz",
 })
 
 
 def task_params(names):
-    """Parameters for a per-task test: the heavy tasks marked slow."""
-    return [pytest.param(n, marks=pytest.mark.slow) if n in HEAVY_TASKS else n for n in names]
+    """Parameters for a per-task test: tasks outside DEFAULT_SUITE_TASKS marked slow."""
+    return [n if n in DEFAULT_SUITE_TASKS else pytest.param(n, marks=pytest.mark.slow)
+            for n in names]
 
 
 @functools.cache

@@ -196,6 +196,7 @@ def test_cli_generate_unwritable_out_is_one_line(capsys):
     assert len(err.splitlines()) == 1 and "cannot write to /proc" in err
 
 
+@pytest.mark.slow
 def test_worker_processes_make_the_same_bank(bank_dir, tmp_path):
     """Two spawned processes, one chunk each: the bank equals the in-process one."""
     report = gen.generate(replace(config(tmp_path), workers=2))

@@ -157,6 +157,7 @@ def test_building_modules_skips_the_unseen_error_message_walk(monkeypatch):
     assert tracer.__dict__["_origin_msg"] is original
 
 
+@pytest.mark.slow
 def test_resume_continues_step_count_and_matches_uninterrupted(tmp_path, pairs, ae_run):
     """Interrupt after step 1 (lose checkpoint 2 and a log line past it), resume:
     the run goes on from step 1 and ends where the uninterrupted one did."""
@@ -279,6 +280,7 @@ def test_selection_modes_random_dot_and_exclude():
     assert 2 not in select(query, bank, exclude=excluded)
 
 
+@pytest.mark.slow
 def test_index_cache_and_leave_one_out(pipe, pairs, tmp_path, monkeypatch):
     bank = pairs.subset(range(6))
     path = tmp_path / "index.npz"
@@ -304,6 +306,7 @@ def test_index_cache_and_leave_one_out(pipe, pairs, tmp_path, monkeypatch):
         FeatureIndex.load(tmp_path / "old.npz")
 
 
+@pytest.mark.slow
 def test_evaluate_script(dyn_run, pairs, tmp_path):
     data = tmp_path / "pairs.npz"
     pairs.save(data)
@@ -475,6 +478,7 @@ def _assert_stock(module: nnx.Module) -> None:
             assert m.attention_fn is nnx.dot_product_attention
 
 
+@pytest.mark.slow
 def test_cpu_layers_give_flax_layers_features():
     """GroupNorm and attention specialised for the CPU (layers.py) against flax's own, on a
     quick-preset model with random weights: the same features up to float round-off."""

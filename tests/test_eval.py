@@ -366,6 +366,7 @@ def _wait_for(predicate, proc: subprocess.Popen, timeout: float = 180.0) -> None
         time.sleep(0.02)
 
 
+@pytest.mark.slow
 def test_sigint_keeps_finished_episodes_and_the_printed_command_completes_the_run(
         tmp_path: Path) -> None:
     out, episodes = tmp_path / "run", 24

@@ -235,6 +235,7 @@ def test_frame_every_and_estimate() -> None:
     assert ex.estimate(ex.ExportConfig(**{**vars(cfg), "every": 5}))[0] > dense_size
 
 
+@pytest.mark.slow
 def test_dense_frames(tmp_path) -> None:
     """--every rlbench on 1 demo of open_drawer: the expected frames, the keyframes among
     them exactly as a keyframes-only export writes them, joint velocities from the physics
@@ -344,6 +345,7 @@ def _tree_sums(root) -> dict[str, str]:
     return out
 
 
+@pytest.mark.slow
 def test_workers_same_files(tmp_path, capsys) -> None:
     """--workers 2 writes the same bytes as --workers 1; a failing task (an unknown name) is
     reported with its name, the others finish and the exit code is 1."""

@@ -39,7 +39,7 @@ def _constructed_actions(ep: Episodes, env) -> list[KeyActions]:
     return steps
 
 
-@pytest.mark.parametrize("task", ["lamp_on", "phone_on_base"])
+@pytest.mark.parametrize("task", ["lamp_on", pytest.param("phone_on_base", marks=pytest.mark.slow)])
 def test_device_step_traces_with_the_documented_shapes(task):
     """The device program (with and without grasp welds) traces, at both stop modes, to an
     EnvState of the input's shapes and dtypes: a cheap guard for the default suite (no
@@ -105,7 +105,8 @@ def test_device_step_matches_host_path(task):
     np.testing.assert_allclose(history[-1].time, (SETTLE_STEPS + dev.sim_steps) * ep.dt, atol=1e-4)
 
 
-@pytest.mark.parametrize("task", ["lamp_on", "phone_on_base", "open_drawer"])
+@pytest.mark.parametrize("task", ["lamp_on", *(pytest.param(t, marks=pytest.mark.slow)
+                                              for t in ("phone_on_base", "open_drawer"))])
 def test_device_program_matches_host_path_on_native_physics(task):
     """The key action's two boundaries (default suite): the device program (DevicePhases:
     while loop, in-loop conditions, frozen worlds, welds from traced kinematics) stepping
@@ -127,6 +128,7 @@ def test_device_program_matches_host_path_on_native_physics(task):
     _assert_same_episodes(ep, host, dev)
 
 
+@pytest.mark.slow
 def test_several_steps_per_iteration_change_nothing():
     """K masked physics steps per while-loop iteration (warp's host/device overlap) give
     the one-step program's result bit for bit: outcomes, step counts, frozen worlds and

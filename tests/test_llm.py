@@ -120,6 +120,7 @@ def test_silence_past_the_timeout_is_not_resent():
         assert len(server.requests) == 1 and client.stats.retries == 0
 
 
+@pytest.mark.slow
 def test_slow_streaming_server_computes_each_request_once():
     """llama.cpp with one slot, each answer taking twice the client's timeout but
     streaming keepalive bytes: the client sends one request at a time (the published

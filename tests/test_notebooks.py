@@ -11,6 +11,7 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
+import pytest
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 NOTEBOOK = NOTEBOOKS / "evaluate.ipynb"
@@ -34,6 +35,7 @@ def run_notebook(path: Path, monkeypatch, **env: str) -> dict:
     return namespace
 
 
+@pytest.mark.slow
 def test_evaluate_notebook_runs(monkeypatch):
     namespace = run_notebook(NOTEBOOK, monkeypatch)
     assert len(namespace["tasks"]) == 23
@@ -78,6 +80,7 @@ def test_demo_bank_notebook_runs(monkeypatch, tmp_path, capsys):
     assert np.isfinite(z).all() and np.ptp(z) > 0.05  # the tip moves
 
 
+@pytest.mark.slow
 def test_dynamics_selection_notebook_runs(monkeypatch, capsys):
     """The shipped model and memory: the held-out report's numbers, the query features of 3
     unseen tasks and where their top-18 come from."""

@@ -126,6 +126,7 @@ def test_shard_pads_and_places_the_batch_over_devices() -> None:
     run_on_4_devices(PLACEMENT, timeout=60)
 
 
+@pytest.mark.slow
 def test_sharded_features_equal_one_device() -> None:
     run_on_4_devices(FEATURES, timeout=120)
 
@@ -175,6 +176,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cluster", [False, True], ids=["static", "jax-distributed"])
 def test_two_processes_merge_into_the_records_of_one(cluster: bool, tmp_path: Path) -> None:
     from agnostos_mjx.eval import main
@@ -196,6 +198,7 @@ def test_two_processes_merge_into_the_records_of_one(cluster: bool, tmp_path: Pa
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
 
 
+@pytest.mark.slow
 def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
     """--local-processes 2 starts both processes itself, logs each, and merges into the
     records one process writes."""
@@ -220,6 +223,7 @@ def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
     assert len(_episodes(shared)) == 6
 
 
+@pytest.mark.slow
 def test_local_processes_report_a_failure_once(tmp_path: Path) -> None:
     """A usage error fails every process alike: exit 1, the error shown once."""
     proc = subprocess.run(
@@ -232,6 +236,7 @@ def test_local_processes_report_a_failure_once(tmp_path: Path) -> None:
     assert "process 1 exited with 2 (the same)" in proc.stderr
 
 
+@pytest.mark.slow
 def test_local_processes_ctrl_c_stops_every_process(tmp_path: Path) -> None:
     """Ctrl-C of --local-processes reaches each process once and ends the run with 130."""
     import signal

@@ -67,6 +67,7 @@ def test_stack_blocks_variations_and_language():
     assert task.descriptions(59)[0] == "stack 4 white blocks"
 
 
+@pytest.mark.slow
 def test_stack_blocks_counts_blocks_in_the_column_and_needs_an_open_hand():
     task = task_or_skip("stack_blocks")
     obs0 = reset_obs("stack_blocks")

@@ -43,6 +43,7 @@ def test_heatmaps_decode_to_their_target():
     assert float(far[..., 4].sum()) == 0.0
 
 
+@pytest.mark.slow
 def test_quick_train_reload_evaluate(tmp_path, capsys):
     """The smoke path: a tiny model trained for a few steps on 2 tasks (data generated on
     the fly), saved, reloaded as the policy (from the run and from its float16 export) and

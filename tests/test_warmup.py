@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from agnostos_mjx import warmup
 
 
@@ -22,6 +24,7 @@ def test_one_per_size_and_bad_task(capsys):
     assert "unknown task 'no_such_task'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_warm_selection_compiles_what_the_default_policy_runs():
     """After warm_selection, the retrieval policy's (= X-ICM's) first plan of the same batch
     compiles nothing: the networks every process of a first run would otherwise compile at
