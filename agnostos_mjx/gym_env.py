@@ -269,8 +269,12 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
 
     def __init__(self, task: str, num_envs: int = 1, options: EnvOptions | None = None,
                  **kwargs: Any) -> None:
+        from agnostos_mjx.settings import configure_jax
         from agnostos_mjx.tasks import get_task
 
+        # The env is an entry point (lerobot-eval, a gymnasium script): JAX is set up as the
+        # commands set it up, which takes effect when this is the process's first JAX use.
+        configure_jax()
         if options is not None and kwargs:
             raise ValueError("give EnvOptions or keyword options, not both")
         self.options = opts = options or EnvOptions(**kwargs)
