@@ -38,6 +38,9 @@ def best_of(fn, iters: int) -> float:
 
 
 def main() -> None:
+    from agnostos_mjx.settings import configure_jax
+
+    configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--batch", type=int, default=32)

@@ -3,7 +3,7 @@
 action the keypoint nearest its keyframe among the action's own frames, its distance to the
 keyframe's gripper pose (mm, deg) and whether the gripper state matches.
 
-    PYTHONPATH=.:tests python eval/reports/export_estimate_cpu_2core_scripts/keypoints.py \
+    PYTHONPATH=.:tests python eval/reports/export_cpu_2core/keypoints.py \
         /tmp/dense_all seen
 """
 
@@ -16,7 +16,10 @@ import numpy as np
 from test_export import keypoint_discovery  # PerAct's, copied unchanged (see tests/test_export.py)
 
 from agnostos_mjx.data import export as ex
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.tasks import parse_tasks
+
+configure_jax()  # as the commands do, before JAX starts
 
 out = Path(sys.argv[1])
 rows = {}

@@ -1,7 +1,7 @@
 """Physics only (reset + expert, no rendering) per seen task: 3 batches of 4 demos, as the
 export re-runs them; the first batch also builds the scene and compiles (setup_s).
 
-    PYTHONPATH=. python eval/reports/export_estimate_cpu_2core_scripts/physics.py
+    PYTHONPATH=. python eval/reports/export_cpu_2core/physics.py
 """
 
 import time
@@ -11,7 +11,10 @@ import numpy as np
 from agnostos_mjx.data.generate import demo_keys
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.tasks import parse_tasks
+
+configure_jax()  # as the commands do, before JAX starts
 
 out = {}
 for task in parse_tasks("seen"):

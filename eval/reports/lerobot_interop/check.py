@@ -254,6 +254,9 @@ def run_side(python: str, script: Path, root: Path, dump: Path, mode: str, env: 
 
 
 def main() -> int:
+    from agnostos_mjx.settings import configure_jax
+
+    configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--lerobot-python", help="command of a Python with lerobot >= 0.4 (v3.0)")
     p.add_argument("--lerobot21-python", help="command of a Python with lerobot 0.3.3 (v2.1)")

@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.remote import wire
 from agnostos_mjx.remote.adapter import sim_state
+from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 
 task = get_task("lamp_on")

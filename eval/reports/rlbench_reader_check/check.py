@@ -232,6 +232,9 @@ def read(args) -> None:
 
 # ---- driver ----------------------------------------------------------------------------------
 def main() -> int:
+    from agnostos_mjx.settings import configure_jax
+
+    configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("step", nargs="?", default="all", choices=("all", "read"))
     p.add_argument("--reader-python", default=sys.executable)
