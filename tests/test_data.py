@@ -59,6 +59,7 @@ def test_text_form_is_xicm(bank_dir):
     assert demo.key_ints[-1, 2] < demo.key_ints[0, 2]
 
 
+@pytest.mark.slow
 def test_stored_key_actions_re_execute_to_success(bank_dir):
     bank = DemoBank(bank_dir)
     for name in TASKS:

@@ -106,6 +106,7 @@ def test_one_step_lowers_diffusion_loss():
     assert after < before
 
 
+@pytest.mark.slow
 def test_training_writes_log_checkpoints_and_samples(ae_run, dyn_run):
     for run in (ae_run, dyn_run):
         log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
@@ -173,6 +174,7 @@ def test_resume_continues_step_count_and_matches_uninterrupted(tmp_path, pairs, 
         np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_missing_checkpoint_is_a_clear_error(tmp_path, dyn_run):
     with pytest.raises(CheckpointError, match=str(tmp_path / "nowhere")):
         Pipeline.load(tmp_path / "nowhere")
@@ -183,6 +185,7 @@ def test_missing_checkpoint_is_a_clear_error(tmp_path, dyn_run):
         load_autoencoder(dyn_run)
 
 
+@pytest.mark.slow
 def test_incompatible_checkpoint_names_what_mismatched(tmp_path, pairs, ae_run):
     run = tmp_path / "ae"
     shutil.copytree(ae_run, run)
@@ -200,6 +203,7 @@ def test_incompatible_checkpoint_names_what_mismatched(tmp_path, pairs, ae_run):
         ckpts.restore(template, {"kind": meta["kind"], "model": meta["model"]})
 
 
+@pytest.mark.slow
 def test_feature_shapes_and_determinism(pipe, pairs):
     first, instr = pairs.first[:3], pairs.instructions[:3]
     a = extract(pipe, first, instr)
@@ -215,6 +219,7 @@ def test_feature_shapes_and_determinism(pipe, pairs):
         np.testing.assert_allclose(one[part][0], a[part][1], rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_lang_depends_on_the_instruction(pipe):
     lang = pipe.lang(
         [
@@ -501,6 +506,7 @@ def test_cpu_layers_give_flax_layers_features():
         assert rel.max() < 1e-5, (part, rel.max())
 
 
+@pytest.mark.slow
 def test_cpu_group_norm_and_attention_match_flax():
     from agnostos_mjx.dynamics.layers import GroupNorm, dot_product_attention
 

@@ -77,6 +77,7 @@ def exported(tmp_path_factory, dyn_run):
     return out
 
 
+@pytest.mark.slow
 def test_round_trip_gives_the_runs_features(dyn_run, exported, pairs):
     run, exp = Pipeline.load(dyn_run), Pipeline.load(exported)
     assert exp.diffusion == run.diffusion and exp.text == run.text
@@ -96,6 +97,7 @@ def test_round_trip_gives_the_runs_features(dyn_run, exported, pairs):
         np.testing.assert_array_equal(value, b[part])
 
 
+@pytest.mark.slow
 def test_export_is_small_float16_and_has_no_decoder(dyn_run, exported):
     assert sorted(p.name for p in exported.iterdir()) == [META_FILE, PARAMS_FILE]  # no temp files
     meta = json.loads((exported / META_FILE).read_text())

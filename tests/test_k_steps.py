@@ -85,7 +85,8 @@ def _run(dev, k: int, state: EnvState) -> dict:
     return jax.tree.map(np.asarray, out)
 
 
-@pytest.mark.parametrize("stop_at_success", [pytest.param(True, marks=pytest.mark.slow), False])
+@pytest.mark.slow
+@pytest.mark.parametrize("stop_at_success", [True, False])
 def test_k_steps_equal_one_step_on_mjx_jax(stop_at_success: bool) -> None:
     model = mujoco.MjModel.from_xml_string(SCENE)
     b = len(GOALS)

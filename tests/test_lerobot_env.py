@@ -70,8 +70,10 @@ def _replay(env: AgnostosVectorEnv, seed) -> tuple[np.ndarray, np.ndarray, list]
     return success, steps, results
 
 
-@pytest.mark.parametrize("task,rotation", [("push_buttons", "quat"), ("turn_tap", "euler"),
-                                           ("open_drawer", "rot6d")])
+@pytest.mark.parametrize("task,rotation", [
+    ("push_buttons", "quat"),
+    *(pytest.param(t, r, marks=pytest.mark.slow) for t, r in (("turn_tap", "euler"),
+                                                                ("open_drawer", "rot6d")))])
 def test_expert_rows_replay_to_success(task, rotation) -> None:
     """The expert's key actions, as the export writes them (its rotation), executed one
     per step: every world succeeds, within the 25-step budget, terminated not truncated."""
@@ -165,7 +167,8 @@ def test_autoreset(mode) -> None:
         np.testing.assert_array_equal(obs["pixels"]["front"][w], fresh_obs["pixels"]["front"][0])
 
 
-@pytest.mark.parametrize("state,rotation", [("rlbench", "quat"), ("xicm", "euler")])
+@pytest.mark.parametrize("state,rotation", [
+    ("rlbench", "quat"), pytest.param("xicm", "euler", marks=pytest.mark.slow)])
 def test_an_exported_demo_replays_frame_for_frame(tmp_path, state, rotation) -> None:
     """The export (32 px, front camera): the env started on the demo's scene observes the
     demo's first frame (keys, image, state), and stepping the dataset's action rows
@@ -462,6 +465,7 @@ def test_real_lerobot_rollout_through_the_plugin(tmp_path) -> None:
     assert len(out["replay"]) == 6 and all(all(r["successes"]) for r in out["replay"])
 
 
+@pytest.mark.slow
 def test_dense_rows_of_the_dense_export_replay_to_success() -> None:
     """control_mode dense: one step = one 50 ms control period; the dense export's action
     rows of each world's expert demo (the dense-replay policy's, in the export's Euler

@@ -62,6 +62,7 @@ def mujoco_tip(scene, q):
     return d.site("tip").xpos.copy(), quat
 
 
+@pytest.mark.slow
 def test_module_imports_standalone():
     """Each runtime module imports on its own in a fresh interpreter."""
     for module in ("agnostos_mjx.world", "agnostos_mjx.control", "agnostos_mjx.runtime.env",

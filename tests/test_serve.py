@@ -132,6 +132,7 @@ def test_remote_oracle_equals_in_process_and_resumes(tmp_path: Path, oracle_serv
     assert results["remote"]["failures"] == {} and results["remote"]["requests"] > 0
 
 
+@pytest.mark.slow
 def test_faults_end_only_their_episodes(tmp_path: Path, oracle_server, capfd) -> None:
     from agnostos_mjx.policies import make_policy
     from agnostos_mjx.remote.server import PolicyServer

@@ -90,6 +90,7 @@ def test_stack_blocks_counts_blocks_in_the_column_and_needs_an_open_hand():
     assert not met(task.success(jnp.int32(0)), obs0, with_poses(obs0, beside))
 
 
+@pytest.mark.slow
 def test_stack_blocks_colours():
     task_or_skip("stack_blocks")
     colors = sampled_colors("stack_blocks", 3 * 4 + 1)  # blue, 3 blocks

@@ -89,6 +89,7 @@ def test_beat_the_buzz_holding_at_the_end_is_not_success():
 
 
 @_needs("basketball_in_hoop")
+@pytest.mark.slow
 def test_basketball_dropped_beside_the_hoop_misses():
     """The ball must fall through the rim: released 15 cm to the side of it,
     it lands on the table outside the volume under the rim."""
@@ -130,6 +131,7 @@ def test_scoop_lifts_the_cube_on_the_blade_and_needs_the_grasp():
 
 
 @_needs("straighten_rope")
+@pytest.mark.slow
 def test_rope_head_alone_is_not_enough_and_the_chain_holds():
     """Dragging only the head onto its patch is no success (both ends must
     be detected); the dragged rope stays one chain of 18 links."""
@@ -148,6 +150,7 @@ def test_rope_head_alone_is_not_enough_and_the_chain_holds():
 
 
 @_needs("water_plants")
+@pytest.mark.slow
 def test_water_stays_in_the_can_until_it_is_tilted():
     """Carrying the can upright over the pot releases no drop; the drops
     travel inside the can."""

@@ -157,6 +157,7 @@ def test_fridge_hand_footprint_covers_the_start_pose():
         assert 0.752 + 0.403 < corners[:, 2].min() and corners[:, 2].max() < 0.752 + 0.948
 
 
+@pytest.mark.slow
 def test_fridge_placements_keep_the_door_clear_of_the_hand():
     """RLBench re-samples placements where the arm collides; most raw
     placements put the open door through the hand at its start pose."""

@@ -63,6 +63,7 @@ def test_rubbish_descriptions_fix_the_chuck_way_typo():
         "chuck away any rubbish on the table"]
 
 
+@pytest.mark.slow
 def test_rubbish_swaps_places_with_a_tomato():
     env = reset("put_rubbish_in_bin", worlds=12)
     obs = env.initial_obs
@@ -154,8 +155,8 @@ def test_books_descriptions_count_books():
     (0, ("book0",), False),  # the first book of RLBench's order is book2
     (1, ("book2",), False),
     (1, ("book2", "book1"), True),
-    (2, ("book2", "book1"), False),
-    (2, ("book2", "book1", "book0"), True),
+    pytest.param(2, ("book2", "book1"), False, marks=pytest.mark.slow),
+    pytest.param(2, ("book2", "book1", "book0"), True, marks=pytest.mark.slow),
 ])
 def test_books_success_needs_the_first_n_of_the_order(variation, on_shelf, expected):
     obs = reset("put_books_on_bookshelf", variation).initial_obs

@@ -413,6 +413,7 @@ def _oracle_row(answer: dict) -> np.ndarray | None:
     return actions[0] if len(actions) else None
 
 
+@pytest.mark.slow
 def test_xicm_preset_runs_the_served_oracle(tmp_path: Path, local_oracle: Path) -> None:
     """The evaluator's xicm requests (plus sim_state, for the oracle behind it) to a server
     answering X-ICM's rows [x, y, z, Euler, gripper]: the oracle's episodes."""

@@ -18,6 +18,7 @@ from agnostos_mjx.vla.views import (
 )
 
 
+@pytest.mark.slow
 def test_heatmaps_decode_to_their_target():
     """Log target heatmaps decode back to the target within a fraction of a view pixel,
     and a point in the scene shows up in every view at the target's pixel."""
