@@ -17,11 +17,9 @@ TASKS = ("open_drawer", "push_buttons")  # the tiny bank's seen tasks
 
 # The per-task tests (resets, seeds, expert success) run every task in the slow suite and,
 # in the default suite, one task per mechanism: a button (lamp_on), several buttons in order
-# (push_buttons), a hinged door (close_fridge), pick-and-place into a volume
-# (phone_on_base) and a failure condition (beat_the_buzz).
-DEFAULT_SUITE_TASKS = frozenset({
-    "lamp_on", "push_buttons", "close_fridge", "phone_on_base", "beat_the_buzz",
-})
+# (push_buttons), a hinged door (close_fridge) and pick-and-place into a volume
+# (phone_on_base); a failure condition is checked in test_tasks_delicate_physics.
+DEFAULT_SUITE_TASKS = frozenset({"lamp_on", "push_buttons", "close_fridge", "phone_on_base"})
 
 
 def task_params(names):

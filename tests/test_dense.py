@@ -56,6 +56,7 @@ def replayed():
     return ep, env, policy
 
 
+@pytest.mark.slow
 def test_replay_of_the_dense_demo_solves_a_seen_task(replayed) -> None:
     ep, env, policy = replayed
     ctl = DenseControl.at(20, ep.dt, ep.task.max_key_actions)
@@ -279,6 +280,7 @@ def _hold(env) -> KeyActions:
                       np.ones(b, np.float32), np.ones(b, bool))
 
 
+@pytest.mark.slow
 def test_dense_device_program_traces_with_the_documented_shapes() -> None:
     """The dense step's MJX program traces to an EnvState of the input's shapes and dtypes
     (no compile, no physics: a cheap guard for the default suite; the slow test below runs

@@ -123,6 +123,7 @@ def test_export_is_small_float16_and_has_no_decoder(dyn_run, exported):
     assert size < 0.5 * float32_bytes  # half the bytes per weight, and no decoder
 
 
+@pytest.mark.slow
 def test_damaged_export_is_a_clear_error(exported, tmp_path):
     def copy(name: str):
         d = tmp_path / name

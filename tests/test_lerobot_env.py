@@ -136,7 +136,7 @@ def test_reset_follows_the_protocol() -> None:
     np.testing.assert_array_equal(frames[1], env._last_obs["pixels"]["front"][1])
 
 
-@pytest.mark.parametrize("mode", ["next_step", "same_step"])
+@pytest.mark.parametrize("mode", ["next_step", pytest.param("same_step", marks=pytest.mark.slow)])
 def test_autoreset(mode) -> None:
     """A world whose episode ended starts the next one of its seed sequence (g + n): on
     the next step, its action ignored (next_step), or at once with the ended episode's

@@ -116,6 +116,7 @@ def _run(out: Path, *args: str) -> int:
                     "--out", str(out), *args])
 
 
+@pytest.mark.slow
 def test_remote_oracle_equals_in_process_and_resumes(tmp_path: Path, oracle_server) -> None:
     assert _run(tmp_path / "local", "--policy", "oracle", "--episodes", "4") == 0
     remote = ["--policy", "remote", "--policy-url", oracle_server.url]

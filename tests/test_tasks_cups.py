@@ -195,6 +195,7 @@ def test_put_money_in_safe_only_the_named_shelf_counts():
 
 # ---- place_cups ------------------------------------------------------------------------------
 @needs("place_cups")
+@pytest.mark.slow
 def test_place_cups_counts_the_first_n_mugs_on_any_of_the_three_free_spokes():
     task = get_task("place_cups")
     assert "fourth cup" in task.objects and "forth cup" not in task.objects  # X-ICM's typo fixed

@@ -76,6 +76,7 @@ def test_beat_the_buzz_touching_the_wire_fails():
 
 
 @_needs("beat_the_buzz")
+@pytest.mark.slow
 def test_beat_the_buzz_holding_at_the_end_is_not_success():
     """Success needs the wand at the far end *and* released (NothingGrasped)."""
     ep, env, actions = _reset("beat_the_buzz", seed=1)
