@@ -51,6 +51,7 @@ def test_evaluate_notebook_runs(monkeypatch):
 DEMO_TEXT = re.compile(r"^\['instruction': [^,]+.*\]>\[(\[\d+(, \d+){6}\](, )?)+\], $")
 
 
+@pytest.mark.slow
 def test_demo_bank_notebook_runs(monkeypatch, tmp_path, capsys):
     """Generates 2 seen tasks x 1 demo; first/last frames, X-ICM text and keyframes."""
     from agnostos_mjx.tasks import list_tasks
