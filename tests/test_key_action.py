@@ -87,6 +87,7 @@ def _run(ep: Episodes, env, steps: list[KeyActions], record: bool):
 
 
 @pytest.mark.slow
+@pytest.mark.mjx_cpu  # MJX-jax's own physics compiled on the CPU
 @pytest.mark.parametrize("task", ["lamp_on", "phone_on_base", "open_drawer"])
 def test_device_step_matches_host_path(task):
     ep = Episodes(get_task(task), "jax")

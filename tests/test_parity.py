@@ -103,6 +103,7 @@ def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
 
 
 @pytest.mark.slow
+@pytest.mark.mjx_cpu  # MJX-jax's own physics compiled on the CPU
 def test_lamp_on_expert_succeeds_on_both_backends():
     """The lamp_on expert episode (key 0, batch 1) ends in SUCCESS on the native
     and the MJX-jax backend (about a minute of MJX compiles on CPU)."""

@@ -132,12 +132,14 @@ def test_sharded_features_equal_one_device() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.mjx_cpu  # MJX-jax's own physics compiled on the CPU
 def test_sharded_mjx_jax_run_equals_one_device() -> None:
     """Two MJX-jax compiles on CPU (about 85 s on 2 cores)."""
     run_on_4_devices(MJX, timeout=600)
 
 
 @pytest.mark.slow
+@pytest.mark.mjx_cpu  # MJX-jax's own physics compiled on the CPU
 def test_sharded_key_action_step_equals_one_device() -> None:
     """The device key-action step (key_action.py) with its worlds split over 4 devices
     (3 worlds padded to 4) gives one device's outcomes (MJX-jax compiles: minutes)."""
