@@ -36,19 +36,18 @@ class Setting:
         value = (os.environ if environ is None else environ).get(self.name, "").strip()
         return value or None
 
-    def get_float(self, environ: Mapping[str, str] | None = None) -> float | None:
+    def _typed(self, cast: type, what: str, environ: Mapping[str, str] | None):
         value = self.get(environ)
         try:
-            return None if value is None else float(value)
+            return None if value is None else cast(value)
         except ValueError:
-            raise ValueError(f"{self.name} must be a number, got {value!r}") from None
+            raise ValueError(f"{self.name} must be {what}, got {value!r}") from None
+
+    def get_float(self, environ: Mapping[str, str] | None = None) -> float | None:
+        return self._typed(float, "a number", environ)
 
     def get_int(self, environ: Mapping[str, str] | None = None) -> int | None:
-        value = self.get(environ)
-        try:
-            return None if value is None else int(value)
-        except ValueError:
-            raise ValueError(f"{self.name} must be an integer, got {value!r}") from None
+        return self._typed(int, "an integer", environ)
 
     def get_switch(self, default: bool) -> bool:
         """A 0/1 switch; `default` when unset."""
