@@ -89,7 +89,7 @@ def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
     t = json.loads(line)
     assert (t["task"], t["backend"], t["episodes"]) == ("lamp_on", "native", 2)
     stages = [t[k] for k in ("build_s", "reset_s", "policy_s", "physics_s", "other_s")]
-    assert all(v >= 0 for v in stages) and t["physics_s"] > 0 and t["policy_s"] > 0
+    assert all(v >= 0 for v in stages) and t["physics_s"] > 0  # the oracle may take < 0.5 ms
     assert sum(stages) == pytest.approx(t["wall_s"], abs=0.01)
     table = time_split_table([run_dir])
     assert "| lamp_on | native | 2 |" in table and "| all |" in table

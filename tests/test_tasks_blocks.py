@@ -123,6 +123,7 @@ def test_insert_onto_square_peg_variations_and_language():
     assert set(task.objects) == {"ring", "first spoke", "second spoke", "third spoke"}
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_insert_onto_square_peg_ring_must_sit_around_the_chosen_peg_foot():
     task = task_or_skip("insert_onto_square_peg")
     obs0 = reset_obs("insert_onto_square_peg")
@@ -141,6 +142,7 @@ def test_insert_onto_square_peg_ring_must_sit_around_the_chosen_peg_foot():
             assert not met(cond, obs0, with_poses(obs0, {"square_ring": ring}))
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_insert_onto_square_peg_colours_follow_the_chosen_peg():
     task = task_or_skip("insert_onto_square_peg")
     for seed in range(4):
@@ -196,6 +198,7 @@ def test_reach_and_drag_variations_and_language():
     assert task.descriptions(13)[0] == "use the stick to drag the cube onto the purple target"
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_reach_and_drag_cube_on_target_only():
     task = task_or_skip("reach_and_drag")
     obs0 = reset_obs("reach_and_drag")
@@ -229,6 +232,7 @@ def test_sweep_to_dustpan_variations_and_language():
     assert task.descriptions(1)[0] == "sweep dirt to the short dustpan"
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_sweep_to_dustpan_needs_all_dirt_in_the_chosen_pan():
     task = task_or_skip("sweep_to_dustpan_of_size")
     obs0 = reset_obs("sweep_to_dustpan_of_size")  # variation 0: the tall pan

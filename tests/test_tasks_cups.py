@@ -136,6 +136,7 @@ def test_close_jar_target_colour_and_distinct_other_colour():
 
 
 # ---- light_bulb_in ---------------------------------------------------------------------------
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 @needs("light_bulb_in")
 def test_light_bulb_in_clean_name_and_target_bulb():
     task = get_task("light_bulb_in")
@@ -154,6 +155,7 @@ def test_light_bulb_in_clean_name_and_target_bulb():
 
 
 # ---- stack_cups ------------------------------------------------------------------------------
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 @needs("stack_cups")
 def test_stack_cups_needs_both_cups_inside_the_base_cup():
     obs0 = reset_obs("stack_cups", 3)
@@ -167,6 +169,7 @@ def test_stack_cups_needs_both_cups_inside_the_base_cup():
     assert not met("stack_cups", 3, obs0, moved(both, "cup1_bottom", nested, attached=[True, False]))
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 @needs("stack_cups")
 def test_stack_cups_base_cup_takes_the_variation_colour():
     from agnostos_mjx.colors import COLORS
@@ -180,6 +183,7 @@ def test_stack_cups_base_cup_takes_the_variation_colour():
 
 
 # ---- put_money_in_safe -----------------------------------------------------------------------
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 @needs("put_money_in_safe")
 def test_put_money_in_safe_only_the_named_shelf_counts():
     assert "shelf" not in get_task("put_money_in_safe").objects  # X-ICM's name for the safe

@@ -108,6 +108,7 @@ def test_basketball_dropped_beside_the_hoop_misses():
     assert (ball_z < 0.752 + 0.2).all(), "the released ball falls"
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 @_needs("scoop_with_spatula")
 def test_scoop_lifts_the_cube_on_the_blade_and_needs_the_grasp():
     """Pushing slides the blade under the cube (it is not shoved away); lifting

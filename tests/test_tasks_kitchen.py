@@ -75,6 +75,7 @@ def test_descriptions_verbatim(name, variation, expected):
     assert get_task(name).descriptions(variation) == expected
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_saucepan_lid_must_be_held_in_the_volume():
     name = "take_lid_off_saucepan"
     _, obs0 = reset(name)
@@ -87,6 +88,7 @@ def test_saucepan_lid_must_be_held_in_the_volume():
     assert 0.10 < float(above[2] - obs0.pos(knob)[2]) - 0.025 < 0.13
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_charger_held_by_its_pins_and_detected_once_pulled_out():
     from agnostos_mjx.math3d import quat_conj, quat_rotate
     from agnostos_mjx.tasks.unplug_charger import CHARGER_POS
@@ -100,6 +102,7 @@ def test_charger_held_by_its_pins_and_detected_once_pulled_out():
     assert met(name, 0, obs0, moved(obs0, "charger", pulled))  # grasped or not
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_usb_must_leave_the_port_and_be_released():
     name = "take_usb_out_of_computer"
     _, obs0 = reset(name)
@@ -143,6 +146,7 @@ def test_plate_must_be_on_the_block_off_the_rack_and_released():
     assert not met(name, 0, obs0, half_off)
 
 
+@pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_oven_knob_is_the_left_most_and_needs_almost_a_quarter_turn():
     name = "turn_oven_on"
     ep, obs0 = reset(name)
