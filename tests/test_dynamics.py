@@ -427,23 +427,25 @@ def test_ddim_with_an_oracle_denoiser_recovers_the_target(prediction, schedule):
 
 
 def test_map_chunks_pads_to_few_shapes():
-    from agnostos_mjx.dynamics.batching import map_chunks
+    from agnostos_mjx.dynamics.batching import bucket_sizes, map_chunks
 
-    shapes = set()
+    shapes: set[int] = set()
 
     def fn(x):
         shapes.add(x.shape[0])
         return x * 2
 
-    for n in range(1, 20):
-        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8, fixed=False)
-        np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
-    assert shapes == {1, 2, 4, 8}
+    for accelerator, want in ((False, {1, 2, 4, 8}), (True, {8})):
+        shapes.clear()
+        for n in range(1, 20):
+            out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8, accelerator=accelerator)
+            np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
+        assert shapes == want == set(bucket_sizes(8, accelerator))
+    # An accelerator's round of 75 queries runs as 64 + 16 rows, not two full chunks of 64.
+    assert bucket_sizes(64, accelerator=True) == [8, 16, 32, 64]
     shapes.clear()
-    for n in range(1, 20):  # an accelerator: one shape whatever the job's size
-        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8, fixed=True)
-        np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
-    assert shapes == {8}
+    map_chunks(fn, np.arange(75, dtype=np.float32), size=64, accelerator=True)
+    assert shapes == {64, 16}
 
 
 @pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores
