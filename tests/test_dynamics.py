@@ -266,6 +266,26 @@ def test_selection_is_most_similar_first(mode):
         np.testing.assert_array_equal(select(query, scrambled, mode=mode), chosen)
 
 
+def test_similarity_runs_in_float32_on_the_device():
+    """The bank is normalised once and stays on the device; a round's scores are float32
+    cosines (the mean over parts), as float64 gives them to 1e-6."""
+    from agnostos_mjx.dynamics.features import normalised, normalised_similarity
+
+    bank = _bank()
+    prepared = normalised(bank, "lang+vis.out")
+    assert all(isinstance(v, jax.Array) and v.dtype == np.float32 for v in prepared.values())
+    query = {p: bank[p][:3] + 0.5 for p in bank}
+    sims = normalised_similarity(normalised(query, "lang+vis.out"), prepared)
+
+    def unit(x):
+        x = np.asarray(x, np.float64)
+        return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+    want = sum(unit(query[p]) @ unit(bank[p]).T for p in ("lang", "vis.out")) / 2
+    assert sims.dtype == np.float32 and sims.shape == (3, len(bank["lang"]))
+    np.testing.assert_allclose(sims, want, atol=1e-6)
+
+
 def test_selection_modes_random_dot_and_exclude():
     bank = _bank()
     r1, r2 = select({}, bank, mode="random", seed=3), select({}, bank, mode="random", seed=3)

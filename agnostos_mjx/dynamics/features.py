@@ -11,6 +11,7 @@ first.  The original's raw dot product (xicm_reference.md, flaw 2) is an option.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -18,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from agnostos_mjx.dynamics.data import FramePairs
@@ -58,30 +61,38 @@ def parse_mode(mode: str) -> tuple[str, ...]:
 
 
 def normalised(features: dict[str, np.ndarray], mode: str, metric: str = "cosine"
-               ) -> dict[str, np.ndarray]:
-    """The rows `similarity` compares: per part of `mode`, float64 and, for cosine,
-    L2-normalised.  A fixed bank (the seen-demo memory) is prepared once per run."""
+               ) -> dict[str, jax.Array]:
+    """The rows `similarity` compares, on the default device: per part of `mode`, float32
+    and, for cosine, L2-normalised.  A fixed bank (the seen-demo memory) is prepared once
+    per run and stays on the device."""
     parts = parse_mode(mode)
     if not parts:
         raise ValueError("'random' has no similarity")
     if metric not in ("cosine", "dot"):
         raise ValueError(f"unknown metric {metric!r} (cosine or dot)")
-    out = {}
-    for p in parts:
-        x = np.atleast_2d(features[p]).astype(np.float64)
-        if metric == "cosine":
-            x = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
-        out[p] = x
-    return out
+    return {p: _normalise(jnp.atleast_2d(jnp.asarray(features[p], jnp.float32)),
+                          metric == "cosine") for p in parts}
 
 
-def normalised_similarity(query: dict[str, np.ndarray], bank: dict[str, np.ndarray],
+@functools.partial(jax.jit, static_argnums=1)
+def _normalise(x: jax.Array, cosine: bool) -> jax.Array:
+    return x / jnp.maximum(jnp.linalg.norm(x, axis=1, keepdims=True), 1e-12) if cosine else x
+
+
+def normalised_similarity(query: dict[str, jax.Array], bank: dict[str, jax.Array],
                           metric: str = "cosine") -> np.ndarray:
-    """`similarity` of rows that `normalised` prepared (the parts are the dicts' keys)."""
-    total = 0.0
-    for p in query:
-        total = total + query[p] @ bank[p].T
-    return total / len(query) if metric == "cosine" else total
+    """`similarity` (Q, M) float32 of rows that `normalised` prepared (the parts are the
+    dicts' keys), computed on the device."""
+    parts = tuple(query)
+    return np.asarray(_similarity(tuple(query[p] for p in parts),
+                                  tuple(bank[p] for p in parts), metric == "cosine"))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _similarity(query: tuple[jax.Array, ...], bank: tuple[jax.Array, ...], cosine: bool
+                ) -> jax.Array:
+    total = sum(q @ b.T for q, b in zip(query, bank))
+    return total / len(query) if cosine else total
 
 
 def similarity(
