@@ -66,3 +66,34 @@ def test_ik_programs_are_shared_by_every_task():
         assert control.jit_for_robot(fn, kins[0]) is control.jit_for_robot(fn, kins[1])
     assert control.jit_for_robot(control.plan_arm, kins[0]) is not control.jit_for_robot(
         control.reachable, kins[0])
+
+
+def test_phases_of_any_length_share_one_condition_program():
+    """The host scans a phase's conditions in chunks of CONDITION_ROWS rows: phases of any
+    length run one compiled program and find the same first success as one scan over all
+    the rows."""
+    from agnostos_mjx.runtime.phase import CONDITION_ROWS, HostPhases
+
+    ep = Episodes(get_task("lamp_on"), "native")
+    start = ep.reset(_keys(0, 3), np.zeros(3, np.int32))
+    record: list = []
+    ep.run_expert(start, record=record)
+    assert start.stop_at_success is not None
+    rows = [np.concatenate([getattr(r, f) for r in record], axis=1)
+            for f in ("sensordata", "attached")]
+    whole = ep._jit_conditions(start.carry, *rows, np.ones(rows[0].shape[:2], bool),
+                               start.variation)
+    assert (np.asarray(whole[1]) > CONDITION_ROWS).all(), "success must come after a chunk"
+    phases = HostPhases(ep.backend, ep.scene.model, ep._jit_conditions)
+    with count_compiles() as compiles:
+        for t in (rows[0].shape[1], CONDITION_ROWS + 5, 40):
+            valid = np.ones((3, t), bool)
+            carry, s, f = phases._scan(start, rows[0][:, :t], rows[1][:, :t], valid)
+            want = ep._jit_conditions(start.carry, rows[0][:, :t], rows[1][:, :t], valid,
+                                      start.variation)
+            np.testing.assert_array_equal(s, np.asarray(want[1]))
+            np.testing.assert_array_equal(f, np.asarray(want[2]))
+            for x, y in zip(jax.tree.leaves(carry), jax.tree.leaves(want[0])):
+                np.testing.assert_array_equal(x, np.asarray(y))
+    # the whole-phase scans compile a program per length; the chunked one none after its first
+    assert len(compiles) == 2

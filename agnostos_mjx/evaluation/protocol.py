@@ -8,6 +8,7 @@ reproducible and independent of batching: episode `e` of seed `s` samples its sc
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Container, Sequence
 from typing import TYPE_CHECKING
 
@@ -36,10 +37,15 @@ def group_label(name: str) -> str:
 
 def episode_keys(seeds: np.ndarray, episodes: np.ndarray):
     """Scene keys ``fold_in(PRNGKey(seed), episode)``, shape (n, 2)."""
+    return _episode_keys()(np.asarray(seeds, np.uint32), np.asarray(episodes, np.uint32))
+
+
+@functools.cache
+def _episode_keys():
+    """One compiled program (per batch size), not one per random primitive."""
     import jax
 
-    fold = lambda s, e: jax.random.fold_in(jax.random.PRNGKey(s), e)
-    return jax.vmap(fold)(np.asarray(seeds, np.uint32), np.asarray(episodes, np.uint32))
+    return jax.jit(jax.vmap(lambda s, e: jax.random.fold_in(jax.random.PRNGKey(s), e)))
 
 
 def episode_variations(keys, num_variations: int, split: str, mode: str) -> np.ndarray:

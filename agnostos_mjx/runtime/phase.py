@@ -51,6 +51,10 @@ def scan_conditions(condition_step: Callable) -> Callable:
     return run
 
 
+# Rows per call of the host's condition program: one compiled shape for every phase length.
+CONDITION_ROWS = 128
+
+
 class HostPhases:
     """Phases through a backend's `run`, on the host (numpy)."""
 
@@ -81,9 +85,7 @@ class HostPhases:
         sens[~active] = np.asarray(state.data)[~active][:, None]
         attached = np.repeat(state.attached[:, None], t, axis=1)
         valid = np.arange(t)[None] < steps[:, None]
-        carry, s_idx, f_idx = map(
-            lambda x: jax.tree.map(np.asarray, x),
-            self._conditions(state.carry, sens, attached, valid, state.variation))
+        carry, s_idx, f_idx = self._scan(state, sens, attached, valid)
         # A failure ends the episode unless success came first (or at the same step); a
         # success after a failure does not count.
         failed = active & (f_idx >= 0) & ~((s_idx >= 0) & (s_idx <= f_idx))
@@ -95,6 +97,28 @@ class HostPhases:
         record = StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]), qpos)
         new = state.replace(physics=physics.numpy(), data=data, carry=carry)
         return new, success_at, failure_at, record
+
+    def _scan(self, state: EnvState, sens: np.ndarray, attached: np.ndarray, valid: np.ndarray
+              ) -> tuple[Any, np.ndarray, np.ndarray]:
+        """The conditions over a phase's rows in chunks of CONDITION_ROWS (the last one
+        padded with rows that are not valid), so a runner compiles one condition program
+        whatever its phases' lengths; returns the carry and the first success and failure
+        rows (-1: none)."""
+        b, t = valid.shape
+        carry, none = state.carry, np.full(b, -1)
+        s_idx, f_idx = none, none
+        for start in range(0, t, CONDITION_ROWS):
+            rows = [x[:, start:start + CONDITION_ROWS] for x in (sens, attached, valid)]
+            pad = CONDITION_ROWS - rows[0].shape[1]
+            if pad:  # the last row repeated, marked not valid
+                rows = [np.pad(x, [(0, 0), (0, pad)] + [(0, 0)] * (x.ndim - 2), mode="edge")
+                        for x in rows]
+                rows[2][:, -pad:] = False
+            carry, s, f = self._conditions(carry, *rows, state.variation)
+            s, f = np.asarray(s), np.asarray(f)
+            s_idx = np.where((s_idx < 0) & (s >= 0), s + start, s_idx)
+            f_idx = np.where((f_idx < 0) & (f >= 0), f + start, f_idx)
+        return jax.tree.map(np.asarray, carry), s_idx, f_idx
 
     def poses(self, physics: PhysicsState, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         b, nbody = len(worlds), self.model.nbody
