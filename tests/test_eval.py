@@ -18,6 +18,7 @@ import pytest
 from agnostos_mjx import eval as ev
 from agnostos_mjx.evaluation import protocol, records, run, scheduler, summary
 from agnostos_mjx.evaluation.timings import time_split_table
+from agnostos_mjx.policies.oracle import OraclePolicy
 
 
 def _records(task: str, split: str, seed: int, successes: list[bool]) -> list[dict]:
@@ -494,3 +495,45 @@ def test_policy_error_summary_counts_and_decides(capsys) -> None:
     assert summary.policy_error_summary(merged) == 3
     err = capsys.readouterr().err
     assert "2 of 3 episodes ended as policy_error" in err and "in the logs" in err
+
+
+class OracleThatWaits(OraclePolicy):
+    """The oracle with `act_steps`, as a policy that waits on an LLM has: tasks run at once."""
+
+    def act_steps(self, episodes, env):
+        return self.act(episodes, env)
+        yield  # noqa: B901 - a generator that waits on nothing
+
+
+def test_tasks_at_once_give_the_records_of_each_task_alone(tmp_path: Path, monkeypatch) -> None:
+    """Tasks run at once in one process (their native physics on the pool's threads, the
+    policy on this one) record what each task records alone."""
+    import threading
+
+    from agnostos_mjx.runtime.env import Episodes
+
+    threads: set[str] = set()
+    step = Episodes.step
+
+    def step_and_note_the_thread(self, *args, **kwargs):
+        threads.add(threading.current_thread().name.rsplit("_", 1)[0])
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(Episodes, "step", step_and_note_the_thread)
+    args = ["--policy", f"{__name__}:OracleThatWaits", "--seeds", "0", "--episodes", "2",
+            "--batch", "2", "--backend", "native", "--quiet",
+            "--tasks", "lamp_on,phone_on_base,push_buttons"]
+    assert ev.main([*args, "--overlap-tasks", "3", "--out", str(tmp_path / "together")]) == 0
+    assert threads == {"physics"}
+    threads.clear()  # one task after the other, all on this thread
+    assert ev.main([*args, "--overlap-tasks", "1", "--out", str(tmp_path / "alone")]) == 0
+    assert threads == {"MainThread"}
+
+    def load(folder: Path) -> dict:
+        rows = [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines()]
+        return {(r["task"], r["seed"], r["episode"]): {k: v for k, v in r.items() if k != "wall_s"}
+                for r in rows}
+
+    together = load(tmp_path / "together")
+    assert len(together) == 6 and together == load(tmp_path / "alone")
+    assert all(r["success"] for r in together.values())

@@ -26,6 +26,7 @@ from agnostos_mjx.policies.base import PolicyAdapter
 
 if TYPE_CHECKING:
     import concurrent.futures
+    from concurrent.futures import Executor
 
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
@@ -56,11 +57,15 @@ def run_task(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
 
 def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
                cfg: EvalConfig, on_records: OnRecords, tick: Tick | None = None,
-               on_timing: OnTiming | None = None) -> Steps:
+               on_timing: OnTiming | None = None, physics_pool: Executor | None = None
+               ) -> Steps:
     """`run_task` as a generator that yields the futures the policy waits on (see
     PolicyAdapter.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
     `tick(episodes_done, partial, detail)` reports progress within the task;
-    `on_timing(split)` gets where the task's wall time went (`TimeSplit.summary`)."""
+    `on_timing(split)` gets where the task's wall time went (`TimeSplit.summary`).
+    With `physics_pool` the resets and key actions of native MuJoCo run there and are
+    yielded as futures too: tasks running at once overlap their physics with each other
+    and with the policy."""
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.video import EpisodeVideos
 
@@ -81,7 +86,8 @@ def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]]
         t_batch = time.perf_counter()
         label = f"{task.name} batch {b + 1}/{batches}"
         out += yield from batch_steps(task, policy, runner, part, chunk if pad else len(part),
-                                      cfg, on_records, tick, len(out), label, videos, split)
+                                      cfg, on_records, tick, len(out), label, videos, split,
+                                      physics_pool if runner.backend_name == "native" else None)
         rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
         log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
                  time.perf_counter() - t_batch, rate)
@@ -97,9 +103,9 @@ def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]]
 class TimeSplit:
     """Where a task's wall time goes: building the runner (scene, compiled programs),
     resetting batches, the policy (reset and actions, including any wait for its LLM or
-    server, and with tasks interleaved the other tasks' turns meanwhile) and the physics
-    (key actions or control steps, until the outcomes reach the host); the rest (records,
-    videos) is "other"."""
+    server) and the physics (key actions or control steps, until the outcomes reach the
+    host); the rest (records, videos) is "other".  With tasks running at once each stage
+    also holds the other tasks' turns meanwhile."""
 
     STAGES = MEASURED
 
@@ -126,7 +132,7 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
                 part: list[tuple[int, int]], size: int, cfg: EvalConfig,
                 on_records: OnRecords, tick: Tick | None = None, done_before: int = 0,
                 label: str = "", videos: EpisodeVideos | None = None,
-                split: TimeSplit | None = None) -> Steps:
+                split: TimeSplit | None = None, physics_pool: Executor | None = None) -> Steps:
     """One batch of `task_steps`: `part` padded to `size` worlds.  Each episode goes to
     `on_records` as soon as its world finishes, so an interrupted run keeps it; `tick`
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
@@ -167,7 +173,7 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
     split = split or TimeSplit()
     report(0)
     with split.measure("reset"):
-        env = runner.reset(keys, variations)
+        env = yield from on_pool(physics_pool, runner.reset, keys, variations)
     if videos is not None:
         videos.start(env, part)
     try:
@@ -184,12 +190,13 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
                 actions = yield from driver.next(policy, runner, env)
                 split.seconds["policy"] += time.perf_counter() - t_policy
                 with split.measure("physics"):
-                    env, _ = runner.step_dense(env, actions, ctl)
+                    env, _ = yield from on_pool(physics_pool, runner.step_dense, env, actions,
+                                                ctl)
             else:
                 actions = yield from policy.act_steps(runner, env)
                 split.seconds["policy"] += time.perf_counter() - t_policy
                 with split.measure("physics"):
-                    env, _ = runner.step(env, actions)
+                    env, _ = yield from on_pool(physics_pool, runner.step, env, actions)
             if videos is not None:
                 videos.capture(env)
             # A policy may say why a world got no action (bad LLM output, LLM error).
@@ -211,6 +218,15 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
     if tick is not None:
         tick(done_before + len(out))
     return out
+
+
+def on_pool(pool: Executor | None, fn: Callable, *args) -> Generator:
+    """`fn(*args)`, on `pool` with its future yielded (other tasks run meanwhile), or here."""
+    if pool is None:
+        return fn(*args)
+    future = pool.submit(fn, *args)
+    yield future
+    return future.result()
 
 
 def episode_records(task: Task, policy: PolicyAdapter, backend: str,

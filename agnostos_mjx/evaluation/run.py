@@ -13,6 +13,7 @@ import json
 import logging
 import re
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, replace
 from datetime import datetime
 from pathlib import Path
@@ -199,10 +200,18 @@ def evaluate(cfg: EvalConfig) -> dict:
                             partial=sum(p for _, p in done.values()), detail=detail)
 
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
+        # Native physics of the tasks running at once overlaps on threads (their rollouts
+        # release the GIL); the device backends keep one thread.
+        pool = (ThreadPoolExecutor(overlap, thread_name_prefix="physics")
+                if overlap > 1 and backend == "native" else None)
         jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
-                           on_records, functools.partial(tick, t.name), on_timing)
+                           on_records, functools.partial(tick, t.name), on_timing, pool)
                 for t in todo]
         if queue is not None:
             jobs = [queue.claimed(t.name, job) for t, job in zip(todo, jobs)]
-        run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
+        try:
+            run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
+        finally:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
     return write_results(final=True)

@@ -50,6 +50,9 @@ class NativeBackend:
         self.model = model
         self.nthread = nthread or os.cpu_count() or 1
         self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
+        # Its own thread pool (not rollout's one persistent pool per process), so that the
+        # rollouts of tasks running at once (evaluation/rollout.py) can overlap.
+        self._pool = rollout.Rollout(nthread=self.nthread if self.nthread > 1 else 0)
         self._models: list[mujoco.MjModel] = []
         self.nstate, self._state_slices = _layout(model, STATE_SPEC, _STATE_FIELDS)
         self.ncontrol, self._control_slices = _layout(model, CONTROL_SPEC, _CONTROL_FIELDS)
@@ -116,9 +119,9 @@ class NativeBackend:
             models = self._world_models(state.eq_data)
         else:
             models = self.model
-        states, sensordata = rollout.rollout(
+        states, sensordata = self._pool.rollout(
             models, self._datas, self._pack_state(state), self._pack_control(state, ctrl),
-            control_spec=CONTROL_SPEC, persistent_pool=True,
+            control_spec=CONTROL_SPEC,
         )
         last = states[:, -1]
         fields = {
