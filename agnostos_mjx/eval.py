@@ -70,11 +70,14 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     if cfg.merge:
         setup_logging(cfg.quiet)
         return merge_main(cfg.out)
-    if cfg.backend == "warp" and cfg.num_processes == 1:  # once per machine, many at once
+    # What every process of a run would compile alike, once per machine and before them.
+    default_selection = cfg.policy in ("auto", "retrieval", "xicm") and cfg.selection == "auto"
+    if cfg.backend == "warp" and cfg.num_processes == 1:
         setup_logging(cfg.quiet)
-        default_policy = cfg.policy in ("auto", "retrieval", "xicm")
-        warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner,
-                                   selection=default_policy and cfg.selection == "auto")
+        warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner, selection=default_selection)
+    elif cfg.local_processes > 1 and default_selection:
+        setup_logging(cfg.quiet)
+        warmup.ensure_selection(cfg.tasks, cfg.batch, cfg.planner)
     if cfg.local_processes > 1:
         setup_logging(cfg.quiet)
         if guard is not None and cfg.out:  # the resume hint even if stopping takes long

@@ -158,17 +158,53 @@ def kernels_marker(tasks: str, batch: int) -> Path:
     $WARP_CACHE_PATH; if Warp's own cache is wiped, a run builds what it misses as it goes,
     only slower).  Needs no task import: a run's parent process must not start JAX on the
     GPU (JAX would take most of its memory from the run's processes)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    def installed(package: str) -> str:
-        try:
-            return version(package)
-        except PackageNotFoundError:
-            return "none"
-
-    key = json.dumps([installed("warp-lang"), installed("mujoco-mjx"),
+    key = json.dumps([_installed("warp-lang"), _installed("mujoco-mjx"),
                       os.environ.get("WARP_CACHE_PATH", ""), tasks, batch])
     return cache_root() / "warp_kernels" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+
+
+def _installed(package: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(package)
+    except PackageNotFoundError:
+        return "none"
+
+
+def selection_marker(batch: int) -> Path:
+    """The file that says this machine compiled the demo selection's networks for runs at
+    `batch` into JAX's persistent cache (keyed by the jax and agnostos-mjx versions and the
+    cache's folder; a wiped cache only makes the processes compile again as they go)."""
+    from agnostos_mjx.settings import JAX_CACHE
+
+    key = json.dumps([_installed("jax"), _installed("agnostos-mjx"), JAX_CACHE.get(), batch])
+    return cache_root() / "warm_selection" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+
+
+def ensure_selection(tasks: str, batch: int, planner: str = "auto") -> int | None:
+    """Before a run of several processes with the default policies (on a backend without
+    Warp's kernel step, which does this too): the demo selection's networks, which every
+    process runs, compiled once in a process of its own on the first task over native
+    physics, unless this machine did it already (selection_marker).  Returns its exit code,
+    None if skipped; on failure the processes compile as they go."""
+    marker = selection_marker(batch)
+    if marker.exists():
+        return None
+    log.info("compiling the demo selection's networks once for the run's processes "
+             "(python -m agnostos_mjx.warmup does it ahead of time)")
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", "native",
+           "--batch", str(batch), "--planner", planner, "--task-runs", "none"]
+    code = subprocess.run(cmd).returncode
+    if code:
+        log.warning("compiling the selection ahead failed (exit %d); the processes compile "
+                    "it as they go", code)
+        return code
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"wall_s": round(time.perf_counter() - t0, 2)}))
+    log.info("selection ready in %.0f s", time.perf_counter() - t0)
+    return code
 
 
 def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False

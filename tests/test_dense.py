@@ -181,6 +181,7 @@ def test_the_gripper_moves_at_its_rate() -> None:
     assert not env.attached.any() and Outcome(int(env.outcome[0])) == Outcome.RUNNING
 
 
+@pytest.mark.slow  # the device boundary runs in the default suite in test_key_action
 def test_device_program_matches_host_path_on_native_physics(replayed) -> None:
     """The dense step's device program (DevicePhases stepping MuJoCo's C physics through
     host callbacks, IK in JAX) against the host path: same outcomes, poses within 1 cm."""

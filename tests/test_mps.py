@@ -292,7 +292,8 @@ def test_a_running_daemon_is_used(machine, tmp_path: Path,
     assert mps.running_daemon(os.environ) is None  # closed: a stale socket file
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT,
+                                 pytest.param(signal.SIGTERM, marks=pytest.mark.slow)])
 def test_interrupt_stops_the_daemons(sig: int, machine, tmp_path: Path) -> None:
     """Ctrl-C (or SIGTERM) of the launcher: the processes are interrupted, exit 130, and
     the daemons are asked to quit."""

@@ -169,6 +169,7 @@ def test_auto_backend_uses_warp_only_for_large_batches(monkeypatch):
         physics.resolve_backend("mjx")
 
 
+@pytest.mark.slow  # parity, as the rest of this file's slow tests
 def test_device_reachability_matches_the_host_check():
     """The jitted reachability scan (MJX backends' reset on an accelerator) accepts and
     rejects the same scenes as the numpy check, including a key action out of reach."""

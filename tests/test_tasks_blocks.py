@@ -212,6 +212,7 @@ def test_reach_and_drag_cube_on_target_only():
     assert not met(cond, obs0, obs0)
 
 
+@pytest.mark.slow  # one task's checks per file in the default suite
 def test_reach_and_drag_distractor_colours():
     task_or_skip("reach_and_drag")
     colors = sampled_colors("reach_and_drag", 17)  # rose; distractors 2, 3, 4 = lime, green, blue

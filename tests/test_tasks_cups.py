@@ -120,6 +120,7 @@ def test_close_jar_only_the_target_jar_counts_and_lid_must_be_released(variation
     assert not met("close_jar", variation, obs0, held)
 
 
+@pytest.mark.slow  # one test per task file in the default suite
 @needs("close_jar")
 def test_close_jar_target_colour_and_distinct_other_colour():
     ep = episodes("close_jar")

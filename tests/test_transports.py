@@ -454,6 +454,7 @@ def test_xicm_preset_runs_the_served_oracle(tmp_path: Path, local_oracle: Path) 
     assert seen[0]["observation/state"] == (np.dtype(np.float64), (7,))
 
 
+@pytest.mark.slow  # test_openvla_http_round_trip checks the protocol in the default suite
 def test_openvla_deltas_over_http_run_the_served_oracle(tmp_path: Path,
                                                         local_oracle: Path) -> None:
     """OpenVLA's protocol and 7-D deltas from the oracle: the oracle's episodes."""

@@ -106,6 +106,32 @@ def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
     assert not warmup.kernels_marker("lamp_on", 75).exists()
 
 
+def test_a_run_of_several_processes_compiles_the_selection_once(tmp_path, monkeypatch):
+    """eval --local-processes N with the default selection first compiles the selection's
+    networks in one warm-up process (native physics, no task runs), once per machine: a
+    success writes the marker and the next run skips it; a failure writes none."""
+    import subprocess
+    import types
+
+    from agnostos_mjx import eval as ev
+
+    monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
+    codes, commands = [1, 0], []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: (
+        commands.append(cmd), types.SimpleNamespace(returncode=codes.pop(0)))[1])
+    monkeypatch.setattr(ev.processes, "main", lambda cfg, argv: 0)  # not the processes
+    args = ["--tasks", "lamp_on,lamp_off", "--local-processes", "2", "--out", str(tmp_path / "r")]
+    assert ev.main(args) == 0 and not warmup.selection_marker(75).exists()  # failed: no marker
+    assert ev.main(args) == 0 and warmup.selection_marker(75).exists()
+    assert commands[-1][1:3] == ["-m", "agnostos_mjx.warmup"]
+    assert commands[-1][commands[-1].index("--backend") + 1] == "native"
+    assert "--no-selection" not in commands[-1] and "none" in commands[-1]
+    n = len(commands)
+    assert ev.main(args) == 0 and len(commands) == n  # this machine did it
+    assert ev.main([*args, "--selection", "text"]) == 0 and len(commands) == n
+    assert not warmup.selection_marker(16).exists()  # per batch
+
+
 def test_the_parent_of_a_warp_run_does_not_start_jax():
     """The run's parent process checks the marker and starts the kernel step without
     starting JAX: on a GPU, JAX there would take most of the memory from the run's
