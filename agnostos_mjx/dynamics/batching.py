@@ -3,8 +3,9 @@
 The rows left after the full chunks (or a smaller job) are padded to the next power of two,
 so a job never pays for more than twice its rows and a run compiles at most log2(size) + 1
 programs per network, which JAX's persistent cache keeps (75 rows in chunks of 8: 76 rows,
-not 80).  On an accelerator, where a few rows cost what one costs, the smallest shape is
-MIN_ACCELERATOR_ROWS: 4 programs for chunks of 64 (8, 16, 32, 64).
+not 80).  On an accelerator, where rounds of a few rows are bound by latency, not rows,
+the smallest shape is MIN_ACCELERATOR_ROWS: 3 programs for chunks of 64 (16, 32, 64), each a
+~25 s compile of the sampler on a fresh GPU host.
 
 With several local devices (agnostos_mjx.sharding) each chunk, rounded up to a multiple of
 the device count, is split over them; rows are independent, so results do not change."""
@@ -18,7 +19,7 @@ import numpy as np
 
 from agnostos_mjx import sharding
 
-MIN_ACCELERATOR_ROWS = 8
+MIN_ACCELERATOR_ROWS = 16
 
 
 def on_accelerator() -> bool:
