@@ -239,9 +239,11 @@ class EvalConfig:
                 "(no penalty field); auto detects it in the start-up check",
         group=LLM, choices=LLM_SERVER_KINDS)
     overlap_tasks: int = option(
-        3, "tasks evaluated at once when the policy waits on an LLM: while one task's "
-           "requests are in flight the others simulate (1: one task at a time; results do "
-           "not depend on it)", group=LLM, type=positive_int)
+        3, "tasks evaluated at once in a process when the policy can wait (X-ICM, "
+           "retrieval, served policies): while one task waits on its LLM requests or, on "
+           "native physics, on its key actions (run on a thread pool), the others go on "
+           "(1: one task at a time; results do not depend on it)", group=LLM,
+        type=positive_int)
     selection: str = option(
         "auto", "in-context demo selection: random, text (instruction trigrams), dynamics "
                 "features lang, vis.in, vis.out joined with '+', or auto (lang+vis.out when "
