@@ -111,6 +111,7 @@ def test_interrupted_run_resumes_to_the_same_bank(bank_dir, tmp_path, monkeypatc
     _same_bank(bank_dir, tmp_path)
 
 
+@pytest.mark.slow  # resuming a bank (test_interrupted_run_resumes_to_the_same_bank) stays in the default suite
 def test_extending_a_bank_keeps_its_demos(bank_dir, tmp_path):
     import shutil
 
