@@ -157,6 +157,7 @@ def ik_hit_rate(kin, n: int, seed: int) -> float:
     return float(np.concatenate(hits).mean())
 
 
+@pytest.mark.slow  # a hit-rate benchmark; the default suite solves IK in every expert test
 def test_ik_finds_reachable_poses(kin):
     """>= 99.5% of poses that some in-limit configuration reaches (the solver with only the
     warm start, home and wrist flips found 92.6% of these)."""
