@@ -194,17 +194,34 @@ def ensure_selection(tasks: str, batch: int, planner: str = "auto") -> int | Non
     log.info("compiling the demo selection's networks once for the run's processes "
              "(python -m agnostos_mjx.warmup does it ahead of time)")
     t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", "native",
-           "--batch", str(batch), "--planner", planner, "--task-runs", "none"]
+    code = _warmup_process(tasks, "native", batch, planner, selection=True,
+                           what="compiling the selection")
+    if code == 0:
+        _write_marker(marker, {"wall_s": round(time.perf_counter() - t0, 2)})
+    return code
+
+
+def _warmup_process(tasks: str, backend: str, batch: int, planner: str, selection: bool,
+                    what: str) -> int:
+    """This command's kernel and selection step (no task runs) in a process of its own;
+    its exit code, a failure logged (the run then does `what` as it goes)."""
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", backend,
+           "--batch", str(batch), "--planner", planner, "--task-runs", "none",
+           *([] if selection else ["--no-selection"])]
     code = subprocess.run(cmd).returncode
     if code:
-        log.warning("compiling the selection ahead failed (exit %d); the processes compile "
-                    "it as they go", code)
-        return code
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    marker.write_text(json.dumps({"wall_s": round(time.perf_counter() - t0, 2)}))
-    log.info("selection ready in %.0f s", time.perf_counter() - t0)
+        log.warning("%s ahead failed (exit %d); the run does it as it goes", what, code)
+    else:
+        log.info("%s: done in %.0f s", what, time.perf_counter() - t0)
     return code
+
+
+def _write_marker(marker: Path, content: dict) -> None:
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    tmp = marker.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(content))
+    os.replace(tmp, marker)
 
 
 def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False
@@ -221,17 +238,8 @@ def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection
     log.info("warp: building Warp's kernels of the tasks' scenes in %d processes first, once "
              "per machine (python -m agnostos_mjx.warmup does it ahead of time)",
              default_kernel_jobs())
-    t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", "warp",
-           "--batch", str(batch), "--planner", planner, "--task-runs", "none",
-           *([] if selection else ["--no-selection"])]
-    code = subprocess.run(cmd).returncode
-    if code:
-        log.warning("warp: building the kernels ahead failed (exit %d); the run builds them "
-                    "as it goes", code)
-    else:
-        log.info("warp: kernels ready in %.0f s", time.perf_counter() - t0)
-    return code
+    return _warmup_process(tasks, "warp", batch, planner, selection,
+                           what="warp: building the kernels")
 
 
 def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor | None = None
@@ -249,11 +257,7 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
     result = {"task": "(Warp kernels)", "modules": done[0]["modules"], "parts": parts,
               "build_s": max(d["build_s"] for d in done),
               "wall_s": round(time.perf_counter() - t0, 2)}
-    marker = kernels_marker(args.tasks, args.batch)
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    tmp = marker.with_suffix(f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(result))
-    os.replace(tmp, marker)
+    _write_marker(kernels_marker(args.tasks, args.batch), result)
     return result
 
 

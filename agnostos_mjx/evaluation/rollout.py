@@ -63,9 +63,9 @@ def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]]
     PolicyAdapter.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
     `tick(episodes_done, partial, detail)` reports progress within the task;
     `on_timing(split)` gets where the task's wall time went (`TimeSplit.summary`).
-    With `physics_pool` the resets and key actions of native MuJoCo run there and are
-    yielded as futures too: tasks running at once overlap their physics with each other
-    and with the policy."""
+    With `physics_pool` the resets and key actions of native MuJoCo (whose rollouts release
+    the GIL) run there and are yielded as futures too: tasks running at once overlap their
+    physics with each other and with the policy.  The device backends keep this thread."""
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.video import EpisodeVideos
 

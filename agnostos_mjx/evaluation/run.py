@@ -200,10 +200,8 @@ def evaluate(cfg: EvalConfig) -> dict:
                             partial=sum(p for _, p in done.values()), detail=detail)
 
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
-        # Native physics of the tasks running at once overlaps on threads (their rollouts
-        # release the GIL); the device backends keep one thread.
-        pool = (ThreadPoolExecutor(overlap, thread_name_prefix="physics")
-                if overlap > 1 and backend == "native" else None)
+        # The native physics of tasks running at once overlaps on threads (task_steps).
+        pool = ThreadPoolExecutor(overlap, thread_name_prefix="physics") if overlap > 1 else None
         jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
                            on_records, functools.partial(tick, t.name), on_timing, pool)
                 for t in todo]
