@@ -48,22 +48,15 @@ log = logging.getLogger("agnostos_mjx.warmup")
 
 def warm_selection(episodes: Episodes, env: EnvState) -> None:
     """The default policies' demo selection: the retrieval baseline plans every world of
-    this batch, selecting demos as X-ICM does (`--selection auto`, the shipped memory), and
-    then as many worlds as each smaller batch shape of the networks (a replanning round's
-    size varies)."""
+    this batch, selecting demos as X-ICM does (`--selection auto`, the shipped memory).
+    Its networks run at one batch shape (dynamics/batching.py), so this compiles them all."""
     import numpy as np
 
-    from agnostos_mjx.dynamics.batching import bucket_sizes
     from agnostos_mjx.policies.retrieval import RetrievalPolicy
-    from agnostos_mjx.xicm.dynamics_selector import DynamicsSelector
 
     policy = RetrievalPolicy()
     policy.reset(episodes, env, [episodes.task.descriptions(0)[0]] * env.batch)
     policy.plan(episodes, env, np.arange(env.batch))
-    if isinstance(policy.selector, DynamicsSelector):
-        for rows in bucket_sizes(policy.selector.pipeline.chunk_size):
-            if rows < env.batch:
-                policy.plan(episodes, env, np.arange(rows))
 
 
 def warm_task(name: str, backend: str, batch: int, planner: str = "auto",

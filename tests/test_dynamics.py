@@ -446,8 +446,8 @@ def test_ddim_with_an_oracle_denoiser_recovers_the_target(prediction, schedule):
     np.testing.assert_allclose(out, x0, atol=1e-3)
 
 
-def test_map_chunks_pads_to_few_shapes():
-    from agnostos_mjx.dynamics.batching import bucket_sizes, map_chunks
+def test_map_chunks_runs_one_shape():
+    from agnostos_mjx.dynamics.batching import map_chunks
 
     shapes: set[int] = set()
 
@@ -455,17 +455,37 @@ def test_map_chunks_pads_to_few_shapes():
         shapes.add(x.shape[0])
         return x * 2
 
-    for accelerator, want in ((False, {1, 2, 4, 8}), (True, {8})):
-        shapes.clear()
-        for n in range(1, 20):
-            out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8, accelerator=accelerator)
-            np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
-        assert shapes == want == set(bucket_sizes(8, accelerator))
-    # An accelerator's round of 75 queries runs as 64 + 16 rows, not two full chunks of 64.
-    assert bucket_sizes(64, accelerator=True) == [16, 32, 64]
-    shapes.clear()
-    map_chunks(fn, np.arange(75, dtype=np.float32), size=64, accelerator=True)
-    assert shapes == {64, 16}
+    for n in (1, 3, 8, 19):
+        out = map_chunks(fn, np.arange(n, dtype=np.float32), size=8)
+        np.testing.assert_array_equal(out, 2 * np.arange(n, dtype=np.float32))
+    assert shapes == {8}
+
+
+def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
+    import threading
+
+    from agnostos_mjx.dynamics.batching import RowBatcher
+
+    gate, calls = threading.Event(), []
+
+    def fn(items):
+        gate.wait(10)  # hold the first call until every request is queued
+        calls.append(list(items))
+        if "bad" in items:
+            raise ValueError("bad row")
+        return [f"{x}!" for x in items]
+
+    batcher = RowBatcher(fn, size=4, workers=2)
+    first = batcher.submit(["a"])
+    rest = [batcher.submit(["b", "c"]), batcher.submit(["d", "e", "f"]), batcher.submit([])]
+    gate.set()
+    assert first.result(10) == ["a!"]
+    assert [f.result(10) for f in rest] == [["b!", "c!"], ["d!", "e!", "f!"], []]
+    assert sorted(x for call in calls for x in call) == list("abcdef")
+    assert all(len(call) <= 4 for call in calls) and len(calls) < 4  # rounds shared calls
+    with pytest.raises(ValueError, match="bad row"):
+        batcher.submit(["g", "bad"]).result(10)
+    assert batcher(["h"]) == ["h!"]  # a failed call does not stop the workers
 
 
 @pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores

@@ -134,9 +134,15 @@ def test_shipped_model_selects_demos_of_the_querys_task(memory, bank_dir):
     frame = np.kron(frame, np.ones((4, 4, 1), np.uint8))  # the tiny bank is 32 x 32
     selector = DynamicsSelector(memory, "lang+vis.out")
     assert selector.pipeline.diffusion.sample_steps == 10  # the measured default
-    (chosen,) = selector.select([Query(demo.instruction, 0, frame)], 18)
+    # Rows of several tasks' rounds share the sampler's calls: a query's demos do not depend
+    # on its place in a call or on the rows beside it.
+    alone = selector.submit([Query(demo.instruction, 0, frame)], 18)
+    shared = selector.submit([Query("open the drawer", 1, np.roll(frame, 9, axis=1)),
+                              Query("press it", 2, frame), Query(demo.instruction, 3, frame)], 18)
+    (chosen,) = alone.result()
     tasks = memory.task[chosen].tolist()
     assert tasks.count("push_buttons") >= 15, tasks
+    np.testing.assert_array_equal(chosen, shared.result()[2])
 
 
 @pytest.mark.slow  # five times the sampling of the test above
@@ -171,6 +177,7 @@ def test_instruction_features_are_encoded_once_per_text(memory, monkeypatch):
 
     class FakePipeline:
         calls: list[list[str]] = []
+        chunk_size = 4
 
         def lang(self, texts):
             self.calls.append(list(texts))

@@ -1,56 +1,117 @@
-"""Run a jitted function over a large array in chunks of at most `size` rows.
+"""Run the networks over rows in chunks of one fixed shape, and share those chunks between
+callers.
 
-The rows left after the full chunks (or a smaller job) are padded to the next power of two,
-so a job never pays for more than twice its rows and a run compiles at most log2(size) + 1
-programs per network, which JAX's persistent cache keeps (75 rows in chunks of 8: 76 rows,
-not 80).  On an accelerator, where rounds of a few rows are bound by latency, not rows,
-the smallest shape is MIN_ACCELERATOR_ROWS: 3 programs for chunks of 64 (16, 32, 64), each a
-~25 s compile of the sampler on a fresh GPU host.
+Every chunk is padded to `size` rows, so each network compiles one program and a row's
+result depends on that row alone: XLA's results for a row change with the batch shape
+(~1e-5 between 4 and 8 rows on the CPU) but not with the other rows of a batch of the same
+shape.  That is what lets `RowBatcher` put the rows of several tasks' replanning rounds in
+one call without changing any task's records.
 
 With several local devices (agnostos_mjx.sharding) each chunk, rounded up to a multiple of
 the device count, is split over them; rows are independent, so results do not change."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import collections
+import concurrent.futures
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import numpy as np
 
 from agnostos_mjx import sharding
 
-MIN_ACCELERATOR_ROWS = 16
 
-
-def on_accelerator() -> bool:
-    return jax.default_backend() != "cpu"
-
-
-def padded_size(n: int, size: int, accelerator: bool | None = None) -> int:
-    """The batch shape a job of n rows runs at (see the module docstring); `accelerator`
-    defaults to where JAX runs."""
-    if accelerator is None:
-        accelerator = on_accelerator()
-    floor = MIN_ACCELERATOR_ROWS if accelerator else 1
-    return min(size, max(floor, 1 << max(n - 1, 0).bit_length()))
-
-
-def bucket_sizes(size: int, accelerator: bool | None = None) -> list[int]:
-    """Every batch shape `map_chunks` runs at for chunks of `size` rows, smallest first
-    (what a warm-up compiles)."""
-    return sorted({padded_size(n, size, accelerator) for n in range(1, size + 1)})
-
-
-def map_chunks(fn: Callable[..., jax.Array], *arrays: np.ndarray, size: int,
-               accelerator: bool | None = None) -> np.ndarray:
-    """`fn` over `arrays` (sharing their leading axis) in chunks of `padded_size` rows."""
+def map_chunks(fn: Callable[..., jax.Array], *arrays: np.ndarray, size: int) -> np.ndarray:
+    """`fn` over `arrays` (sharing their leading axis) in chunks of exactly `size` rows (the
+    last one padded)."""
     n = len(arrays[0])
     outs, start = [], 0
+    chunk_size = sharding.padded_batch(size)
     while start < n:
         rows = min(size, n - start)
-        chunk_size = sharding.padded_batch(padded_size(rows, size, accelerator))
         chunk = sharding.pad([a[start : start + rows] for a in arrays], chunk_size)
         chunk, _ = sharding.shard(chunk)
         outs.append(np.asarray(jax.device_get(fn(*chunk)))[:rows])
         start += rows
     return np.concatenate(outs)
+
+
+class _Request:
+    def __init__(self, items: Sequence[Any]):
+        self.future: concurrent.futures.Future = concurrent.futures.Future()
+        self.results: list[Any] = [None] * len(items)
+        self.left = len(items)
+        self.closed = False  # its future is (being) set; guarded by the batcher's lock
+
+
+class RowBatcher:
+    """`fn(items) -> results` (one result per item, at most `size` items a call) on
+    `workers` threads, over the items of every request pending when a worker is free, in
+    submission order.  `submit` returns a future of the request's results, so a task can
+    wait on its rows while other tasks add theirs to the same calls.  `fn` must give an
+    item the same result whatever items share its call (`map_chunks` does)."""
+
+    def __init__(self, fn: Callable[[list[Any]], Sequence[Any]], size: int, workers: int = 1,
+                 name: str = "rows"):
+        if size < 1 or workers < 1:
+            raise ValueError(f"size and workers must be positive, got {size} and {workers}")
+        self.fn, self.size, self.workers, self.name = fn, size, workers, name
+        self._pending: collections.deque[tuple[_Request, int, Any]] = collections.deque()
+        self._ready = threading.Condition()
+        self._started = False
+        self.calls = 0
+
+    def submit(self, items: Sequence[Any]) -> concurrent.futures.Future:
+        request = _Request(items)
+        if not items:
+            request.future.set_result([])
+            return request.future
+        with self._ready:
+            if not self._started:  # threads only for a batcher that is used
+                for i in range(self.workers):
+                    threading.Thread(target=self._work, name=f"{self.name}-{i}",
+                                     daemon=True).start()
+                self._started = True
+            self._pending.extend((request, i, item) for i, item in enumerate(items))
+            self._ready.notify()
+        return request.future
+
+    def __call__(self, items: Sequence[Any]) -> list[Any]:
+        return self.submit(items).result()
+
+    def _work(self) -> None:
+        while True:
+            with self._ready:
+                while not self._pending:
+                    self._ready.wait()
+                take = [self._pending.popleft()
+                        for _ in range(min(self.size, len(self._pending)))]
+                if self._pending:
+                    self._ready.notify()  # another worker can start on the rest
+                self.calls += 1
+            try:
+                results = list(self.fn([item for _, _, item in take]))
+                if len(results) != len(take):
+                    raise RuntimeError(f"{self.fn!r} returned {len(results)} results for "
+                                       f"{len(take)} items")
+            except Exception as error:  # handed to the callers waiting on these rows
+                with self._ready:
+                    failed = {id(r): r for r, _, _ in take if not r.closed}
+                    for request in failed.values():
+                        request.closed = True
+                for request in failed.values():
+                    request.future.set_exception(error)
+                continue
+            with self._ready:  # two workers may hold rows of one request
+                done = []
+                for (request, i, _), result in zip(take, results):
+                    request.results[i] = result
+                    request.left -= 1
+                    if request.left == 0 and not request.closed:
+                        request.closed = True
+                        done.append(request)
+            for request in done:
+                request.future.set_result(request.results)

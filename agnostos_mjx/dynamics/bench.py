@@ -123,7 +123,7 @@ def reference_pipeline(pipeline: Pipeline) -> Pipeline:
 def old_rows(n: int) -> int:
     """Rows the old `map_chunks` computed for n queries: a job of more than a chunk had its
     last chunk padded to the full chunk (75 queries: 128 rows); a smaller one was padded to
-    the next power of two, as now."""
+    the next power of two."""
     return n if n <= OLD_CHUNK else -(-n // OLD_CHUNK) * OLD_CHUNK
 
 

@@ -95,13 +95,13 @@ def _pooled(model: DynamicsModel, ids: jax.Array, mask: jax.Array) -> jax.Array:
     return model.text(ids, mask)[1]
 
 
-# Rows per compiled call at most (batching.py pads smaller jobs to a power of two).  On an
-# accelerator a chunk of 64 costs 152 ms at batch 75 on an H100 (256 rows: 351 ms).  On the
-# CPU the 10-step query features cost per query (2-core x86, 32 queries): chunks of 1:
-# 460 ms, 4: 302, 8: 283, 16: 270, 32: 276; 8 also pads the evaluation's replans (often 2-25
-# worlds) least.  Chunks of 64 ran 2x slower per row there, the weights no longer fitting
-# the caches.
-ACCELERATOR_CHUNK, CPU_CHUNK = 64, 8
+# Rows per compiled call (batching.py pads every call to it).  On an accelerator a chunk of
+# 64 costs 152 ms at batch 75 on an H100 (256 rows: 351 ms).  On the CPU the 10-step query
+# features cost per query (2-core x86, 32 queries): chunks of 1: 460 ms, 4: 302, 8: 283,
+# 16: 270, 32: 276; 4 wastes least on the evaluation's small rounds (1-3 replanning worlds
+# are common late in a task).  Chunks of 64 ran 2x slower per row there, the weights no
+# longer fitting the caches.
+ACCELERATOR_CHUNK, CPU_CHUNK = 64, 4
 
 
 def default_chunk() -> int:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from agnostos_mjx.control import ACTION_BOUNDS
-from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
+from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult, run_blocking
 from agnostos_mjx.policies.xicm import queries_for
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.selection import make_selector, resolve_selection
@@ -51,9 +51,15 @@ class RetrievalPolicy(PlanningPolicy):
         self.name = f"retrieval[{self.selection}]"
 
     def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
+        return run_blocking(self.plan_steps(episodes, env, worlds))
+
+    def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray):
         task = episodes.task
         names = list(task.objects)
-        chosen = self.selector.select(queries_for(self, episodes, env, worlds, self.selection), 1)
+        selected = self.selector.submit(
+            queries_for(self, episodes, env, worlds, self.selection), 1)
+        yield selected  # the evaluator runs other tasks while the features are computed
+        chosen = selected.result()
         results = []
         for w, idx in zip(worlds, chosen):
             i = int(idx[0])

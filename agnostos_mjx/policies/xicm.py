@@ -151,8 +151,10 @@ class XICMPolicy(PlanningPolicy):
             observation = episodes.observe(env, SEGMENTED_SPEC)
             voxels = segmented_object_voxels(observation, worlds)
         query_lines = query_texts(episodes.task, obs, variations, voxels)
-        chosen = self.selector.select(queries_for(self, episodes, env, worlds, self.selection),
-                                      self.num_demos)
+        selected = self.selector.submit(
+            queries_for(self, episodes, env, worlds, self.selection), self.num_demos)
+        yield selected  # the evaluator runs other tasks while the features are computed
+        chosen = selected.result()
         batch = [messages([str(self.memory.text[i]) for i in idx], q)
                  for idx, q in zip(chosen, query_lines)]
         submit = getattr(self.client, "submit_batch", None)

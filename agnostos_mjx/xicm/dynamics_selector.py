@@ -8,14 +8,16 @@ the memory holds the same features of every seen demo, computed once by
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from agnostos_mjx.dynamics.batching import RowBatcher
 from agnostos_mjx.xicm.memory import DemoMemory
-from agnostos_mjx.xicm.query import Query, top_k
+from agnostos_mjx.xicm.query import Query, then, top_k
 
 log = logging.getLogger("agnostos_mjx.xicm")
 # DDIM steps of a query's vis.out.  Measured against the shipped model's 50 on 1,800 seen
@@ -25,6 +27,10 @@ log = logging.getLogger("agnostos_mjx.xicm")
 # top-18 with 50 steps, and cost a fifth; 5 steps lose prediction quality (51.3%) and
 # top-1 agreement (0.86).  The memory's features stay at 50 steps.
 QUERY_SAMPLE_STEPS = 10
+# Threads that run chunks of queries at once.  One XLA CPU call keeps ~1.5 of 2 cores busy
+# (2-core x86: 761 ms per query in chunks of 8, 495 ms with two chunks at a time); a GPU
+# runs one chunk after another either way.
+CPU_WORKERS, ACCELERATOR_WORKERS = 2, 1
 
 
 def default_checkpoint_path() -> Path:
@@ -68,6 +74,12 @@ class DynamicsSelector:
         self.pipeline = load_pipeline(checkpoint, sample_steps)
         import jax
 
+        workers = CPU_WORKERS if jax.default_backend() == "cpu" else ACCELERATOR_WORKERS
+        # Queries of every task that waits on this selector share its chunks (the rows of one
+        # replanning round of one task rarely fill one).
+        self._batcher = RowBatcher(self._similarities, self.pipeline.chunk_size, workers,
+                                   name="selection")
+
         if jax.default_backend() == "cpu" and "vis.out" in self.parts:
             # 2-core x86: 0.30-0.37 s per query at 10 steps in the evaluation's batches
             # (docs/performance.md), i.e. ~0.07 core-s per step.
@@ -76,19 +88,30 @@ class DynamicsSelector:
                      "is the fast model-free mode", 0.07 * sample_steps, sample_steps)
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
-        from agnostos_mjx.dynamics.features import extract, normalised, normalised_similarity
+        return self.submit(queries, k).result()
 
+    def submit(self, queries: Sequence[Query], k: int) -> concurrent.futures.Future:
+        """A future of the top-k memory indices per query (`select`)."""
         if any(q.frame is None for q in queries):
             raise ValueError("dynamics selection needs each query's front frame")
-        frames = np.stack([q.frame for q in queries])
-        instructions = [q.instruction for q in queries]
+        rows = self._batcher.submit([(q.frame, q.instruction) for q in queries])
+        return then(rows, lambda sims: [top_k(s, k) for s in sims])
+
+    def _similarities(self, rows: list[tuple[np.ndarray, str]]) -> list[np.ndarray]:
+        """Similarity to every memory demo of up to one chunk of (frame, instruction) rows,
+        padded to the chunk so that each network and the similarity run at one shape."""
+        from agnostos_mjx.dynamics.features import extract, normalised, normalised_similarity
+
+        n, pad = len(rows), self.pipeline.chunk_size - len(rows)
+        frames = np.stack([f for f, _ in rows] + [rows[-1][0]] * pad)
+        instructions = [t for _, t in rows] + [rows[-1][1]] * pad
         visual = tuple(p for p in self.parts if p != "lang")
         feats = extract(self.pipeline, frames, instructions, visual) if visual else {}
         if "lang" in self.parts:
             feats["lang"] = self.lang_features(instructions)
         sims = normalised_similarity(normalised(feats, self.mode, self.metric), self._bank,
                                      self.metric)
-        return [top_k(s, k) for s in sims]
+        return list(sims[:n])
 
     def lang_features(self, instructions: list[str]) -> np.ndarray:
         """The instruction feature depends on the text alone, and a task's episodes share a

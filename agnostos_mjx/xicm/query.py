@@ -7,9 +7,10 @@ module level.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import concurrent.futures
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -25,6 +26,39 @@ class Selector(Protocol):
     name: str
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]: ...
+
+    def submit(self, queries: Sequence[Query], k: int) -> concurrent.futures.Future:
+        """`select` as a future, so a policy can wait on it while other tasks run."""
+        ...
+
+
+class ImmediateSelector:
+    """A selector that answers at once (random, text): `submit` is a finished future."""
+
+    name = "immediate"
+
+    def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
+        raise NotImplementedError
+
+    def submit(self, queries: Sequence[Query], k: int) -> concurrent.futures.Future:
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        future.set_result(self.select(queries, k))
+        return future
+
+
+def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
+         ) -> concurrent.futures.Future:
+    """A future of `fn(future.result())` (or of its exception)."""
+    out: concurrent.futures.Future = concurrent.futures.Future()
+
+    def finish(done: concurrent.futures.Future) -> None:
+        try:
+            out.set_result(fn(done.result()))
+        except Exception as error:  # the caller of out.result() sees it
+            out.set_exception(error)
+
+    future.add_done_callback(finish)
+    return out
 
 
 def top_k(similarity: np.ndarray, k: int) -> np.ndarray:

@@ -24,14 +24,19 @@ from collections.abc import Sequence
 import numpy as np
 
 from agnostos_mjx.xicm.memory import DemoMemory
-from agnostos_mjx.xicm.query import Query, Selector, top_k  # Query: also imported from here
+from agnostos_mjx.xicm.query import (  # Query: also imported from here
+    ImmediateSelector,
+    Query,
+    Selector,
+    top_k,
+)
 
 log = logging.getLogger("agnostos_mjx.xicm")
 TEXT_DIM = 4096
 FEATURE_PARTS = ("lang", "vis.in", "vis.out")
 
 
-class RandomSelector:
+class RandomSelector(ImmediateSelector):
     name = "random"
 
     def __init__(self, memory: DemoMemory):
@@ -52,7 +57,7 @@ def text_vector(text: str) -> np.ndarray:
     return v / max(np.linalg.norm(v), 1e-8)
 
 
-class TextSelector:
+class TextSelector(ImmediateSelector):
     name = "text"
 
     def __init__(self, memory: DemoMemory):
