@@ -613,3 +613,21 @@ def test_shipped_query_features_and_top18_unchanged_by_cpu_work():
     rows = np.arange(len(words))[:, None]
     assert np.abs(sims[1][rows, top[0]] - sims[1][rows, top[1]]).max() < 1e-5
     assert (top[0] == top[1]).mean() > 0.99
+
+
+def test_a_pipeline_serves_several_threads_at_once():
+    """The selection's workers call one pipeline from two threads: every call gives what
+    it gives alone (nnx.jit, which updates the module on each call, failed here)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from agnostos_mjx.dynamics.bench import query_inputs, quick_pipeline
+    from agnostos_mjx.dynamics.features import extract
+
+    pipe = replace(quick_pipeline(), chunk=2)
+    frames, texts = query_inputs(2)
+    alone = extract(pipe, frames, texts)
+    with ThreadPoolExecutor(4) as pool:
+        outs = list(pool.map(lambda _: extract(pipe, frames, texts), range(8)))
+    for out in outs:
+        for part, features in alone.items():
+            np.testing.assert_array_equal(out[part], features)

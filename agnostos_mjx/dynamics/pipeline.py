@@ -3,6 +3,7 @@ from an export, with the batched inference calls the features and the evaluation
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -69,30 +70,35 @@ def _meta(run: str | Path, kind: str) -> dict[str, Any]:
     return meta
 
 
-@nnx.jit
-def _encode(ae: Autoencoder, frames: jax.Array) -> jax.Array:
+# Pure jitted functions of a module's (graph, state) split: several threads may call them at
+# once (the selection's workers).  nnx.jit updates the module object it is given on every
+# call, which two threads calling with one module break.
+@functools.partial(jax.jit, static_argnums=0)
+def _encode(graph: nnx.GraphDef, state: nnx.State, frames: jax.Array) -> jax.Array:
+    ae = nnx.merge(graph, state)
     return ae.encode(frames)[0]  # the mode of q(z|x), as the original's latent_dist.mode()
 
 
-@nnx.jit
-def _decode(ae: Autoencoder, z: jax.Array) -> jax.Array:
-    return to_uint8(ae.decode(z))
+@functools.partial(jax.jit, static_argnums=0)
+def _decode(graph: nnx.GraphDef, state: nnx.State, z: jax.Array) -> jax.Array:
+    return to_uint8(nnx.merge(graph, state).decode(z))
 
 
-@nnx.jit(static_argnames="cfg")
-def _sample(
-    model: DynamicsModel, cfg: DiffusionConfig, z_first: jax.Array, ids: jax.Array, mask: jax.Array
-) -> jax.Array:
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _sample(graph: nnx.GraphDef, state: nnx.State, cfg: DiffusionConfig, z_first: jax.Array,
+            ids: jax.Array, mask: jax.Array) -> jax.Array:
     # The same initial noise for every query: features do not depend on batch order or size.
     noise = jax.random.normal(
         jax.random.key(cfg.sample_seed), (LATENT_SIZE, LATENT_SIZE, LATENT_CHANNELS)
     )
+    model = nnx.merge(graph, state)
     return ddim_sample(model, cfg, z_first, ids, mask, jnp.broadcast_to(noise, z_first.shape))
 
 
-@nnx.jit
-def _pooled(model: DynamicsModel, ids: jax.Array, mask: jax.Array) -> jax.Array:
-    return model.text(ids, mask)[1]
+@functools.partial(jax.jit, static_argnums=0)
+def _pooled(graph: nnx.GraphDef, state: nnx.State, ids: jax.Array, mask: jax.Array
+            ) -> jax.Array:
+    return nnx.merge(graph, state).text(ids, mask)[1]
 
 
 # Rows per compiled call (batching.py pads every call to it).  On an accelerator a chunk of
@@ -168,15 +174,23 @@ class Pipeline:
     def chunk_size(self) -> int:
         return self.chunk or default_chunk()
 
+    @functools.cached_property
+    def _ae_split(self) -> tuple[nnx.GraphDef, nnx.State]:
+        return nnx.split(self.ae)
+
+    @functools.cached_property
+    def _model_split(self) -> tuple[nnx.GraphDef, nnx.State]:
+        return nnx.split(self.model)
+
     def encode(self, frames: np.ndarray) -> np.ndarray:
         """uint8 (N,128,128,3) -> scaled latents (N,16,16,4)."""
-        latents = map_chunks(lambda f: _encode(self.ae, f), frames, size=self.chunk_size)
+        latents = map_chunks(lambda f: _encode(*self._ae_split, f), frames, size=self.chunk_size)
         return latents * self.latent_scale
 
     def decode(self, latents: np.ndarray) -> np.ndarray:
         """Scaled latents -> uint8 frames."""
         latents = np.asarray(latents) / self.latent_scale
-        return map_chunks(lambda z: _decode(self.ae, z), latents, size=self.chunk_size)
+        return map_chunks(lambda z: _decode(*self._ae_split, z), latents, size=self.chunk_size)
 
     def tokens(self, instructions: list[str]) -> tuple[np.ndarray, np.ndarray]:
         return tokenize(instructions, self.text.max_len)
@@ -184,12 +198,13 @@ class Pipeline:
     def predict(self, first_latents: np.ndarray, instructions: list[str]) -> np.ndarray:
         """Predicted last-frame latents (N,16,16,4) by guided DDIM from fixed noise."""
         ids, mask = self.tokens(instructions)
-        fn = lambda z, i, m: _sample(self.model, self.diffusion, z, i, m)
+        graph, state = self._model_split
+        fn = lambda z, i, m: _sample(graph, state, self.diffusion, z, i, m)
         z = np.asarray(first_latents, np.float32)
         return map_chunks(fn, z, ids, mask, size=self.chunk_size)
 
     def lang(self, instructions: list[str]) -> np.ndarray:
         """Pooled, projected instruction features (N, 1024)."""
         ids, mask = self.tokens(instructions)
-        fn = lambda i, m: _pooled(self.model, i, m)
+        fn = lambda i, m: _pooled(*self._model_split, i, m)
         return map_chunks(fn, ids, mask, size=self.chunk_size)
