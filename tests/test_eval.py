@@ -92,8 +92,14 @@ def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
     stages = [t[k] for k in ("build_s", "reset_s", "policy_s", "physics_s", "other_s")]
     assert all(v >= 0 for v in stages) and t["physics_s"] > 0  # the oracle may take < 0.5 ms
     assert sum(stages) == pytest.approx(t["wall_s"], abs=0.01)
+    records = [json.loads(r) for r in (run_dir / "episodes.jsonl").read_text().splitlines()]
+    assert t["live_steps"] == sum(r["sim_steps"] for r in records) > 0
+    assert t["world_steps"] == sum(r["world_steps"] for r in records) >= t["live_steps"]
+    assert t["rounds"] >= max(r["key_actions"] for r in records)
     table = time_split_table([run_dir])
     assert "| lamp_on | native | 2 |" in table and "| all |" in table
+    live = f"| {t['rounds']} | {t['world_steps'] / 1e6:.3f} | "
+    assert live in table.splitlines()[2], table
 
 
 def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture) -> None:

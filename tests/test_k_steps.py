@@ -65,7 +65,8 @@ def _state(model: mujoco.MjModel, b: int, stop_at_success: bool) -> EnvState:
     zeros = jnp.zeros(b, jnp.int32)
     return EnvState(physics=physics, data=tile(d.sensordata), attached=jnp.zeros((b, 0), bool),
                     carry=zeros, variation=jnp.asarray(VARIATIONS), gripper=zeros,
-                    outcome=zeros, key_actions=zeros, sim_steps=zeros, geom_rgba=zeros,
+                    outcome=zeros, key_actions=zeros, sim_steps=zeros, world_steps=zeros,
+                    geom_rgba=zeros,
                     initial_data=tile(d.sensordata), layout=None,
                     stop_at_success=stop_at_success)
 

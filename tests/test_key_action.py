@@ -70,6 +70,11 @@ def _assert_same_episodes(ep: Episodes, host, dev) -> None:
     np.testing.assert_array_equal(dev.key_actions, host.key_actions)
     np.testing.assert_array_equal(dev.attached, host.attached)
     assert np.abs(dev.sim_steps - host.sim_steps).max() <= STEP_TOL
+    # Native runs each world its own phase lengths; the device steps every world (a finished
+    # one frozen) until the last one ends.
+    assert (host.world_steps >= host.sim_steps).all()
+    assert len(set(np.asarray(dev.world_steps).tolist())) == 1
+    assert int(dev.world_steps[0]) >= int(np.max(dev.sim_steps))
     layout = ep.scene.layout
     for name in ("tip", *ep.task.observed_frames):
         key = f"{name}.pos"

@@ -105,12 +105,15 @@ class TimeSplit:
     resetting batches, the policy (reset and actions, including any wait for its LLM or
     server) and the physics (key actions or control steps, until the outcomes reach the
     host); the rest (records, videos) is "other".  With tasks running at once each stage
-    also holds the other tasks' turns meanwhile."""
+    also holds the other tasks' turns meanwhile.  It also counts the policy's rounds (one
+    action for every running world of a batch) and the physics steps run for the batches'
+    worlds (`world_steps`) against those the episodes needed (`live_steps`)."""
 
     STAGES = MEASURED
 
     def __init__(self) -> None:
         self.seconds = dict.fromkeys(self.STAGES, 0.0)
+        self.rounds = self.world_steps = self.live_steps = 0
 
     @contextlib.contextmanager
     def measure(self, stage: str):
@@ -125,6 +128,7 @@ class TimeSplit:
                "wall_s": round(wall_s, 3)}
         rec.update({f"{k}_s": round(v, 3) for k, v in self.seconds.items()})
         rec["other_s"] = round(max(0.0, wall_s - sum(self.seconds.values())), 3)
+        rec.update(rounds=self.rounds, world_steps=self.world_steps, live_steps=self.live_steps)
         return rec
 
 
@@ -185,6 +189,7 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
             if env.done.all():
                 break
             running = env.outcome == Outcome.RUNNING
+            split.rounds += 1
             t_policy = time.perf_counter()
             if driver is not None:
                 actions = yield from driver.next(policy, runner, env)
@@ -212,6 +217,8 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
                       "policy_error", task.name)
         env = replace(env, outcome=np.where(env.done, env.outcome, Outcome.POLICY_ERROR))
     record(env, np.where(env.done, env.outcome, Outcome.MAX_STEPS))
+    split.world_steps += int(np.sum(env.world_steps))  # padding worlds included
+    split.live_steps += int(np.sum(env.sim_steps[:n]))
     if videos is not None:
         by_episode = {(r["seed"], r["episode"]): r for r in out}
         videos.write([by_episode[int(s), int(e)] for s, e in part])
@@ -248,6 +255,7 @@ def episode_records(task: Task, policy: PolicyAdapter, backend: str,
             "success": bool(outcome[i] == Outcome.SUCCESS),
             "outcome": Outcome(int(outcome[i])).label,
             "key_actions": int(env.key_actions[i]), "sim_steps": int(env.sim_steps[i]),
+            "world_steps": int(env.world_steps[i]),
             "backend": backend, "batch_size": batch_size, "wall_s": round(wall_s, 4),
             **(mode or {}),
         }

@@ -3,8 +3,11 @@
 Every task an evaluation runs appends one line to ``<out>/timings.jsonl`` (a
 ``--local-processes`` run: ``<out>/proc-I/timings.jsonl``): its wall time split into
 building the runner, resetting batches, the policy and the physics, and the rest
-(rollout.TimeSplit).  This prints them as a markdown table with the shares of the summed
-task time, the profile that says whether physics and policy dominate a run.
+(rollout.TimeSplit), the policy's rounds, and the physics steps run for the worlds against
+those their episodes needed (live: a world that ended waits for its batch's slowest world on
+the device backends, and a batch's padding worlds are not live).  This prints them as a
+markdown table with the shares of the summed task time, the profile that says whether
+physics and policy dominate a run.
 """
 
 from __future__ import annotations
@@ -37,18 +40,24 @@ def time_split_table(runs: Iterable[Path]) -> str:
     if not rows:
         raise ValueError("no timings.jsonl in these run folders (written by evaluations "
                          "since 2026-11-25)")
-    head = ["task", "backend", "episodes", "wall s", *(f"{s} s" for s in STAGES)]
+    head = ["task", "backend", "episodes", "wall s", *(f"{s} s" for s in STAGES), "rounds",
+            "world-steps (M)", "live"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def line(name: str, backend: str, episodes: int, r: dict) -> str:
         wall = r["wall_s"]
         cells = [f"{r[s + '_s']:.1f} ({100 * r[s + '_s'] / wall:.0f}%)" if wall else "0"
                  for s in STAGES]
-        return f"| {name} | {backend} | {episodes} | {wall:.1f} | " + " | ".join(cells) + " |"
+        executed = r.get("world_steps", 0)  # absent in runs before 2026-11-27
+        steps = [str(r.get("rounds", "")), f"{executed / 1e6:.3f}" if executed else "",
+                 f"{100 * r.get('live_steps', 0) / executed:.0f}%" if executed else ""]
+        return (f"| {name} | {backend} | {episodes} | {wall:.1f} | "
+                + " | ".join(cells + steps) + " |")
 
     for r in rows:
         lines.append(line(r["task"], r["backend"], r["episodes"], r))
-    total = {k: sum(r[k] for r in rows) for k in ("wall_s", *(s + "_s" for s in STAGES))}
+    counts = ("wall_s", *(s + "_s" for s in STAGES), "rounds", "world_steps", "live_steps")
+    total = {k: sum(r.get(k, 0) for r in rows) for k in counts}
     backends = ",".join(sorted({r["backend"] for r in rows}))
     lines.append(line("all", backends, sum(r["episodes"] for r in rows), total))
     return "\n".join(lines) + "\n"

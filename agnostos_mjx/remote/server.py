@@ -83,7 +83,7 @@ def mirror_env(runner, state: dict):
         variation=np.array([int(state["variation"])], np.int32),
         gripper=one(state["gripper"]), outcome=np.zeros(1, np.int32),
         key_actions=np.array([int(state["key_actions"])], np.int32),
-        sim_steps=np.zeros(1, np.int32), geom_rgba=one(state["geom_rgba"], np.float32),
+        sim_steps=np.zeros(1, np.int32), world_steps=np.zeros(1, np.int32), geom_rgba=one(state["geom_rgba"], np.float32),
         initial_data=one(initial, initial.dtype), layout=layout)
 
 

@@ -201,7 +201,8 @@ class Episodes:
             physics=physics.numpy(), data=data, attached=attached, carry=carry,
             variation=variations, gripper=np.full(b, FINGER_OPEN),
             outcome=np.zeros(b, np.int32), key_actions=np.zeros(b, np.int32),
-            sim_steps=np.zeros(b, np.int32), geom_rgba=rgba, initial_data=data,
+            sim_steps=np.zeros(b, np.int32), world_steps=np.zeros(b, np.int32),
+            geom_rgba=rgba, initial_data=data,
             layout=self.scene.layout)
 
     # ---- the expert ---------------------------------------------------------------------

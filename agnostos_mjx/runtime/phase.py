@@ -95,7 +95,9 @@ class HostPhases:
         last = sens[np.arange(len(end)), np.maximum(end, 0)]
         data = np.where(active[:, None], last, np.asarray(state.data))
         record = StepResult(sens, attached, valid & (np.arange(t)[None] <= end[:, None]), qpos)
-        new = state.replace(physics=physics.numpy(), data=data, carry=carry)
+        # Native MuJoCo runs each world its own steps (physics/native.py).
+        new = state.replace(physics=physics.numpy(), data=data, carry=carry,
+                            world_steps=state.world_steps + steps)
         return new, success_at, failure_at, record
 
     def _scan(self, state: EnvState, sens: np.ndarray, attached: np.ndarray, valid: np.ndarray
@@ -206,8 +208,10 @@ class DevicePhases:
 
         body = one_step if self.steps_per_iteration == 1 else k_steps
         init = (jnp.int32(0), d, state.data, state.carry, none, none, steps > 0)
-        _, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, init)
-        new = state.replace(physics=self.dev.save(state.physics, d), data=data, carry=carry)
+        t, d, data, carry, s_at, f_at, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, init)
+        # Every world is stepped (frozen ones too) until the last live world ends.
+        new = state.replace(physics=self.dev.save(state.physics, d), data=data, carry=carry,
+                            world_steps=state.world_steps + t)
         return new, s_at, f_at, None
 
     def poses(self, physics: PhysicsState, worlds: Any) -> tuple[jax.Array, jax.Array]:

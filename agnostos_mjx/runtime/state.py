@@ -29,7 +29,8 @@ class EnvState:
     gripper: Any  # commanded finger position
     outcome: Any  # runtime.outcome.Outcome per world
     key_actions: Any  # key actions executed so far
-    sim_steps: Any
+    sim_steps: Any  # physics steps each world needed (to its end in every phase)
+    world_steps: Any  # physics steps run for it, counting those past its end (lockstep)
     geom_rgba: Any  # (B, ngeom, 4): each world's colours (variations, state colours)
     initial_data: Any  # the sensor row after reset: what the expert and colours start from
     layout: Layout  # static: names of the sensor columns
@@ -64,7 +65,7 @@ class EnvState:
             return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
 
         ints = dict(outcome=jnp.int32, key_actions=jnp.int32, sim_steps=jnp.int32,
-                    variation=jnp.int32)
+                    world_steps=jnp.int32, variation=jnp.int32)
         return self.replace(
             physics=jax.tree.map(put, self.physics), data=put(self.data),
             attached=jnp.asarray(self.attached, bool), carry=jax.tree.map(jnp.asarray, self.carry),
@@ -77,7 +78,7 @@ class EnvState:
         carries stay where they are (the device keeps them between key actions)."""
         host = {k: np.asarray(getattr(self, k)) for k in
                 ("data", "attached", "variation", "outcome", "key_actions", "sim_steps",
-                 "geom_rgba", "initial_data")}
+                 "world_steps", "geom_rgba", "initial_data")}
         host["gripper"] = np.asarray(self.gripper, np.float64)
         return self.replace(**host)
 
@@ -85,7 +86,7 @@ class EnvState:
 jax.tree_util.register_dataclass(
     EnvState,
     data_fields=["physics", "data", "attached", "carry", "variation", "gripper", "outcome",
-                 "key_actions", "sim_steps", "geom_rgba", "initial_data"],
+                 "key_actions", "sim_steps", "world_steps", "geom_rgba", "initial_data"],
     meta_fields=["layout", "stop_at_success"])
 
 
