@@ -486,6 +486,13 @@ def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     with pytest.raises(ValueError, match="bad row"):
         batcher.submit(["g", "bad"]).result(10)
     assert batcher(["h"]) == ["h!"]  # a failed call does not stop the workers
+    # Without sharing (a GPU) each call holds one request's rows, from the call's first place.
+    calls.clear()
+    solo = RowBatcher(fn, size=4, share=False)
+    futures = [solo.submit(list("abcde")), solo.submit(["x"])]
+    assert [f.result(10) for f in futures] == [[f"{c}!" for c in "abcde"],
+                                               ["x!"]]
+    assert calls == [list("abcd"), ["e"], ["x"]]
 
 
 @pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores

@@ -5,7 +5,8 @@
 Each RUN is a run folder (its episodes.jsonl, or episodes.jsonl.gz as reports keep them) or a
 jsonl file.  Episodes are matched by
 (task, seed, episode); every field except timing (`wall_s`, `batch_size`-independent
-timing keys) must be equal.  Prints per pair: episodes, identical, differing (first few
+timing keys) that both records have must be equal; a field only one side has (a run of
+an older version lacks the newer fields) is named, not counted.  Prints per pair: episodes, identical, differing (first few
 with the fields that differ), missing on either side.  Exit 1 when any pair differs.
 """
 
@@ -45,10 +46,15 @@ def load(path: Path) -> dict[tuple, dict]:
 def compare(a: Path, b: Path) -> bool:
     ra, rb = load(a), load(b)
     common = sorted(set(ra) & set(rb))
-    differ = [k for k in common if ra[k] != rb[k]]
+    one_sided = set()
+    for k in common:
+        one_sided |= set(ra[k]) ^ set(rb[k])
+    shared = lambda r: {f: v for f, v in r.items() if f not in one_sided}  # noqa: E731
+    differ = [k for k in common if shared(ra[k]) != shared(rb[k])]
     print(f"{a} vs {b}: {len(common)} episodes in both, {len(common) - len(differ)} identical, "
           f"{len(differ)} differ, {len(set(ra) - set(rb))} only in A, "
-          f"{len(set(rb) - set(ra))} only in B")
+          f"{len(set(rb) - set(ra))} only in B"
+          + (f" (fields on one side only: {', '.join(sorted(one_sided))})" if one_sided else ""))
     for k in differ[:5]:
         fields = sorted(f for f in set(ra[k]) | set(rb[k]) if ra[k].get(f) != rb[k].get(f))
         print(f"  {k}: {fields}")

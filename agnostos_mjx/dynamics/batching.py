@@ -1,11 +1,14 @@
 """Run the networks over rows in chunks of one fixed shape, and share those chunks between
 callers.
 
-Every chunk is padded to `size` rows, so each network compiles one program and a row's
-result depends on that row alone: XLA's results for a row change with the batch shape
-(~1e-5 between 4 and 8 rows on the CPU) but not with the other rows of a batch of the same
-shape.  That is what lets `RowBatcher` put the rows of several tasks' replanning rounds in
-one call without changing any task's records.
+Every chunk is padded to `size` rows, so each network compiles one program.  XLA's result
+for a row changes with the batch shape (~1e-5 between 4 and 8 rows on the CPU).  On the CPU
+it does not change with the row's place in a call or the rows beside it, so `RowBatcher`
+may put the rows of several tasks' replanning rounds in one call without changing any
+task's records.  On a GPU it can change with the place (an H100, 64-row calls: a row at
+place 56 or 59 differs by 6e-5 from the same row at place 0, at places 0-34 it does not),
+so there a call holds the rows of one request, from place 0: a task's records then do not
+depend on which tasks run beside it.
 
 With several local devices (agnostos_mjx.sharding) each chunk, rounded up to a multiple of
 the device count, is split over them; rows are independent, so results do not change."""
@@ -47,18 +50,24 @@ class _Request:
         self.closed = False  # its future is (being) set; guarded by the batcher's lock
 
 
+def rows_share_calls() -> bool:
+    """Whether calls may mix the rows of several requests here (see the module docstring)."""
+    return jax.default_backend() == "cpu"
+
+
 class RowBatcher:
     """`fn(items) -> results` (one result per item, at most `size` items a call) on
-    `workers` threads, over the items of every request pending when a worker is free, in
-    submission order.  `submit` returns a future of the request's results, so a task can
-    wait on its rows while other tasks add theirs to the same calls.  `fn` must give an
-    item the same result whatever items share its call (`map_chunks` does)."""
+    `workers` threads, in submission order.  `submit` returns a future of the request's
+    results, so a task can wait on its rows while other tasks run.  With `share` a call
+    takes the items of every request pending when a worker is free (`fn` must then give an
+    item the same result wherever it sits in a call); without, the items of one request."""
 
     def __init__(self, fn: Callable[[list[Any]], Sequence[Any]], size: int, workers: int = 1,
-                 name: str = "rows"):
+                 share: bool = True, name: str = "rows"):
         if size < 1 or workers < 1:
             raise ValueError(f"size and workers must be positive, got {size} and {workers}")
         self.fn, self.size, self.workers, self.name = fn, size, workers, name
+        self.share = share
         self._pending: collections.deque[tuple[_Request, int, Any]] = collections.deque()
         self._ready = threading.Condition()
         self._started = False
@@ -87,8 +96,11 @@ class RowBatcher:
             with self._ready:
                 while not self._pending:
                     self._ready.wait()
-                take = [self._pending.popleft()
-                        for _ in range(min(self.size, len(self._pending)))]
+                first = self._pending[0][0]
+                take = []
+                while (self._pending and len(take) < self.size
+                       and (self.share or self._pending[0][0] is first)):
+                    take.append(self._pending.popleft())
                 if self._pending:
                     self._ready.notify()  # another worker can start on the rest
                 self.calls += 1

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.dynamics.batching import RowBatcher
+from agnostos_mjx.dynamics.batching import RowBatcher, rows_share_calls
 from agnostos_mjx.xicm.memory import DemoMemory
 from agnostos_mjx.xicm.query import Query, then, top_k
 
@@ -75,10 +75,10 @@ class DynamicsSelector:
         import jax
 
         workers = CPU_WORKERS if jax.default_backend() == "cpu" else ACCELERATOR_WORKERS
-        # Queries of every task that waits on this selector share its chunks (the rows of one
-        # replanning round of one task rarely fill one).
+        # On the CPU the queries of every task waiting on this selector share its chunks
+        # (one task's replanning round rarely fills one); see dynamics/batching.py.
         self._batcher = RowBatcher(self._similarities, self.pipeline.chunk_size, workers,
-                                   name="selection")
+                                   share=rows_share_calls(), name="selection")
 
         if jax.default_backend() == "cpu" and "vis.out" in self.parts:
             # 2-core x86: 0.30-0.37 s per query at 10 steps in the evaluation's batches
