@@ -51,6 +51,7 @@ from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config,
 from agnostos_mjx.evaluation.records import interrupted_message
 from agnostos_mjx.evaluation.run import evaluate, resolve_out
 from agnostos_mjx.evaluation.summary import (
+    failed_task_summary,
     merge_main,
     policy_error_summary,
     request_summaries,
@@ -121,7 +122,8 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
             remove_empty_dirs(out_dir)  # a run that failed before its first result
     print(results["markdown"], end="", flush=True)
     log.info("wrote %s", cfg.out)
-    return max(request_summaries(results), policy_error_summary(results))
+    return max(request_summaries(results), policy_error_summary(results),
+               failed_task_summary(results))
 
 
 def start_devices(cfg: EvalConfig, spec: str) -> None:

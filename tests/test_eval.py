@@ -543,3 +543,27 @@ def test_tasks_at_once_give_the_records_of_each_task_alone(tmp_path: Path, monke
     together = load(tmp_path / "together")
     assert len(together) == 6 and together == load(tmp_path / "alone")
     assert all(r["success"] for r in together.values())
+
+
+def test_a_failing_task_does_not_stop_the_others(tmp_path: Path, monkeypatch,
+                                                capsys: pytest.CaptureFixture) -> None:
+    """A task that raises is recorded in results.json's failed_tasks, named on stderr and
+    in the exit code (1); the run's other tasks finish."""
+    import agnostos_mjx.runtime.env as runtime_env
+
+    class BrokenScene(runtime_env.Episodes):
+        def __init__(self, task, *args, **kwargs):
+            if task.name == "lamp_off":
+                raise RuntimeError("scene failed to build")
+            super().__init__(task, *args, **kwargs)
+
+    monkeypatch.setattr(runtime_env, "Episodes", BrokenScene)
+    out = tmp_path / "run"
+    code = ev.main(["--policy", "oracle", "--tasks", "lamp_off,lamp_on", "--seeds", "0",
+                    "--episodes", "2", "--batch", "2", "--backend", "native", "--quiet",
+                    "--out", str(out)])
+    assert code == 1
+    results = json.loads((out / "results.json").read_text())
+    assert results["failed_tasks"] == {"lamp_off": "RuntimeError: scene failed to build"}
+    assert [r["task"] for r in results["episodes"]] == ["lamp_on", "lamp_on"]
+    assert "task lamp_off failed: RuntimeError: scene failed to build" in capsys.readouterr().err

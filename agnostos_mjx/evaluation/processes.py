@@ -224,7 +224,8 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         shown.add(tail)
         print(f"error: process {i} exited with {code}; last lines of {out}/proc-{i}.log:\n  "
               + tail, file=sys.stderr)
-    if failed:
+    # A process whose task failed (results.json's failed_tasks) still finished the others.
+    if failed and not all((out / f"proc-{i}" / "results.json").exists() for i, _ in failed):
         return 1
     log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
-    return merge_main(str(out))
+    return max(merge_main(str(out)), 1 if failed else 0)

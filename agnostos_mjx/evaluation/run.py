@@ -174,10 +174,20 @@ def evaluate(cfg: EvalConfig) -> dict:
         return [r for r in all_records if r["task"] in names and int(r["seed"]) in seeds
                 and int(r["episode"]) < cfg.episodes]
 
+    failed: dict[str, str] = {}  # task -> its error, for a task that raised
+
     def write_results(final: bool) -> dict:
         # policy.report(): requests, retries, failures, what was sent (LLM, policy server)
+        extra = {**policy.report(), **({"failed_tasks": failed} if failed else {})}
         return write_outputs(out_dir, meta, selected(), mine(), cfg,
-                             time.perf_counter() - t0, final, policy.report())
+                             time.perf_counter() - t0, final, extra)
+
+    def on_error(index: int, error: Exception) -> None:
+        name = todo[index].name
+        failed[name] = f"{type(error).__name__}: {error}"
+        log.error("%s failed, the other tasks go on (its episodes not recorded run again "
+                  "with --resume): %s", name, failed[name], exc_info=error)
+        write_results(final=False)
 
     def on_timing(split: dict) -> None:  # where each task's time went (rollout.TimeSplit)
         with open(out_dir / TIMINGS_FILE, "a") as f:
@@ -208,7 +218,8 @@ def evaluate(cfg: EvalConfig) -> dict:
         if queue is not None:
             jobs = [queue.claimed(t.name, job) for t, job in zip(todo, jobs)]
         try:
-            run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False))
+            run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False),
+                            on_error=None if cfg.fail_fast else on_error)
         finally:
             if pool is not None:
                 pool.shutdown(cancel_futures=True)

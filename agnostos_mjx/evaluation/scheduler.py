@@ -13,11 +13,14 @@ Steps = Generator[concurrent.futures.Future, Any, Any]
 
 
 def run_interleaved(jobs: Sequence[Steps], limit: int,
-                    on_done: Callable[[int, Any], None] | None = None) -> list:
+                    on_done: Callable[[int, Any], None] | None = None,
+                    on_error: Callable[[int, Exception], None] | None = None) -> list:
     """Run generators of futures (rollout.task_steps) with up to `limit` started at once:
-    whenever one waits on a future, the next ready one runs.  Everything runs on the calling
-    thread (physics and JAX stay single-threaded); only the awaited work (LLM requests) runs
-    elsewhere.  `on_done(index, value)` is called as each finishes; returns the values."""
+    whenever one waits on a future, the next ready one runs.  The generators run on the
+    calling thread; the awaited work (LLM requests, the selection, native physics) runs
+    elsewhere.  `on_done(index, value)` is called as each finishes; returns the values.
+    With `on_error(index, error)` a job that raises is handed to it and the others go on
+    (its value stays None); without, the error stops the run."""
     pending = collections.deque(enumerate(jobs))
     active: list[list] = []  # [index, generator, future or None]
     values: list = [None] * len(jobs)
@@ -38,6 +41,11 @@ def run_interleaved(jobs: Sequence[Steps], limit: int,
                     active.remove(slot)
                     if on_done is not None:
                         on_done(slot[0], stop.value)
+                except Exception as error:
+                    if on_error is None:
+                        raise
+                    active.remove(slot)
+                    on_error(slot[0], error)
     except BaseException:  # Ctrl-C or a failure: cancel the work still waited on
         for _, steps, future in active:
             if future is not None:

@@ -252,11 +252,12 @@ def merge(out: Path) -> dict:
     meta["processes"] = [{"process_id": m["config"]["process_id"], "wall_s": m["wall_s"],
                           "finished": m["finished"], "episodes": len(m["episodes"])}
                          for m in metas]
+    failed = {t: e for m in metas for t, e in m.get("failed_tasks", {}).items()}
     tasks = first["tasks"]
     atomic_write(out / EPISODES_FILE, jsonl(sorted(merged, key=lambda r: (
         tasks.index(r["task"]), r["seed"], r["episode"]))))
     return write_outputs(out, meta, merged, tasks, cfg, max(m["wall_s"] for m in metas),
-                         final=True)
+                         final=True, extra={"failed_tasks": failed} if failed else None)
 
 
 def merge_main(out: str | None) -> int:
@@ -273,7 +274,19 @@ def merge_main(out: str | None) -> int:
     if not results["complete"]:
         log.warning("%s: episodes are missing (a process has not finished); merge again "
                     "once it has", out)
-    return policy_error_summary(results)
+    return max(policy_error_summary(results), failed_task_summary(results))
+
+
+def failed_task_summary(results: dict) -> int:
+    """Name the tasks that raised (their error is in results.json's ``failed_tasks`` and
+    the traceback in the log); the exit code: 1 when any did."""
+    failed = results.get("failed_tasks") or {}
+    for task, error in failed.items():
+        print(f"error: task {task} failed: {error}", file=sys.stderr, flush=True)
+    if failed:
+        print(f"error: {len(failed)} task(s) failed and the others finished; --resume with "
+              "the same --out runs the missing episodes again", file=sys.stderr, flush=True)
+    return 1 if failed else 0
 
 
 # ---- requests to servers -----------------------------------------------------------------
