@@ -33,30 +33,29 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.evaluation.config import positive_int
 from agnostos_mjx.settings import cache_root, configure_jax
 
-if TYPE_CHECKING:
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
-
 log = logging.getLogger("agnostos_mjx.warmup")
 
 
-def warm_selection(episodes: Episodes, env: EnvState) -> None:
-    """The default policies' demo selection: the retrieval baseline plans every world of
-    this batch, selecting demos as X-ICM does (`--selection auto`, the shipped memory).
-    Its networks run at one batch shape (dynamics/batching.py), so this compiles them all."""
+SELECTION_WORKER = "(selection)"  # --worker name of the selection step
+
+
+def warm_selection(instruction: str = "press the button") -> None:
+    """The default policies' demo selection (`--selection auto` with the shipped memory, as
+    the retrieval baseline and X-ICM run it): one query with a blank front frame.  Its
+    networks run at one batch shape whatever the task, batch or frame
+    (dynamics/batching.py), so this compiles all of them, with no scene or physics."""
     import numpy as np
 
     from agnostos_mjx.policies.retrieval import RetrievalPolicy
+    from agnostos_mjx.xicm.query import Query
 
-    policy = RetrievalPolicy()
-    policy.reset(episodes, env, [episodes.task.descriptions(0)[0]] * env.batch)
-    policy.plan(episodes, env, np.arange(env.batch))
+    frame = np.zeros((128, 128, 3), np.uint8)  # the size policies.xicm.queries_for renders
+    RetrievalPolicy().selector.select([Query(instruction, 0, frame)], 1)
 
 
 def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
@@ -83,7 +82,7 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
         episodes.observe(env, ObservationSpec(cameras=("front",), width=64, height=64))
     t3 = time.perf_counter()
     if selection:
-        warm_selection(episodes, env)
+        warm_selection(episodes.task.descriptions(0)[0])
     t4 = time.perf_counter()
     episodes.close()
     return {"task": name, "backend": episodes.backend_name, "nv": int(episodes.scene.model.nv),
@@ -254,18 +253,13 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
     return result
 
 
-def kernels_and_selection(args: argparse.Namespace, names: list[str], selection: bool
-                          ) -> list[dict]:
+def kernels_and_selection(args: argparse.Namespace, selection: bool) -> list[dict]:
     """At once: on warp every scene's Warp kernels (many processes), and with `selection`
-    the default policies' demo selection on the first task (what every task of those
-    policies shares; its programs do not depend on the physics backend, so on warp they
-    compile over native physics, needing no Warp kernel).  The results, logged."""
+    the default policies' demo selection (warm_selection: no scene, no physics) in a
+    process of its own.  The results, logged."""
     results = []
     with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 1) as pool:
-        chosen = None
-        if selection:
-            backend = "native" if args.backend == "warp" else args.backend
-            chosen = pool.submit(_worker, names[0], args, True, backend)
+        chosen = pool.submit(_worker, SELECTION_WORKER, args) if selection else None
         if args.backend == "warp":
             results.append(build_kernels_in_parallel(args, pool))
             log.info("warmup: %s", results[-1])
@@ -320,6 +314,12 @@ def main(argv: list[str] | None = None) -> int:
         part, parts = (int(x) for x in args.worker.removeprefix("kernels:").split("/"))
         print(json.dumps(build_kernels(_task_names(args.tasks), args.batch, part, parts)))
         return 0
+    if args.worker == SELECTION_WORKER:
+        t0 = time.perf_counter()
+        warm_selection()
+        print(json.dumps({"task": SELECTION_WORKER,
+                          "selection_s": round(time.perf_counter() - t0, 2)}))
+        return 0
     if args.worker:
         print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner,
                                    args.worker_selection)))
@@ -334,9 +334,7 @@ def main(argv: list[str] | None = None) -> int:
         "none" if args.backend == "warp" else "per-size")
     todo = {"none": [], "per-size": one_per_size(names), "every": names}[runs]
     t0 = time.perf_counter()
-    results = kernels_and_selection(args, names, selection=not args.no_selection)
-    if results and results[-1].get("backend") == args.backend and todo[:1] == names[:1]:
-        todo = todo[1:]  # the selection's task ran on the run's backend already
+    results = kernels_and_selection(args, selection=not args.no_selection)
     with ThreadPoolExecutor(args.jobs) as pool:
         for result in pool.map(lambda n: _worker(n, args), todo):
             log.info("warmup: %s", result)

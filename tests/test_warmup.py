@@ -26,9 +26,9 @@ def test_one_per_size_and_bad_task(capsys):
 
 @pytest.mark.slow
 def test_warm_selection_compiles_what_the_default_policy_runs():
-    """After warm_selection, the retrieval policy's (= X-ICM's) first plan of the same batch
-    compiles nothing: the networks every process of a first run would otherwise compile at
-    once are the ones the warm-up left in the cache."""
+    """After warm_selection (one blank query, no scene), the retrieval policy's (= X-ICM's)
+    first plan of a task's batch compiles nothing: the networks every process of a first
+    run would otherwise compile at once are the ones the warm-up left in the cache."""
     import jax
     import numpy as np
 
@@ -42,7 +42,7 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
     episodes = Episodes(task, "native")
     env = episodes.reset(jax.random.split(jax.random.PRNGKey(0), 2), np.zeros(2, np.int32))
     with count_compiles() as warmed:
-        warmup.warm_selection(episodes, env)
+        warmup.warm_selection()
     assert warmed  # the networks were compiled (or fetched from the disk cache) here
     policy = RetrievalPolicy()
     policy.reset(episodes, env, [task.descriptions(0)[0]] * 2)
