@@ -239,6 +239,16 @@ def quat_to_rotvec(q: Array) -> Array:
     return scale * q[..., 1:]
 
 
+def xyzw_to_axis_angle_f32(xyzw: np.ndarray) -> np.ndarray:
+    """Scalar-last unit quaternions (..., 4) -> axis * angle (..., 3), angle in [0, pi], in
+    float32 arithmetic: LIBERO's state, which the remote adapter sends served policies and
+    the LeRobot export's libero layout stores, bit for bit alike."""
+    q = np.where(xyzw[..., 3:4] < 0, -xyzw, xyzw)
+    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., 3:4])
+    return np.where(s > 1e-12, q[..., :3] / np.maximum(s, 1e-12) * angle, 0.0).astype(np.float32)
+
+
 def rot6d_to_mat(d6: Array) -> Array:
     """6-D rotations (..., 6) -> rotation matrices (..., 3, 3).  The 6 numbers are the
     first two *columns* of the matrix, column 0 then column 1 (Zhou et al., "On the

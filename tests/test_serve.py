@@ -14,12 +14,12 @@ pytest.importorskip("msgpack")
 
 from agnostos_mjx import eval as ev  # noqa: E402
 from agnostos_mjx.gpu import memory_env  # noqa: E402
+from agnostos_mjx.math3d import xyzw_to_axis_angle_f32  # noqa: E402
 from agnostos_mjx.remote import wire  # noqa: E402
 from agnostos_mjx.remote.adapter import (  # noqa: E402
     BadAnswer,
     make_adapter,
     parse_action,
-    quat_to_axis_angle,
 )
 
 TASKS = "lamp_on,phone_on_base"  # a button and a pick-and-place (grasp state travels)
@@ -78,8 +78,8 @@ def test_adapter_presets_keys_and_spec() -> None:
     with pytest.raises(ValueError, match="unknown preset"):
         make_adapter("aloha")
     half_turn_z = np.array([0.0, 0.0, 1.0, 0.0])  # xyzw
-    assert np.allclose(quat_to_axis_angle(half_turn_z), [0, 0, np.pi])
-    assert np.allclose(quat_to_axis_angle(np.array([0, 0, 0, 1.0])), 0)
+    assert np.allclose(xyzw_to_axis_angle_f32(half_turn_z), [0, 0, np.pi])
+    assert np.allclose(xyzw_to_axis_angle_f32(np.array([0, 0, 0, 1.0])), 0)
 
 
 def test_gpu_memory_env() -> None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation, from_quat
+from agnostos_mjx.math3d import xyzw_to_axis_angle_f32
 
 STATE_LAYOUTS = ("rlbench", "libero", "xicm")
 STATE_NAMES: dict[str, tuple[str, ...]] = {
@@ -86,9 +87,7 @@ def state_vector(layout: str, gripper_pose: np.ndarray, gripper_open: np.ndarray
     if check_state(layout) == "rlbench":
         return np.concatenate([pose, grip], 1)
     if layout == "libero":  # exactly the adapter's libero_state (float32 arithmetic)
-        from agnostos_mjx.remote.adapter import quat_to_axis_angle
-
-        return np.concatenate([pose[:, :3], quat_to_axis_angle(pose[:, 3:]),
+        return np.concatenate([pose[:, :3], xyzw_to_axis_angle_f32(pose[:, 3:]),
                                np.asarray(fingers, np.float32)], 1).astype(np.float32)
     euler = from_quat(pose[:, 3:].astype(np.float64), "euler")
     return np.concatenate([pose[:, :3], euler.astype(np.float32), grip], 1)

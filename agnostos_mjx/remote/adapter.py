@@ -234,21 +234,14 @@ def _json_mapping(name: str, value: Any) -> Mapping | None:
 
 
 # ---- observation -> request ---------------------------------------------------------------
-def quat_to_axis_angle(xyzw: np.ndarray) -> np.ndarray:
-    """Scalar-last unit quaternions (..., 4) -> axis * angle (..., 3), angle in [0, pi]."""
-    q = np.where(xyzw[..., 3:4] < 0, -xyzw, xyzw)
-    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., 3:4])
-    return np.where(s > 1e-12, q[..., :3] / np.maximum(s, 1e-12) * angle, 0.0).astype(np.float32)
-
-
 def lowdim(proprio: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Our low-dimensional sources of a batch from observation.proprioception's fields."""
     pose = proprio["gripper_pose"]
     out = dict(proprio)
     out["gripper_closed"] = (1.0 - proprio["gripper_open"]).astype(np.float32)
     out["libero_state"] = np.concatenate(
-        [pose[:, :3], quat_to_axis_angle(pose[:, 3:]), proprio["gripper_joint_positions"]],
+        [pose[:, :3], math3d.xyzw_to_axis_angle_f32(pose[:, 3:]),
+         proprio["gripper_joint_positions"]],
         axis=1).astype(np.float32)
     wxyz = np.asarray(pose[:, [6, 3, 4, 5]], np.float64)
     out["xicm_state"] = np.concatenate(
