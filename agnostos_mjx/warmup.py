@@ -44,7 +44,7 @@ log = logging.getLogger("agnostos_mjx.warmup")
 SELECTION_WORKER = "(selection)"  # --worker name of the selection step
 
 
-def warm_selection(instruction: str = "press the button") -> None:
+def warm_selection() -> None:
     """The default policies' demo selection (`--selection auto` with the shipped memory, as
     the retrieval baseline and X-ICM run it): one query with a blank front frame.  Its
     networks run at one batch shape whatever the task, batch or frame
@@ -55,14 +55,12 @@ def warm_selection(instruction: str = "press the button") -> None:
     from agnostos_mjx.xicm.query import Query
 
     frame = np.zeros((128, 128, 3), np.uint8)  # the size policies.xicm.queries_for renders
-    RetrievalPolicy().selector.select([Query(instruction, 0, frame)], 1)
+    RetrievalPolicy().selector.select([Query("press the button", 0, frame)], 1)
 
 
-def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
-              selection: bool = False) -> dict:
+def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dict:
     """Run what an evaluation runs for one task once: reset (settle steps), the expert's
-    first key action, on warp one rendered frame, and with `selection` the default
-    policies' demo selection (warm_selection).  Returns the stage timings (s)."""
+    first key action, on warp one rendered frame.  Returns the stage timings (s)."""
     import jax
     import numpy as np
 
@@ -81,14 +79,10 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto",
     if episodes.backend_name == "warp":
         episodes.observe(env, ObservationSpec(cameras=("front",), width=64, height=64))
     t3 = time.perf_counter()
-    if selection:
-        warm_selection(episodes.task.descriptions(0)[0])
-    t4 = time.perf_counter()
     episodes.close()
     return {"task": name, "backend": episodes.backend_name, "nv": int(episodes.scene.model.nv),
             "reset_s": round(t1 - t0, 2), "key_action_s": round(t2 - t1, 2),
-            "render_s": round(t3 - t2, 2), "selection_s": round(t4 - t3, 2),
-            "wall_s": round(t4 - t0, 2)}
+            "render_s": round(t3 - t2, 2), "wall_s": round(t3 - t0, 2)}
 
 
 def build_kernels(names: list[str], batch: int, part: int = 0, parts: int = 1) -> dict:
@@ -118,14 +112,12 @@ def one_per_size(names: list[str]) -> list[str]:
     return list(seen.values())
 
 
-def _worker(name: str, args: argparse.Namespace, selection: bool = False,
-            backend: str | None = None) -> dict:
-    """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks)
-    in its own process (its GPU memory and Warp context go away with it)."""
+def _worker(name: str, args: argparse.Namespace) -> dict:
+    """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks;
+    SELECTION_WORKER, warm_selection) in its own process (its GPU memory and Warp context
+    go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
-           "--backend", backend or args.backend, "--batch", str(args.batch),
-           "--planner", args.planner,
-           *(["--worker-selection"] if selection else [])]
+           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
     if not any(v in env for v in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION")):
@@ -177,8 +169,8 @@ def selection_marker(batch: int) -> Path:
 def ensure_selection(tasks: str, batch: int, planner: str = "auto") -> int | None:
     """Before a run of several processes with the default policies (on a backend without
     Warp's kernel step, which does this too): the demo selection's networks, which every
-    process runs, compiled once in a process of its own on the first task over native
-    physics, unless this machine did it already (selection_marker).  Returns its exit code,
+    process runs, compiled once in a process of its own (warm_selection), unless this
+    machine did it already (selection_marker).  Returns its exit code,
     None if skipped; on failure the processes compile as they go."""
     marker = selection_marker(batch)
     if marker.exists():
@@ -303,7 +295,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="skip the default policies' demo selection (its networks; for runs "
                         "of other policies, e.g. --policy oracle or reference-vla)")
     p.add_argument("--worker", metavar="TASK", help=argparse.SUPPRESS)
-    p.add_argument("--worker-selection", action="store_true", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
@@ -321,8 +312,7 @@ def main(argv: list[str] | None = None) -> int:
                           "selection_s": round(time.perf_counter() - t0, 2)}))
         return 0
     if args.worker:
-        print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner,
-                                   args.worker_selection)))
+        print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner)))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:

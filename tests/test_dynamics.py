@@ -485,7 +485,7 @@ def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     assert all(len(call) <= 4 for call in calls) and len(calls) < 4  # rounds shared calls
     with pytest.raises(ValueError, match="bad row"):
         batcher.submit(["g", "bad"]).result(10)
-    assert batcher(["h"]) == ["h!"]  # a failed call does not stop the workers
+    assert batcher.submit(["h"]).result(10) == ["h!"]  # a failed call stops no worker
     # Without sharing (a GPU) each call holds one request's rows, from the call's first place.
     calls.clear()
     solo = RowBatcher(fn, size=4, share=False)

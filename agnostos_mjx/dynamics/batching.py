@@ -71,7 +71,6 @@ class RowBatcher:
         self._pending: collections.deque[tuple[_Request, int, Any]] = collections.deque()
         self._ready = threading.Condition()
         self._started = False
-        self.calls = 0
 
     def submit(self, items: Sequence[Any]) -> concurrent.futures.Future:
         request = _Request(items)
@@ -88,9 +87,6 @@ class RowBatcher:
             self._ready.notify()
         return request.future
 
-    def __call__(self, items: Sequence[Any]) -> list[Any]:
-        return self.submit(items).result()
-
     def _work(self) -> None:
         while True:
             with self._ready:
@@ -103,7 +99,6 @@ class RowBatcher:
                     take.append(self._pending.popleft())
                 if self._pending:
                     self._ready.notify()  # another worker can start on the rest
-                self.calls += 1
             try:
                 results = list(self.fn([item for _, _, item in take]))
                 if len(results) != len(take):

@@ -28,8 +28,8 @@ log = logging.getLogger("agnostos_mjx.xicm")
 # top-1 agreement (0.86).  The memory's features stay at 50 steps.
 QUERY_SAMPLE_STEPS = 10
 # Threads that run chunks of queries at once.  One XLA CPU call keeps ~1.5 of 2 cores busy
-# (2-core x86: 761 ms per query in chunks of 8, 495 ms with two chunks at a time); a GPU
-# runs one chunk after another either way.
+# (2-core x86, 4-row chunks: 625 ms per query with one thread, 417 ms with two); a GPU runs
+# one chunk after another either way.
 CPU_WORKERS, ACCELERATOR_WORKERS = 2, 1
 
 

@@ -35,8 +35,6 @@ class Selector(Protocol):
 class ImmediateSelector:
     """A selector that answers at once (random, text): `submit` is a finished future."""
 
-    name = "immediate"
-
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
         raise NotImplementedError
 
