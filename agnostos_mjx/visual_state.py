@@ -63,7 +63,7 @@ class StateColors:
 
     def __init__(self, task, model: mujoco.MjModel, layout: Layout):
         # Geoms and colours are static by contract, so variation 0 names them.
-        rules = task.state_colors(jnp.int32(0))
+        rules = task.state_colors(np.int32(0))
         self.geom_ids = [np.array([model.geom(g).id for g in r.geoms]) for r in rules]
         self.rgbs = [np.asarray(r.rgb, np.float32) for r in rules]
 

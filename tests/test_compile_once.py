@@ -3,16 +3,23 @@ active, how many scenes a reset rejects) never changes a compiled shape (issue 1
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.base import KeyActions
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+COMPILE_EVENTS_TOOL = Path(__file__).resolve().parents[1] / "tools" / "compile_events.py"
 
 
 @contextlib.contextmanager
@@ -97,3 +104,28 @@ def test_phases_of_any_length_share_one_condition_program():
                 np.testing.assert_array_equal(x, np.asarray(y))
     # the whole-phase scans compile a program per length; the chunked one none after its first
     assert len(compiles) == 2
+
+
+def _programs(tmp_path: Path, task: str, seeds: str) -> collections.Counter:
+    """The programs an evaluation process lowers (compiled, or read from the persistent
+    cache): the default policy, `task`, batches of 2 worlds, 2 episodes per seed."""
+    out = tmp_path / f"{task}-{seeds}"
+    subprocess.run([sys.executable, str(COMPILE_EVENTS_TOOL), "--json", str(out / "ev.json"),
+                    "--", "--tasks", task, "--batch", "2", "--episodes", "2", "--seeds", seeds,
+                    "--quiet", "--out", str(out)], check=True, capture_output=True, text=True)
+    events = json.loads((out / "ev.json").read_text())["events"]
+    return collections.Counter(e["fun"] for e in events
+                               if e["event"] == "jaxpr_to_mlir_module_duration")
+
+
+@pytest.mark.slow  # three evaluation processes
+def test_a_task_batch_runs_at_most_8_programs_and_more_batches_no_more(tmp_path):
+    """Reset (keys, placement, the settled scene's conditions and expert), the condition
+    scan, the state colours or the grasp test, and the selection (instruction feature, the
+    bank normalised once, one program from the frames to the scores) are all of a task's
+    programs: 3 batches lower the same ones as 1."""
+    one = _programs(tmp_path, "lamp_on", "0")
+    assert sum(one.values()) <= 8, one
+    assert _programs(tmp_path, "lamp_on", "0,1,2") == one
+    grasping = _programs(tmp_path, "phone_on_base", "0")  # the grasp test, no state colours
+    assert sum(grasping.values()) <= 8, grasping

@@ -219,6 +219,21 @@ def test_feature_shapes_and_determinism(pipe, pairs):
         np.testing.assert_allclose(one[part][0], a[part][1], rtol=1e-4, atol=1e-4)
 
 
+def test_the_selections_one_program_gives_the_features_scores_bit_for_bit(pipe, pairs):
+    """query_similarity (frames to scores in one compiled program) gives exactly the
+    scores of extract, normalised and normalised_similarity one after the other."""
+    from agnostos_mjx.dynamics.features import normalised, normalised_similarity, query_similarity
+
+    first, instr = pairs.first[:4], pairs.instructions[:4]
+    bank = extract(pipe, pairs.first[4:], pairs.instructions[4:])
+    query = extract(pipe, first, instr)
+    for mode, metric in (("lang+vis.out", "cosine"), ("vis.in+vis.out", "dot")):
+        prepared = normalised(bank, mode, metric)
+        want = normalised_similarity(normalised(query, mode, metric), prepared, metric)
+        got = query_similarity(pipe, first, instr, query["lang"], prepared, metric)
+        np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.slow
 def test_lang_depends_on_the_instruction(pipe):
     lang = pipe.lang(

@@ -1,6 +1,7 @@
 """Where a process's start-up and first tasks go: run `python -m agnostos_mjx.eval ARGS` in
 this process with JAX's tracing, lowering, compiling and persistent-cache events recorded,
-then print them summed per function and write them with their times since start:
+then print them summed per function, count the programs, and write every event with its
+time since start:
 
     python tools/compile_events.py --json events.json -- --tasks lamp_on --batch 75 ...
 
@@ -19,6 +20,9 @@ import sys
 import time
 
 START = time.perf_counter()
+# Every program a process runs is lowered once, whether XLA then compiles it or the
+# persistent cache has it: lowerings count the programs.
+LOWERED, COMPILED = "jaxpr_to_mlir_module_duration", "backend_compile_duration"
 
 
 def main() -> None:
@@ -62,6 +66,10 @@ def main() -> None:
             print(f"== {event}: {s:.1f} s", file=sys.stderr)
         for (event, fun), (n, s) in sorted(totals.items(), key=lambda x: -x[1][1])[:args.top]:
             print(f"== {s:7.2f} s {n:4d}x {event} {fun[:80]}", file=sys.stderr)
+        lowered = [e["fun"] for e in events if e["event"] == LOWERED]
+        compiled = sum(e["event"] == COMPILED for e in events)
+        print(f"== programs: {len(lowered)} lowered, {compiled} of them compiled (the others "
+              f"came from the persistent cache): {', '.join(sorted(lowered))}", file=sys.stderr)
         if args.json:
             with open(args.json, "w") as f:
                 json.dump({"wall_s": round(wall, 2), "events": events}, f)

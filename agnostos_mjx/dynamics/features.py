@@ -23,8 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from agnostos_mjx.dynamics.batching import map_chunks
 from agnostos_mjx.dynamics.data import FramePairs
-from agnostos_mjx.dynamics.pipeline import Pipeline
+from agnostos_mjx.dynamics.pipeline import Pipeline, first_and_predicted_latents
 
 PARTS = ("lang", "vis.in", "vis.out")
 DEFAULT_MODE = "lang+vis.out"  # the paper's best combination
@@ -70,8 +71,8 @@ def normalised(features: dict[str, np.ndarray], mode: str, metric: str = "cosine
         raise ValueError("'random' has no similarity")
     if metric not in ("cosine", "dot"):
         raise ValueError(f"unknown metric {metric!r} (cosine or dot)")
-    return {p: _normalise(jnp.atleast_2d(jnp.asarray(features[p], jnp.float32)),
-                          metric == "cosine") for p in parts}
+    return {p: _normalise(np.atleast_2d(np.asarray(features[p], np.float32)), metric == "cosine")
+            for p in parts}
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -93,6 +94,42 @@ def _similarity(query: tuple[jax.Array, ...], bank: tuple[jax.Array, ...], cosin
                 ) -> jax.Array:
     total = sum(q @ b.T for q, b in zip(query, bank))
     return total / len(query) if cosine else total
+
+
+def query_similarity(pipeline: Pipeline, frames: np.ndarray, instructions: list[str],
+                     lang: np.ndarray | None, bank: dict[str, jax.Array],
+                     metric: str = "cosine") -> np.ndarray:
+    """`similarity` (N, M) of N queries (first frames + instructions; `lang`, their
+    instruction features when the bank compares lang) to a bank `normalised` prepared, with
+    one compiled program per chunk from the frames to the scores: the same numbers as
+    `extract`, `normalised` and `normalised_similarity` one after the other."""
+    parts = tuple(bank)
+    if parts == ("lang",):  # no network runs on the frames
+        return normalised_similarity(normalised({"lang": lang}, "lang", metric), bank, metric)
+    ids, mask = pipeline.tokens(instructions)
+    lang = np.zeros((len(frames), 0), np.float32) if lang is None else np.asarray(lang, np.float32)
+    (ae_graph, ae_state), (graph, state) = pipeline.ae_split, pipeline.model_split
+    static = (ae_graph, graph, pipeline.diffusion, pipeline.latent_scale, parts,
+              metric == "cosine")
+    rows = tuple(bank[p] for p in parts)
+    return map_chunks(lambda f, i, m, la: _query_similarity(static, ae_state, state, rows,
+                                                            f, i, m, la),
+                      frames, ids, mask, lang, size=pipeline.chunk_size)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _query_similarity(static: tuple, ae_state: Any, state: Any, bank: tuple[jax.Array, ...],
+                      frames: jax.Array, ids: jax.Array, mask: jax.Array, lang: jax.Array
+                      ) -> jax.Array:
+    ae_graph, graph, cfg, latent_scale, parts, cosine = static
+    z_in, z_out = first_and_predicted_latents(ae_graph, ae_state, graph, state, cfg,
+                                              latent_scale, frames, ids, mask,
+                                              predict="vis.out" in parts)
+    features = {"lang": lang, "vis.in": z_in.reshape(len(z_in), -1)}
+    if z_out is not None:
+        features["vis.out"] = z_out.reshape(len(z_out), -1)
+    query = tuple(_normalise(features[p], cosine) for p in parts)
+    return _similarity(query, bank, cosine)
 
 
 def similarity(

@@ -95,6 +95,17 @@ def _sample(graph: nnx.GraphDef, state: nnx.State, cfg: DiffusionConfig, z_first
     return ddim_sample(model, cfg, z_first, ids, mask, jnp.broadcast_to(noise, z_first.shape))
 
 
+def first_and_predicted_latents(ae_graph: nnx.GraphDef, ae_state: nnx.State,
+                                graph: nnx.GraphDef, state: nnx.State, cfg: DiffusionConfig,
+                                latent_scale: float, frames: jax.Array, ids: jax.Array,
+                                mask: jax.Array, predict: bool = True
+                                ) -> tuple[jax.Array, jax.Array | None]:
+    """Traceable `Pipeline.encode` then `Pipeline.predict` (None without `predict`), for
+    programs that go on from the latents (the selection's one program per query chunk)."""
+    z = _encode(ae_graph, ae_state, frames) * latent_scale
+    return z, (_sample(graph, state, cfg, z, ids, mask) if predict else None)
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def _pooled(graph: nnx.GraphDef, state: nnx.State, ids: jax.Array, mask: jax.Array
             ) -> jax.Array:
@@ -175,22 +186,22 @@ class Pipeline:
         return self.chunk or default_chunk()
 
     @functools.cached_property
-    def _ae_split(self) -> tuple[nnx.GraphDef, nnx.State]:
+    def ae_split(self) -> tuple[nnx.GraphDef, nnx.State]:
         return nnx.split(self.ae)
 
     @functools.cached_property
-    def _model_split(self) -> tuple[nnx.GraphDef, nnx.State]:
+    def model_split(self) -> tuple[nnx.GraphDef, nnx.State]:
         return nnx.split(self.model)
 
     def encode(self, frames: np.ndarray) -> np.ndarray:
         """uint8 (N,128,128,3) -> scaled latents (N,16,16,4)."""
-        latents = map_chunks(lambda f: _encode(*self._ae_split, f), frames, size=self.chunk_size)
+        latents = map_chunks(lambda f: _encode(*self.ae_split, f), frames, size=self.chunk_size)
         return latents * self.latent_scale
 
     def decode(self, latents: np.ndarray) -> np.ndarray:
         """Scaled latents -> uint8 frames."""
         latents = np.asarray(latents) / self.latent_scale
-        return map_chunks(lambda z: _decode(*self._ae_split, z), latents, size=self.chunk_size)
+        return map_chunks(lambda z: _decode(*self.ae_split, z), latents, size=self.chunk_size)
 
     def tokens(self, instructions: list[str]) -> tuple[np.ndarray, np.ndarray]:
         return tokenize(instructions, self.text.max_len)
@@ -198,7 +209,7 @@ class Pipeline:
     def predict(self, first_latents: np.ndarray, instructions: list[str]) -> np.ndarray:
         """Predicted last-frame latents (N,16,16,4) by guided DDIM from fixed noise."""
         ids, mask = self.tokens(instructions)
-        graph, state = self._model_split
+        graph, state = self.model_split
         fn = lambda z, i, m: _sample(graph, state, self.diffusion, z, i, m)
         z = np.asarray(first_latents, np.float32)
         return map_chunks(fn, z, ids, mask, size=self.chunk_size)
@@ -206,5 +217,5 @@ class Pipeline:
     def lang(self, instructions: list[str]) -> np.ndarray:
         """Pooled, projected instruction features (N, 1024)."""
         ids, mask = self.tokens(instructions)
-        fn = lambda i, m: _pooled(*self._model_split, i, m)
+        fn = lambda i, m: _pooled(*self.model_split, i, m)
         return map_chunks(fn, ids, mask, size=self.chunk_size)

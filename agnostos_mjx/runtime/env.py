@@ -79,9 +79,10 @@ class Episodes:
             attach=jax.jit(jax.vmap(self._attach_test)) if task.graspables else None,
             hand_body=self.scene.hand_body, graspable_bodies=self.scene.graspable_bodies,
             weld_ids=self.scene.weld_ids, repaint=self.state_colors)
-        self._jit_sample = jax.jit(jax.vmap(self._sample_one))
-        self._jit_init_cond = jax.jit(jax.vmap(self._init_conditions))
-        self._jit_expert = jax.jit(jax.vmap(task.expert))
+        self._jit_sample = jax.jit(jax.vmap(self._sample_one, in_axes=(0, 0, None)))
+        # One program for what a settled scene gives: its conditions' first carry and the
+        # expert's key actions (reset rejects scenes the expert cannot reach).
+        self._jit_settled = jax.jit(jax.vmap(self._settled_one))
         self._jit_conditions = jax.jit(jax.vmap(scan_conditions(self._condition_step)))
         # Planning (IK and the Cartesian path of every world) is one compiled program shared
         # by every task of a run (control.jit_for_robot) wherever there is an accelerator,
@@ -103,15 +104,19 @@ class Episodes:
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
     # ---- pure pieces (vmapped above) -------------------------------------------------
-    def _sample_one(self, key, variation):
+    def _sample_one(self, key, variation, attempt):
+        """A placement; attempt k > 0 draws from fold_in(key, k) (reset's re-sampling)."""
+        key = jnp.where(attempt > 0, jax.random.fold_in(key, attempt), key)
         return apply_placement(self.scene, self.task.sample(key, variation))
 
     def _obs(self, data, attached) -> Observation:
         return Observation(data, self.scene.layout, attached)
 
-    def _init_conditions(self, data, attached, variation):
+    def _settled_one(self, data, attached, variation):
+        """(the success and failure trees' first carry, the expert's key actions)."""
         obs = self._obs(data, attached)
-        return (self.task.success(variation).init(obs), self.task.failure(variation).init(obs))
+        carry = (self.task.success(variation).init(obs), self.task.failure(variation).init(obs))
+        return carry, self.task.expert(obs, variation)
 
     def _condition_step(self, carry, data, attached, variation):
         """One physics step of one world's success and failure trees: (carry, met, failed)."""
@@ -150,7 +155,7 @@ class Episodes:
         keys = jnp.asarray(keys)
         b = len(variations)
         self._jit_rows = b
-        sampled = list(map(np.asarray, self._jit_sample(keys, variations)))
+        sampled = list(map(np.asarray, self._jit_sample(keys, variations, np.int32(0))))
         state = self._settle(sampled, variations)
         ok = np.array(self.expert_reachable(state), copy=True)
         for attempt in range(1, placement_tries):
@@ -158,8 +163,7 @@ class Episodes:
                 break
             # Only the rejected scenes are settled and checked again (in a padded batch,
             # so jitted shapes stay few); every world is settled once more at the end.
-            retry = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, attempt)
-            fresh = list(map(np.asarray, self._jit_sample(retry, variations)))
+            fresh = list(map(np.asarray, self._jit_sample(keys, variations, np.int32(attempt))))
             bad = ~ok
             sampled = [np.where(bad.reshape(-1, *([1] * (a.ndim - 1))), f, a)
                        for a, f in zip(sampled, fresh)]
@@ -196,7 +200,7 @@ class Episodes:
         physics, sens = self.backend.run(physics, np.repeat(ctrl[:, None], SETTLE_STEPS, axis=1))
         attached = np.zeros((b, len(self.task.graspables)), bool)
         data = np.asarray(sens[:, -1])
-        carry = self._padded(self._jit_init_cond, data, attached, variations)
+        carry, _ = self._padded(self._jit_settled, data, attached, variations)
         return EnvState(
             physics=physics.numpy(), data=data, attached=attached, carry=carry,
             variation=variations, gripper=np.full(b, FINGER_OPEN),
@@ -228,7 +232,9 @@ class Episodes:
 
     def expert_actions(self, state: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""
-        return self._padded(self._jit_expert, state.initial_obs, state.variation)
+        initial = state.initial_obs
+        return self._padded(self._jit_settled, initial.data, initial.attached,
+                            state.variation)[1]
 
     def _padded(self, fn, *args):
         """fn(*args) for a batch of any size, run at the reset's batch size (rows

@@ -100,17 +100,14 @@ class DynamicsSelector:
     def _similarities(self, rows: list[tuple[np.ndarray, str]]) -> list[np.ndarray]:
         """Similarity to every memory demo of up to one chunk of (frame, instruction) rows,
         padded to the chunk so that each network and the similarity run at one shape."""
-        from agnostos_mjx.dynamics.features import extract, normalised, normalised_similarity
+        from agnostos_mjx.dynamics.features import query_similarity
 
         n, pad = len(rows), self.pipeline.chunk_size - len(rows)
         frames = np.stack([f for f, _ in rows] + [rows[-1][0]] * pad)
         instructions = [t for _, t in rows] + [rows[-1][1]] * pad
-        visual = tuple(p for p in self.parts if p != "lang")
-        feats = extract(self.pipeline, frames, instructions, visual) if visual else {}
-        if "lang" in self.parts:
-            feats["lang"] = self.lang_features(instructions)
-        sims = normalised_similarity(normalised(feats, self.mode, self.metric), self._bank,
-                                     self.metric)
+        lang = self.lang_features(instructions) if "lang" in self.parts else None
+        sims = query_similarity(self.pipeline, frames, instructions, lang, self._bank,
+                                self.metric)
         return list(sims[:n])
 
     def lang_features(self, instructions: list[str]) -> np.ndarray:
