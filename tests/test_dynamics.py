@@ -219,6 +219,7 @@ def test_feature_shapes_and_determinism(pipe, pairs):
         np.testing.assert_allclose(one[part][0], a[part][1], rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow  # trains the quick model (the pipe fixture): a minute on 2 cores
 def test_the_selections_one_program_gives_the_features_scores_bit_for_bit(pipe, pairs):
     """query_similarity (frames to scores in one compiled program) gives exactly the
     scores of extract, normalised and normalised_similarity one after the other."""
