@@ -652,3 +652,18 @@ def test_a_pipeline_serves_several_threads_at_once():
         outs = list(pool.map(lambda _: pipe.lang(texts), range(16)))
     for out in outs:
         np.testing.assert_array_equal(out, alone)
+
+
+@pytest.mark.slow  # compiles the quick model's UNet and sampler
+def test_flops_reports_the_work_per_query_and_the_floor_of_n_queries(tmp_path, capsys):
+    import json
+
+    from agnostos_mjx.dynamics import flops
+
+    assert flops.main(["--quick", "--queries", "100", "--repeats", "1",
+                       "--out", str(tmp_path / "f.json")]) == 0
+    r = json.loads((tmp_path / "f.json").read_text())
+    assert r["gflop_per_query"] > 0 and r["ddim_steps"] == 8 and r["queries"] == 100
+    assert r["gflops_1_threads"] > 0 and r["matmul_gflops"] > 0
+    out = capsys.readouterr().out
+    assert "GFLOP per query" in out and "100 queries" in out
