@@ -129,3 +129,36 @@ def test_a_task_batch_runs_at_most_8_programs_and_more_batches_no_more(tmp_path)
     assert _programs(tmp_path, "lamp_on", "0,1,2") == one
     grasping = _programs(tmp_path, "phone_on_base", "0")  # the grasp test, no state colours
     assert sum(grasping.values()) <= 8, grasping
+
+
+@pytest.mark.slow  # compiles the jitted IK check on the CPU
+def test_the_device_planners_reset_check_is_one_program_for_resets_and_tasks():
+    """With the jitted planner (every GPU host's default) a reset's reachability check runs
+    at the batch's size and at a multiple of REACH_STEPS key actions: re-sampling any number
+    of scenes, other seeds and other tasks reuse one program (each size compiled one, 9 in
+    this test), and the scenes kept are those of the check at each size."""
+    lowered: list[str] = []
+
+    def listener(event: str, duration: float, **kw) -> None:
+        if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            lowered.append(str(kw.get("fun_name")))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        for name in ("close_fridge", "lamp_on"):  # close_fridge re-samples some scenes
+            device = Episodes(get_task(name), "native", planner="device")
+            for seed in range(3):
+                device.reset(_keys(seed, 6), np.zeros(6, np.int32))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert lowered.count("jit(reachable)") == 1, lowered
+
+    ep = Episodes(get_task("close_fridge"), "native", planner="device")
+    env = ep.reset(_keys(0, 6), np.zeros(6, np.int32))
+    actions = ep.expert_actions(env)
+    q = np.asarray(env.data[:, ep.spec.arm_q])
+    unpadded = np.asarray(ep._reachable(q, actions.pos, actions.quat, actions.valid))
+    np.testing.assert_array_equal(ep.expert_reachable(env), unpadded)
+    np.testing.assert_array_equal(ep.expert_reachable(env.replace(
+        **{f: getattr(env, f)[:2] for f in ("data", "initial_data", "variation", "attached")})),
+        unpadded[:2])

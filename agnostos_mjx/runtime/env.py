@@ -43,6 +43,9 @@ ATTACH_HALF = np.array([0.01, 0.05, 0.0275])
 PLANNERS = ("auto", "host", "device")
 
 
+REACH_STEPS = 8  # the device planner checks an expert's key actions in multiples of this
+
+
 def resolve_planner(name: str) -> str:
     """`auto`: `device` when JAX has an accelerator, else `host`.  `device`: the jitted
     float32 planner (one program for every task, off the host's Python loop); `host`: numpy
@@ -228,7 +231,16 @@ class Episodes:
         bounds and solvable by IK (warm-started along the sequence)."""
         actions = self.expert_actions(state)
         q = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        return np.asarray(self._reachable(q, actions.pos, actions.quat, actions.valid))
+        if self.planner != "device":
+            return np.asarray(self._reachable(q, actions.pos, actions.quat, actions.valid))
+        # The jitted check runs at the reset's batch size and at a multiple of REACH_STEPS key
+        # actions (an invalid one changes nothing): one program for a task's resets and
+        # re-samples, and a few for a run's tasks, where each size compiled one.
+        pad = ((0, 0), (0, -actions.pos.shape[1] % REACH_STEPS))
+        quat = np.pad(np.asarray(actions.quat), (*pad, (0, 0)))
+        quat[:, actions.pos.shape[1]:, 0] = 1.0
+        return self._padded(self._reachable, q, np.pad(np.asarray(actions.pos), (*pad, (0, 0))),
+                            quat, np.pad(np.asarray(actions.valid), pad))
 
     def expert_actions(self, state: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""
