@@ -110,6 +110,7 @@ def seconds_per_call(fn, min_time: float) -> tuple[float, int]:
 def oracle_episodes(runner, batch: int, seed: int) -> tuple[Any, float, float]:
     """One batch of oracle episodes: (final EnvState, wall seconds, reset seconds)."""
     from agnostos_mjx.evaluation.protocol import episode_keys
+    from agnostos_mjx.policies.base import Round
     from agnostos_mjx.policies.oracle import OraclePolicy
 
     t0 = time.perf_counter()
@@ -117,11 +118,12 @@ def oracle_episodes(runner, batch: int, seed: int) -> tuple[Any, float, float]:
     env = runner.reset(keys, np.arange(batch) % runner.task.num_variations)
     reset = time.perf_counter() - t0
     policy = OraclePolicy()
-    policy.reset(runner, env, [""] * batch)
+    view = Round.for_policy(policy, runner, env, [""] * batch)
+    policy.reset(view)
     for _ in range(runner.task.max_key_actions):
         if env.done.all():
             break
-        env, _ = runner.step(env, policy.act(runner, env))
+        env, _ = runner.step(env, policy.act(view.at(env)))
     return env, time.perf_counter() - t0, reset
 
 

@@ -1,10 +1,10 @@
 """RLBench-style observations for learned policies (VLAs): cameras and proprioception.
 
 A policy that consumes images declares what it needs with an :class:`ObservationSpec`
-(cameras, resolution, modalities); the evaluator then calls
-``policy.act(episodes, env, observation=episodes.observe(env, spec))`` at every key-action
-step (see ``policies.base.PolicyAdapter``).  Policies that declare nothing (oracle, X-ICM
-with ground-truth objects, retrieval) are called as before and nothing is rendered for them.
+(cameras, resolution, modalities) as its ``observation_spec``; the round it sees then renders
+``episodes.observe(env, spec)`` on first use of ``view.observation`` (see
+``policies.base.Round``).  Nothing is rendered for policies that declare nothing (oracle,
+X-ICM with ground-truth objects, retrieval).
 
 Per requested camera an observation holds (B worlds, H x W pixels):
 
@@ -268,13 +268,6 @@ def camera_observation(images: CameraImages, intrinsic: np.ndarray, near: float,
         rgb=images.rgb if spec.wants("rgb") else None,
         depth=depth if spec.wants("depth") else None, point_cloud=cloud,
         segmentation=images.segmentation if spec.wants("segmentation") else None)
-
-
-# ---- the evaluator's hook ------------------------------------------------------------------
-def observation_spec(policy: Any) -> ObservationSpec | None:
-    """The spec a policy declares through an ``observation_spec`` attribute (or method)."""
-    spec = getattr(policy, "observation_spec", None)
-    return spec() if callable(spec) else spec
 
 
 # ---- X-ICM's object positions from segmented point clouds (xicm_reference.md §3.4) ------

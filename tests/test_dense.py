@@ -15,7 +15,7 @@ import pytest
 
 from agnostos_mjx import eval as ev
 from agnostos_mjx.evaluation.dense import DenseDriver, as_chunk
-from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
 from agnostos_mjx.runtime.dense import DenseControl
 from agnostos_mjx.runtime.outcome import Outcome
@@ -33,11 +33,11 @@ def _reset(b: int):
 
 def _replay(ep, env, policy, ctl: DenseControl, steps: int | None = None, execute=None):
     driver = DenseDriver(execute, policy.relative)
-    adapter = PolicyAdapter(policy)
+    view = Round.for_policy(policy, ep, env, [""] * env.batch)
     for _ in range(steps or ctl.max_steps):
         if env.done.all():
             break
-        gen = driver.next(adapter, ep, env)
+        gen = driver.next(policy, view.at(env), env)
         try:
             while True:
                 next(gen)
@@ -52,7 +52,7 @@ def replayed():
     """Two worlds of turn_tap, the replay policy reset on them."""
     ep, env = _reset(2)
     policy = DenseReplayPolicy()
-    policy.reset(ep, env, ["", ""])
+    policy.reset(Round.for_policy(policy, ep, env, ["", ""]))
     return ep, env, policy
 
 
@@ -82,13 +82,10 @@ def test_relative_rows_reach_the_same_targets_as_absolute_ones(replayed) -> None
 
 
 def test_chunks_run_k_rows_open_loop_then_ask_again() -> None:
-    class Counting:
+    class Counting(Policy):
         name, action_modes, calls = "counting", ("dense",), 0
 
-        def reset(self, *args) -> None:
-            pass
-
-        def act(self, episodes, env) -> KeyActions:
+        def act(self, view) -> KeyActions:
             self.calls += 1
             h = 5
             pos = np.zeros((2, h, 3)) + 100 * self.calls + np.arange(h)[None, :, None]
@@ -99,7 +96,7 @@ def test_chunks_run_k_rows_open_loop_then_ask_again() -> None:
     driver, env = DenseDriver(3, False), SimpleNamespace(batch=2)
     rows = []
     for _ in range(7):
-        gen = driver.next(PolicyAdapter(policy), None, env)
+        gen = driver.next(policy, None, env)
         with pytest.raises(StopIteration) as stop:
             next(gen)
         rows.append(stop.value.value.pos[0, 0])
@@ -192,8 +189,9 @@ def test_device_program_matches_host_path_on_native_physics(replayed) -> None:
     host, _ = _replay(ep, env, policy, ctl, steps=40)
     physics = callback_physics(ep.scene.model, 2)
     dev = env
+    view = Round.for_policy(policy, ep, env, ["", ""])
     for _ in range(40):
-        dev = ep.dense_on_device(dev, policy.act(ep, dev), ctl, physics=physics)
+        dev = ep.dense_on_device(dev, policy.act(view.at(dev)), ctl, physics=physics)
     np.testing.assert_array_equal(dev.outcome, host.outcome)
     np.testing.assert_array_equal(dev.key_actions, host.key_actions)
     for key in ("tip.pos", *(f"{f}.pos" for f in ep.task.observed_frames)):
@@ -313,12 +311,13 @@ def test_dense_device_step_matches_host_path_on_mjx() -> None:
     ep = Episodes(get_task(TASK), "jax")
     env = ep.reset(jax.random.split(jax.random.PRNGKey(0), 2), np.zeros(2, np.int32))
     policy = DenseReplayPolicy()
-    policy.reset(ep, env, ["", ""])
+    view = Round.for_policy(policy, ep, env, ["", ""])
+    policy.reset(view)
     ctl = DenseControl(10, 1000)
     host, dev = env, env
     for _ in range(40):
-        host, _ = ep.step_dense(host, policy.act(ep, host), ctl, record=True)
-        dev, _ = ep.step_dense(dev, policy.act(ep, dev), ctl)
+        host, _ = ep.step_dense(host, policy.act(view.at(host)), ctl, record=True)
+        dev, _ = ep.step_dense(dev, policy.act(view.at(dev)), ctl)
     np.testing.assert_array_equal(dev.outcome, host.outcome)
     np.testing.assert_array_equal(dev.key_actions, host.key_actions)
     assert np.abs(np.asarray(dev.obs["tip.pos"]) - np.asarray(host.obs["tip.pos"])).max() < 0.01

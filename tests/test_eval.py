@@ -462,10 +462,10 @@ class Crashing(OraclePolicy):
     """The oracle on lamp_off; raises on lamp_on (as a policy out of GPU memory would)."""
     name = "crashing"
 
-    def act(self, episodes, env):
-        if episodes.task.name == "lamp_on":
+    def act(self, view):
+        if view.episodes.task.name == "lamp_on":
             raise RuntimeError("RESOURCE_EXHAUSTED: out of memory (test)")
-        return super().act(episodes, env)
+        return super().act(view)
 '''
 
 
@@ -506,8 +506,8 @@ def test_policy_error_summary_counts_and_decides(capsys) -> None:
 class OracleThatWaits(OraclePolicy):
     """The oracle with `act_steps`, as a policy that waits on an LLM has: tasks run at once."""
 
-    def act_steps(self, episodes, env):
-        return self.act(episodes, env)
+    def act_steps(self, view):
+        return self.act(view)
         yield  # noqa: B901 - a generator that waits on nothing
 
 

@@ -12,36 +12,38 @@ from agnostos_mjx.tasks import get_task
 
 # isort: split
 from agnostos_mjx.eval import main
-from agnostos_mjx.policies import Policy, make_policy, no_actions
+from agnostos_mjx.policies import Policy, Round, make_policy, no_actions
 from agnostos_mjx.policies.oracle import OraclePolicy
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks.base import KeyActions
 
 
-class InvalidPolicy:
+class InvalidPolicy(Policy):
     """A plug-in with nothing to execute: every world ends with NO_ACTION."""
 
     name = "invalid"
 
-    def reset(self, episodes: Episodes, env, instructions: list[str]) -> None:
-        self.batch = len(instructions)
+    def act(self, view: Round) -> KeyActions:
+        return no_actions(view.batch)
 
-    def act(self, episodes: Episodes, env) -> KeyActions:
-        return no_actions(self.batch)
+
+def _lamp_on(batch: int = 2):
+    runner = Episodes(get_task("lamp_on"), "native")
+    keys = np.stack([np.asarray([0, i], np.uint32) for i in range(batch)])
+    return runner, runner.reset(keys, np.zeros(batch, np.int32))
 
 
 def test_oracle_solves_lamp_on() -> None:
-    runner = Episodes(get_task("lamp_on"), "native")
-    keys = np.stack([np.asarray([0, i], np.uint32) for i in range(2)])
-    env = runner.reset(keys, np.zeros(2, np.int32))
+    runner, env = _lamp_on()
     policy = make_policy("oracle")
-    assert isinstance(policy, OraclePolicy) and isinstance(policy, Policy)
-    policy.reset(runner, env, ["turn on the light"] * 2)
+    assert isinstance(policy, OraclePolicy) and policy.privileged
+    view = Round.for_policy(policy, runner, env, ["turn on the light"] * 2)
+    policy.reset(view)
     for _ in range(runner.task.max_key_actions):
         if env.done.all():
             break
-        env, _ = runner.step(env, policy.act(runner, env))
+        env, _ = runner.step(env, policy.act(view.at(env)))
     assert (env.outcome == Outcome.SUCCESS).all(), [Outcome(o).label for o in env.outcome]
 
 
@@ -56,12 +58,13 @@ def test_oracle_skips_padding_then_runs_out() -> None:
             return plan
 
     policy = OraclePolicy()
-    policy.reset(FakeEpisodes(), None, ["", ""])
-    first = policy.act(None, None)
+    view = Round(FakeEpisodes(), None, ["", ""], privileged=True)
+    policy.reset(view)
+    first = policy.act(view)
     assert first.valid.tolist() == [True, False] and first.gripper[0] == 1
-    second = policy.act(None, None)
+    second = policy.act(view)
     assert second.valid.tolist() == [True, False] and second.gripper[0] == 3
-    assert policy.act(None, None).valid.tolist() == [False, False]
+    assert policy.act(view).valid.tolist() == [False, False]
 
 
 def test_make_policy_forms_and_errors() -> None:
@@ -72,6 +75,20 @@ def test_make_policy_forms_and_errors() -> None:
         make_policy("no_such_policy")
     with pytest.raises(ImportError):
         make_policy(f"{__name__}:Missing")
+    with pytest.raises(TypeError, match="not an agnostos_mjx.policies.Policy"):
+        make_policy(f"{__name__}:NotAPolicy")  # the old duck-typed form
+    with pytest.raises(TypeError, match="must override act"):
+        type("Empty", (Policy,), {})
+
+
+class NotAPolicy:
+    name = "not"
+
+    def reset(self, episodes, env, instructions):
+        pass
+
+    def act(self, episodes, env):
+        return no_actions(len(env.outcome))
 
 
 INSTANCE = InvalidPolicy()
@@ -95,19 +112,14 @@ def test_plugin_policy_from_module_attr_ends_with_no_action(tmp_path: Path) -> N
     assert results["summary"]["tasks"]["lamp_on"]["outcomes"] == {"no_action": 2}
 
 
-class MinimalPolicy:
-    """Only the required part of the contract: name, reset, act."""
+class MinimalPolicy(Policy):
+    """Only `act`: every other part of the contract is the base class's default."""
 
-    name = "minimal"
-
-    def reset(self, episodes, env, instructions):
-        self.batch = len(instructions)
-
-    def act(self, episodes, env):
-        return no_actions(self.batch)
+    def act(self, view: Round) -> KeyActions:
+        return no_actions(view.batch)
 
 
-class FullPolicy:
+class FullPolicy(Policy):
     """Every optional part of the contract, each recording that the evaluator used it."""
 
     name = "full"
@@ -119,17 +131,18 @@ class FullPolicy:
         self.observation_spec = ObservationSpec(cameras=("front",), height=16, width=16,
                                                 modalities=("rgb",), renderer="cpu")
 
-    def reset(self, episodes, env, instructions, episode_seeds=None):
-        self.log.setdefault("seeds", []).extend(episode_seeds)
-        self.end_reasons = np.zeros(len(instructions), np.int32)
+    def reset(self, view: Round) -> None:
+        self.log.setdefault("seeds", []).extend(view.episode_seeds)
+        self.end_reasons = np.zeros(view.batch, np.int32)
 
-    def act(self, episodes, env, observation=None):
+    def act(self, view: Round) -> KeyActions:
         raise AssertionError("the evaluator must use act_steps")
 
-    def act_steps(self, episodes, env, observation=None):
+    def act_steps(self, view: Round):
         import concurrent.futures
 
-        self.log["observation_worlds"] = observation.batch
+        self.log["observation_worlds"] = view.observation.batch
+        self.log["gripper_pose"] = view.proprioception["gripper_pose"].shape
         future: concurrent.futures.Future = concurrent.futures.Future()
         future.set_result(None)
         yield future
@@ -150,6 +163,14 @@ def make_full() -> FullPolicy:
     return FullPolicy(FULL_LOG)
 
 
+class PeekingPolicy(Policy):
+    """Reads the simulator without declaring it."""
+
+    def act(self, view: Round) -> KeyActions:
+        view.env.outcome  # noqa: B018 - the access under test
+        return no_actions(view.batch)
+
+
 def _evaluate(policy: str, tmp_path: Path) -> dict:
     from agnostos_mjx.evaluation.config import EvalConfig
     from agnostos_mjx.evaluation.run import evaluate
@@ -159,30 +180,54 @@ def _evaluate(policy: str, tmp_path: Path) -> dict:
                                out=str(tmp_path / "run")))
 
 
-def test_adapter_defaults_of_a_minimal_policy(tmp_path: Path) -> None:
-    """A policy with only name/reset/act runs; the adapter's defaults stand in for the rest."""
-    from agnostos_mjx.policies.base import PolicyAdapter
-
-    adapter = PolicyAdapter(MinimalPolicy())
-    assert not adapter.interleaves and adapter.observation_spec() is None
-    assert adapter.episode_info(0) is None and adapter.report() == {}
-    assert adapter.copy().policy is not adapter.policy
-    runner = Episodes(get_task("lamp_on"), "native")
-    env = runner.reset(np.stack([np.asarray([0, i], np.uint32) for i in range(2)]),
-                       np.zeros(2, np.int32))
-    adapter.reset(runner, env, ["", ""], episode_seeds=[1, 2])  # not passed on
-    steps = adapter.act_steps(runner, env)
+def test_defaults_of_a_minimal_policy(tmp_path: Path) -> None:
+    """A policy with only `act` runs; the base class's defaults stand in for the rest."""
+    policy = MinimalPolicy()
+    assert not policy.interleaves() and policy.observation_spec is None
+    assert not policy.privileged and policy.action_modes == ("keyaction",)
+    assert policy.episode_info(0) is None and policy.report() == {}
+    assert policy.fork() is not policy
+    runner, env = _lamp_on()
+    view = Round.for_policy(policy, runner, env, ["", ""], episode_seeds=[1, 2])
+    policy.reset(view)
+    steps = policy.act_steps(view)
     with pytest.raises(StopIteration) as stop:  # act blocks: nothing to wait on
         next(steps)
     assert stop.value.value.valid.tolist() == [False, False]
-    assert adapter.end_reasons(env).tolist() == [0, 0]
+    assert policy.end_reason_codes(2).tolist() == [0, 0]
     results = _evaluate("MinimalPolicy", tmp_path)
     assert [r["outcome"] for r in results["episodes"]] == ["no_action"] * 2
+    assert all(r["policy"] == f"{__name__}:MinimalPolicy" for r in results["episodes"])
     assert all("policy_info" not in r for r in results["episodes"])
     assert "llm" not in results and "remote" not in results
 
 
-def test_adapter_calls_every_optional_part(tmp_path: Path) -> None:
+def test_a_round_shows_the_simulator_to_privileged_policies_only(tmp_path: Path) -> None:
+    """Instructions, seeds, running worlds, key actions and proprioception for every policy;
+    the runner and state only where declared; an observation only where a spec is."""
+    from agnostos_mjx.policies import PrivilegedAccessError
+
+    runner, env = _lamp_on()
+    view = Round(runner, env, ["a", "b"], [7, 8])
+    assert view.instructions == ("a", "b") and view.episode_seeds == (7, 8)
+    assert view.running.tolist() == [True, True] and view.key_actions.tolist() == [0, 0]
+    np.testing.assert_array_equal(view.proprioception["gripper_pose"][:, :3],
+                                  np.asarray(env.obs["tip.pos"], np.float32))
+    for part in ("env", "episodes"):
+        with pytest.raises(PrivilegedAccessError, match="privileged = True"):
+            getattr(view, part)
+    with pytest.raises(ValueError, match="observation_spec"):
+        view.observation  # noqa: B018
+    privileged = Round(runner, env, ["a", "b"], privileged=True).at(env)
+    assert privileged.env is env and privileged.episodes is runner
+    with pytest.raises(ValueError, match="2 instructions but 1 episode seeds"):
+        Round(runner, env, ["a", "b"], [1])
+    # In a run, a peek without the declaration is the policy's error, recorded as such.
+    results = _evaluate("PeekingPolicy", tmp_path)
+    assert [r["outcome"] for r in results["episodes"]] == ["policy_error"] * 2
+
+
+def test_the_evaluator_uses_every_optional_part(tmp_path: Path) -> None:
     """Observation (rendered to the spec), per-episode seeds, act_steps, end reasons,
     episode info and the report all reach the run's records and results."""
     from agnostos_mjx.evaluation.protocol import policy_seed
@@ -191,7 +236,7 @@ def test_adapter_calls_every_optional_part(tmp_path: Path) -> None:
     log = FULL_LOG
     results = _evaluate("make_full", tmp_path)
     assert log["seeds"] == [policy_seed(3, 0), policy_seed(3, 1)]
-    assert log["observation_worlds"] == 2
+    assert log["observation_worlds"] == 2 and log["gripper_pose"] == (2, 7)
     episodes = results["episodes"]
     assert [r["outcome"] for r in episodes] == ["bad_llm_output"] * 2
     assert [r["policy_info"] for r in episodes] == [{"world": 0}, {"world": 1}]

@@ -234,6 +234,12 @@ class FakeRunner:
             "gripper_joint_positions": np.zeros((batch, 2), np.float32)})
         self.env = SimpleNamespace(done=np.zeros(batch, bool))
 
+    def view(self, policy, instructions: list[str]):
+        """What `policy` sees of these worlds now (a fresh round each call)."""
+        from agnostos_mjx.policies import Round
+
+        return Round.for_policy(policy, self, self.env, instructions)
+
     def observe(self, env, spec):
         self.specs.append(spec)
         return SimpleNamespace(cameras={c: SimpleNamespace(rgb=self.images[c])
@@ -271,12 +277,12 @@ def test_xicm_preset_round_trip_and_execute() -> None:
     with PolicyServer(None, session=Answer, meta={"policy": "pi0"}) as server:
         policy = make_policy("remote", url=server.url, preset="xicm", execute=2)
         assert policy.name == "remote[pi0]"
-        policy.reset(runner, runner.env, prompts)
-        first = policy.act(runner, runner.env)
+        policy.reset(runner.view(policy, prompts))
+        first = policy.act(runner.view(policy, prompts))
         assert len(requests) == 2
-        second = policy.act(runner, runner.env)  # the second row of each chunk: no request
+        second = policy.act(runner.view(policy, prompts))  # the second row of each chunk: no request
         assert len(requests) == 2
-        third = policy.act(runner, runner.env)
+        third = policy.act(runner.view(policy, prompts))
         assert len(requests) == 4
     assert runner.specs[0].cameras == ("front", "wrist", "overhead")
     assert (runner.specs[0].height, runner.specs[0].width) == (256, 256)
@@ -323,8 +329,8 @@ def test_openvla_http_round_trip() -> None:
         policy = make_policy("openvla", url=server.url,
                              constants=json.dumps({"unnorm_key": "agnostos"}))
         assert policy.preset == "openvla" and policy.name == "openvla"
-        policy.reset(runner, runner.env, ["a", "b"])
-        actions = policy.act(runner, runner.env)
+        policy.reset(runner.view(policy, ["a", "b"]))
+        actions = policy.act(runner.view(policy, ["a", "b"]))
     assert [sorted(obs) for obs in seen] == [["image", "instruction", "unnorm_key"]] * 2
     assert {obs["instruction"] for obs in seen} == {"a", "b"}
     for obs in seen:
@@ -342,11 +348,11 @@ def test_openvla_http_round_trip() -> None:
     with JsonNumpyServer(infer=lambda obs: asked.append(obs) or oft_chunk) as server:
         policy = make_policy("remote", url=server.url + "/act", preset="openvla_oft",
                              execute=3)
-        policy.reset(runner, runner.env, ["a", "b"])
+        policy.reset(runner.view(policy, ["a", "b"]))
         start = runner.pose.copy()
         xs = []
         for _ in range(4):
-            actions = policy.act(runner, runner.env)
+            actions = policy.act(runner.view(policy, ["a", "b"]))
             xs.append(np.asarray(actions.pos[:, 0], np.float64) - runner.pose[:, 0])
             runner.pose[:, :3] = actions.pos  # the executor reached the target
             runner.pose[:, 3:] = np.asarray(actions.quat)[:, [1, 2, 3, 0]]
@@ -373,8 +379,9 @@ def test_http_client_failures_on_a_fake_runner() -> None:
     answer = np.array([0, 0, 0, 0, 0, 0, 1.0])
     with JsonNumpyServer(infer=lambda obs: answer, faults=faults, stall_s=60) as server:
         policy = make_policy("openvla", url=server.url, timeout_s=2, height=8, width=8)
-        policy.reset(runner, runner.env, [str(i) for i in range(len(plan))])
-        actions = policy.act(runner, runner.env)
+        prompts = [str(i) for i in range(len(plan))]
+        policy.reset(runner.view(policy, prompts))
+        actions = policy.act(runner.view(policy, prompts))
     assert actions.valid.tolist() == [False] * 6 + [True]
     labels = [Outcome(int(c)).label if c else None for c in policy.end_reasons]
     assert labels == ["remote_error", "remote_timeout", "bad_remote_output", "remote_error",

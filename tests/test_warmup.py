@@ -32,6 +32,7 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
     import jax
     import numpy as np
 
+    from agnostos_mjx.policies.base import Round
     from agnostos_mjx.policies.retrieval import RetrievalPolicy
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
@@ -45,9 +46,10 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
         warmup.warm_selection()
     assert warmed  # the networks were compiled (or fetched from the disk cache) here
     policy = RetrievalPolicy()
-    policy.reset(episodes, env, [task.descriptions(0)[0]] * 2)
+    view = Round.for_policy(policy, episodes, env, [task.descriptions(0)[0]] * 2)
+    policy.reset(view)
     with count_compiles() as compiled:
-        plans = policy.plan(episodes, env, np.arange(2))
+        plans = policy.plan(view, np.arange(2))
     assert len(plans) == 2 and compiled == []
     episodes.close()
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError
 from agnostos_mjx.math3d import apply_delta
-from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from agnostos_mjx.runtime.state import EnvState
 
 
-def check_action_mode(cfg: EvalConfig, policy: PolicyAdapter) -> None:
+def check_action_mode(cfg: EvalConfig, policy: Policy) -> None:
     """A UsageError unless the policy acts in cfg's action mode and the dense options are
     only given with ``--action-mode dense``."""
     if cfg.action_mode != "dense":
@@ -40,7 +40,7 @@ def check_action_mode(cfg: EvalConfig, policy: PolicyAdapter) -> None:
                                           ("--execute", cfg.execute)) if value is not None]
         if given:
             raise UsageError(f"{', '.join(given)}: only with --action-mode dense")
-    modes = policy.action_modes()
+    modes = policy.action_modes
     if cfg.action_mode not in modes:
         raise UsageError(
             f"policy {policy.name} acts in {' and '.join(modes)} mode, not "
@@ -86,12 +86,12 @@ class DenseDriver:
         self.rows = 0
         self.queries = 0
 
-    def next(self, policy: PolicyAdapter, runner: Episodes, env: EnvState
+    def next(self, policy: Policy, view: Round, env: EnvState
              ) -> Generator[concurrent.futures.Future, Any, KeyActions]:
         """This control step's target of every world (a generator over the futures the
-        policy waits on, as PolicyAdapter.act_steps)."""
+        policy waits on, as Policy.act_steps); `view` is what the policy sees of `env`."""
         if self.chunk is None or self.row >= self.rows:
-            answer = yield from policy.act_steps(runner, env)
+            answer = yield from policy.act_steps(view)
             self.chunk = as_chunk(answer, env.batch)
             h = self.chunk.pos.shape[1]
             self.rows = h if self.execute is None else min(h, self.execute)

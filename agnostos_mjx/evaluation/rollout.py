@@ -22,7 +22,7 @@ from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
 from agnostos_mjx.evaluation.timings import MEASURED
-from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.policies.base import Policy, Round
 
 if TYPE_CHECKING:
     import concurrent.futures
@@ -42,7 +42,7 @@ Tick = Callable[..., None]
 Steps = Generator["concurrent.futures.Future", Any, list[dict]]
 
 
-def run_task(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
+def run_task(task: Task, policy: Policy, pending: list[tuple[int, int]],
              cfg: EvalConfig, on_records: OnRecords, progress: Progress | None = None,
              done_before: int = 0) -> list[dict]:
     """Run `pending` (seed, episode) pairs of one task in chunks of cfg.batch;
@@ -55,12 +55,12 @@ def run_task(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
     return run_blocking(task_steps(task, policy, pending, cfg, on_records, tick))
 
 
-def task_steps(task: Task, policy: PolicyAdapter, pending: list[tuple[int, int]],
+def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
                cfg: EvalConfig, on_records: OnRecords, tick: Tick | None = None,
                on_timing: OnTiming | None = None, physics_pool: Executor | None = None
                ) -> Steps:
     """`run_task` as a generator that yields the futures the policy waits on (see
-    PolicyAdapter.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
+    Policy.act_steps), so `run_interleaved` can simulate other tasks meanwhile.
     `tick(episodes_done, partial, detail)` reports progress within the task;
     `on_timing(split)` gets where the task's wall time went (`TimeSplit.summary`).
     With `physics_pool` the resets and key actions of native MuJoCo (whose rollouts release
@@ -132,7 +132,7 @@ class TimeSplit:
         return rec
 
 
-def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
+def batch_steps(task: Task, policy: Policy, runner: Episodes,
                 part: list[tuple[int, int]], size: int, cfg: EvalConfig,
                 on_records: OnRecords, tick: Tick | None = None, done_before: int = 0,
                 label: str = "", videos: EpisodeVideos | None = None,
@@ -181,31 +181,33 @@ def batch_steps(task: Task, policy: PolicyAdapter, runner: Episodes,
     if videos is not None:
         videos.start(env, part)
     try:
+        view = Round.for_policy(policy, runner, env, instructions,
+                                [policy_seed(s, e) for s, e in run_part])
         with split.measure("policy"):
-            policy.reset(runner, env, instructions,
-                         episode_seeds=[policy_seed(s, e) for s, e in run_part])
-        driver = DenseDriver(cfg.execute, policy.relative()) if ctl is not None else None
+            policy.reset(view)
+        driver = DenseDriver(cfg.execute, policy.relative) if ctl is not None else None
         for rounds in range(limit):
             if env.done.all():
                 break
             running = env.outcome == Outcome.RUNNING
             split.rounds += 1
             t_policy = time.perf_counter()
+            view = view.at(env)
             if driver is not None:
-                actions = yield from driver.next(policy, runner, env)
+                actions = yield from driver.next(policy, view, env)
                 split.seconds["policy"] += time.perf_counter() - t_policy
                 with split.measure("physics"):
                     env, _ = yield from on_pool(physics_pool, runner.step_dense, env, actions,
                                                 ctl)
             else:
-                actions = yield from policy.act_steps(runner, env)
+                actions = yield from policy.act_steps(view)
                 split.seconds["policy"] += time.perf_counter() - t_policy
                 with split.measure("physics"):
                     env, _ = yield from on_pool(physics_pool, runner.step, env, actions)
             if videos is not None:
                 videos.capture(env)
             # A policy may say why a world got no action (bad LLM output, LLM error).
-            reasons = policy.end_reasons(env)
+            reasons = policy.end_reason_codes(env.batch)
             ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
             env = replace(env, outcome=np.where(ended, reasons, env.outcome))
             record(env, np.where(env.done, env.outcome, Outcome.RUNNING))
@@ -236,7 +238,7 @@ def on_pool(pool: Executor | None, fn: Callable, *args) -> Generator:
     return future.result()
 
 
-def episode_records(task: Task, policy: PolicyAdapter, backend: str,
+def episode_records(task: Task, policy: Policy, backend: str,
                     part: Sequence[tuple[int, int]], variations: np.ndarray,
                     instructions: list[str], env: EnvState, outcome: np.ndarray,
                     worlds: Iterable[int], wall_s: float, batch_size: int,

@@ -34,7 +34,7 @@ from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
 from agnostos_mjx.evaluation.task_queue import TaskQueue, longest_first
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
-from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.policies.base import Policy
 
 log = logging.getLogger("agnostos_mjx.eval")
 
@@ -96,7 +96,7 @@ def _check_compare(cfg: EvalConfig) -> None:
             raise UsageError(f"--compare: {e.args[0]}") from None
 
 
-def load_policy(cfg: EvalConfig) -> tuple[str, str, PolicyAdapter]:
+def load_policy(cfg: EvalConfig) -> tuple[str, str, Policy]:
     """(spec, note, the policy) of `cfg`; a policy that cannot load is a UsageError."""
     from agnostos_mjx.llm.client import LLMConfigError
     from agnostos_mjx.policies import make_policy
@@ -112,7 +112,7 @@ def load_policy(cfg: EvalConfig) -> tuple[str, str, PolicyAdapter]:
     except (KeyError, ImportError, ValueError, TypeError) as e:
         raise UsageError(f"cannot load policy {spec!r}: "
                          f"{e.args[0] if isinstance(e, KeyError) else e}") from None
-    return spec, note, PolicyAdapter(policy, default_name=cfg.policy)
+    return spec, note, policy
 
 
 # ---- the run -----------------------------------------------------------------------------
@@ -142,7 +142,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     _check_compare(cfg)
     spec, note, policy = load_policy(cfg)
     check_action_mode(cfg, policy)
-    policy_class = f"{type(policy.policy).__module__}.{type(policy.policy).__qualname__}"
+    policy_class = f"{type(policy).__module__}.{type(policy).__qualname__}"
     log.info("policy %s (%s)", policy.name, policy_class)
 
     all_records = repair_records(episodes_path) if cfg.resume else []
@@ -200,7 +200,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     todo = [t for t in tasks if plan[t.name]]
     # One policy copy per task running at once: copies share the heavy parts (LLM client,
     # memory, selector); reset() gives each its own per-episode state.
-    overlap = cfg.overlap_tasks if policy.interleaves else 1
+    overlap = cfg.overlap_tasks if policy.interleaves() else 1
     with progress_bar(total, enabled=not cfg.quiet) as progress:
         done = {t.name: (0, 0.0) for t in todo}
 
@@ -212,7 +212,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
         # The native physics of tasks running at once overlaps on threads (task_steps).
         pool = ThreadPoolExecutor(overlap, thread_name_prefix="physics") if overlap > 1 else None
-        jobs = [task_steps(t, policy.copy() if overlap > 1 else policy, plan[t.name], run_cfg,
+        jobs = [task_steps(t, policy.fork() if overlap > 1 else policy, plan[t.name], run_cfg,
                            on_records, functools.partial(tick, t.name), on_timing, pool)
                 for t in todo]
         if queue is not None:

@@ -1,51 +1,45 @@
-"""The policy plug-in interface: what the evaluator asks of a policy.
+"""The policy contract: what the evaluator asks of a policy, and what a policy sees.
 
-A policy drives a batch of B worlds of one task, one key action per world per
-step, exactly like an agent in X-ICM's RLBench loop (one key action per
-transition).  The evaluator calls
+A policy drives a batch of B worlds of one task, one key action per world per round, as an
+agent in X-ICM's RLBench loop (one key action per transition).  The evaluator calls
 
-    policy.reset(episodes, env, instructions)   # once per batch, after Episodes.reset
+    policy.reset(view)               # once per batch, after Episodes.reset (round 0)
     while not all worlds are done:
-        actions = policy.act(episodes, env)     # one KeyActions, leading axis B
-        env, _ = episodes.step(env, actions)
+        actions = policy.act(view)   # KeyActions, leading axis B
+        ...                          # the runtime carries them out; view = view.at(new state)
 
-`episodes` is the `Episodes` runner (task, scene, expert, renderer hooks) and
-`env` the host-side `EnvState` (latest observation, outcome per world, ...).
-A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that
-is how a policy says "I have nothing to execute" (an unparsable LLM answer,
-an exhausted plan).  Worlds that already finished ignore their action.
+`view` is a `Round`: what the policy may see of its worlds at this round, namely each
+world's instruction and episode seed, which worlds still run, the key actions each has taken,
+its proprioception (RLBench's low-dimensional fields), and the camera observation the policy
+declared.  The simulator (the task, the scene's state, the expert) is in it only for a
+policy that declares `privileged = True`: the oracle replays the expert, and X-ICM and
+retrieval textualise the scene's object poses as the paper does.  A learned VLA sees what a
+robot would.
 
-The contract has a required part, `Policy` (`name`, `reset`, `act`), and optional
-parts, `PolicyExtras`; a policy adds whichever it needs:
+Write a policy by subclassing `Policy` and overriding `act` (and `reset` when it keeps state
+per batch).  Class (or instance) attributes declare the rest, each with a default:
 
-* ``observation_spec``: a policy that consumes camera images declares one (an
-  `agnostos_mjx.observation.ObservationSpec`: cameras, resolution, modalities); the
-  evaluator then renders exactly that with ``episodes.observe(env, spec)`` at every step
-  and calls ``policy.act(episodes, env, observation=...)`` with an `RLBenchObservation`
-  (RGB, depth, point clouds, segmentation, camera matrices, gripper pose and joints; see
-  observation.py).  Policies without one pay for no rendering.
-* ``reset(..., episode_seeds=...)``: a seed per world for the policy's own randomness,
-  a function of the episode alone (not of the batch it runs in).
-* ``act_steps``: `act` as a generator that yields the futures it waits on (LLM
-  requests, a policy server's answers), so that other tasks simulate meanwhile.
-* ``end_reasons``: per world, the outcome code that explains a ``valid=False`` action
-  (bad LLM output, LLM error, ...); 0 leaves it ``no_action``.
-* ``episode_info(world)``: what to store with the episode's record (``policy_info``).
-* ``report()``: the run's request statistics, as sections of results.json (``llm``,
-  ``remote``).
-* ``action_modes``: the modes the policy acts in, ("keyaction",) by default; a policy for
-  ``--action-mode dense`` declares "dense": its `act` then returns one end-effector target
-  per world per control step, or an action chunk (B, H, ...) of them
-  (agnostos_mjx/evaluation/dense.py), and ``relative = True`` makes its rows deltas of the
-  current tip pose.
+* ``observation_spec``: an `ObservationSpec` (cameras, resolution, modalities); the round
+  then renders it on first use of ``view.observation``.  None (default): nothing rendered.
+* ``privileged``: True gives ``view.episodes`` and ``view.env``; default False.
+* ``action_modes``: ("keyaction",) by default; a policy for ``--action-mode dense`` declares
+  "dense": its `act` then returns one end-effector target per world per control step, or a
+  chunk (B, H, ...) of them (evaluation/dense.py), and ``relative = True`` makes its rows
+  deltas of the current tip pose.
+* ``end_reasons``: per world, the `Outcome` code that explains an invalid action (bad LLM
+  output, LLM error, ...); None or 0 leaves it ``no_action``.
 
-The evaluator reaches every policy through `PolicyAdapter`, which supplies the defaults
-of the optional parts a policy lacks.
+and these methods: ``act_steps`` (`act` as a generator that yields the futures it waits on,
+LLM batches or a policy server's answers, so that other tasks simulate meanwhile),
+``episode_info(world)`` (what to store as the episode record's ``policy_info``) and
+``report()`` (the run's request statistics, as sections of results.json).
 
-Policies are found by name with `make_policy`: a registered name ("oracle") or
-a "module:attr" / "path/to/file.py:attr" string naming a class, a factory
-function or a ready instance.  This is the equivalent of X-ICM's custom-agent
-template: write a class with `name`, `reset` and `act`, then run
+A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that is how a
+policy says "I have nothing to execute".  Worlds that already finished ignore their action.
+
+Policies are found by name with `make_policy`: a registered name ("oracle") or a
+"module:attr" / "path/to/file.py:attr" string naming a class, a factory function or a
+ready instance.  This is the equivalent of X-ICM's custom-agent template:
 ``python -m agnostos_mjx.eval --policy my_pkg.my_module:MyPolicy``.
 """
 
@@ -53,13 +47,13 @@ from __future__ import annotations
 
 import concurrent.futures
 import copy
+import functools
 import importlib
 import importlib.util
-import inspect
 import sys
 from collections.abc import Callable, Generator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -73,143 +67,160 @@ if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
 ActSteps = Generator[concurrent.futures.Future, Any, KeyActions]
 
 
-@runtime_checkable
-class Policy(Protocol):
-    """One key action per world per step for a batch of episodes of one task."""
-
-    name: str
-
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str]) -> None:
-        """Start a new batch: `instructions[i]` is world i's language goal."""
-        ...
-
-    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
-        """The next key action of every world: pos (B, 3) tip position in world
-        coordinates, quat (B, 4) wxyz, gripper (B,) open amount in [0, 1] and
-        valid (B,) bool; valid=False ends that world with Outcome.NO_ACTION."""
-        ...
+class PrivilegedAccessError(AttributeError):
+    """A policy that did not declare ``privileged = True`` asked for the simulator."""
 
 
-class PolicyExtras(Policy, Protocol):
-    """A policy with every optional part (see the module docstring); `PolicyAdapter`
-    supplies the default of each part a policy lacks."""
+class Round:
+    """What a policy sees of its batch of worlds at one round (round 0 is the reset).
 
-    # An ObservationSpec (or a method returning one); default None: act gets no observation.
-    observation_spec: ObservationSpec | Callable[[], ObservationSpec | None] | None
-    # Per world, an Outcome code for a world given no action (0: plain no_action);
-    # default: all 0.
-    end_reasons: np.ndarray
-    # The action modes it acts in ("keyaction", "dense"); default ("keyaction",).
-    action_modes: tuple[str, ...]
-    # Dense mode: rows are deltas of the tip pose measured when each row starts; default
-    # False (absolute targets).
-    relative: bool
+    Arrays have a leading axis B (padding worlds included).  `observation` renders the
+    declared spec once, on first use; `episodes` and `env` are the simulator, there only
+    for a privileged policy."""
 
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
-              episode_seeds: Sequence[int] | None = None) -> None:
-        """As Policy.reset; `episode_seeds[i]` seeds world i's own randomness."""
-        ...
+    def __init__(self, episodes: Episodes, env: EnvState, instructions: Sequence[str],
+                 episode_seeds: Sequence[int] | None = None, *,
+                 observation_spec: ObservationSpec | None = None,
+                 privileged: bool = False) -> None:
+        self.instructions = tuple(instructions)
+        self.episode_seeds = tuple(int(s) for s in (
+            range(len(self.instructions)) if episode_seeds is None else episode_seeds))
+        if len(self.episode_seeds) != len(self.instructions):
+            raise ValueError(f"{len(self.instructions)} instructions but "
+                             f"{len(self.episode_seeds)} episode seeds")
+        self.observation_spec = observation_spec
+        self.privileged = privileged
+        self._episodes, self._env = episodes, env
 
-    def act(self, episodes: Episodes, env: EnvState,
-            observation: RLBenchObservation | None = None) -> KeyActions:
-        """As Policy.act; `observation` is given when the policy has an observation_spec."""
-        ...
+    @classmethod
+    def for_policy(cls, policy: Policy, episodes: Episodes, env: EnvState,
+                   instructions: Sequence[str], episode_seeds: Sequence[int] | None = None
+                   ) -> Round:
+        """Round 0 of a batch, showing what `policy` declared."""
+        return cls(episodes, env, instructions, episode_seeds,
+                   observation_spec=policy.observation_spec, privileged=policy.privileged)
 
-    def act_steps(self, episodes: Episodes, env: EnvState,
-                  observation: RLBenchObservation | None = None) -> ActSteps:
-        """`act` as a generator yielding the futures it waits on; returns the actions.
-        Default: `act`, which blocks (no other task runs meanwhile)."""
-        ...
-
-    def episode_info(self, world: int) -> dict:
-        """What the evaluator stores as ``policy_info`` in world's episode record once it
-        finishes.  Default: no policy_info."""
-        ...
-
-    def report(self) -> dict[str, Any]:
-        """Sections of results.json about the run's requests (``{"llm": {...}}``);
-        called as results are written.  Default: none."""
-        ...
-
-
-class PolicyAdapter:
-    """A policy behind the whole contract: each optional part it lacks gets its default,
-    so the evaluator calls every part and never asks a policy what it has (the asking
-    happens here and nowhere else).  Attributes a policy may replace at reset
-    (end_reasons, observation_spec) are read at every call."""
-
-    def __init__(self, policy: Policy, default_name: str = "policy") -> None:
-        self.policy = policy
-        self._default_name = default_name
-        self._seeded = _accepts(policy.reset, "episode_seeds")
-        # A policy that yields while it waits lets the evaluator overlap tasks.
-        self.interleaves = hasattr(policy, "act_steps")
+    def at(self, env: EnvState) -> Round:
+        """The same worlds at a later state."""
+        return Round(self._episodes, env, self.instructions, self.episode_seeds,
+                     observation_spec=self.observation_spec, privileged=self.privileged)
 
     @property
-    def name(self) -> str:
-        return getattr(self.policy, "name", self._default_name)
+    def batch(self) -> int:
+        return len(self.instructions)
 
-    def copy(self) -> PolicyAdapter:
-        """A shallow copy of the policy (shared heavy parts, its own per-batch state, which
-        reset() replaces), so that tasks running at once do not share episodes."""
-        return PolicyAdapter(copy.copy(self.policy), self._default_name)
+    @property
+    def running(self) -> np.ndarray:
+        """(B,) bool: worlds whose episode goes on (the others ignore their action)."""
+        return ~np.asarray(self._env.done, bool)
 
-    def observation_spec(self) -> ObservationSpec | None:
-        spec = getattr(self.policy, "observation_spec", None)
-        return spec() if callable(spec) else spec
+    @property
+    def key_actions(self) -> np.ndarray:
+        """(B,) key actions executed so far (control steps in dense mode)."""
+        return np.asarray(self._env.key_actions)
 
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
-              episode_seeds: Sequence[int]) -> None:
-        if self._seeded:
-            self.policy.reset(episodes, env, instructions, episode_seeds=list(episode_seeds))
-        else:
-            self.policy.reset(episodes, env, instructions)
+    @functools.cached_property
+    def proprioception(self) -> dict[str, np.ndarray]:
+        """RLBench's low-dimensional fields of every world: gripper_pose (B, 7; xyz and
+        quaternion xyzw), gripper_open, joint_positions, joint_velocities,
+        gripper_joint_positions (observation.py)."""
+        return self._episodes.observer.proprioception(self._env)
 
-    def _observation(self, episodes: Episodes, env: EnvState) -> dict[str, Any]:
-        """act's keyword arguments: the observation its spec asks for, if it has one."""
-        spec = self.observation_spec()
-        return {} if spec is None else {"observation": episodes.observe(env, spec)}
+    @functools.cached_property
+    def observation(self) -> RLBenchObservation:
+        """The declared `observation_spec` of every world, rendered on first use."""
+        if self.observation_spec is None:
+            raise ValueError("this policy declared no observation_spec, so nothing is rendered "
+                             "for it; set observation_spec to an ObservationSpec")
+        return self._episodes.observe(self._env, self.observation_spec)
 
-    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
-        """The next key actions, waiting for them (a caller with nothing else to run)."""
-        return self.policy.act(episodes, env, **self._observation(episodes, env))
+    @property
+    def episodes(self) -> Episodes:
+        """The runner (task, scene, expert, renderers): privileged policies only."""
+        return self._simulator(self._episodes)
 
-    def act_steps(self, episodes: Episodes, env: EnvState) -> ActSteps:
-        """The next key actions as a generator over the futures the policy waits on."""
-        kwargs = self._observation(episodes, env)
-        if self.interleaves:
-            return (yield from self.policy.act_steps(episodes, env, **kwargs))
-        return self.policy.act(episodes, env, **kwargs)
+    @property
+    def env(self) -> EnvState:
+        """The worlds' simulator state: privileged policies only."""
+        return self._simulator(self._env)
 
-    def action_modes(self) -> tuple[str, ...]:
-        """The action modes the policy acts in (default: key actions only)."""
-        return tuple(getattr(self.policy, "action_modes", ("keyaction",)))
+    def _simulator(self, part: Any) -> Any:
+        if not self.privileged:
+            raise PrivilegedAccessError(
+                "the simulator (view.episodes, view.env) is for policies that declare "
+                "privileged = True; a policy sees view.instructions, view.observation "
+                "(its observation_spec) and view.proprioception")
+        return part
 
-    def relative(self) -> bool:
-        """Whether the policy's dense rows are deltas of the current tip pose."""
-        return bool(getattr(self.policy, "relative", False))
 
-    def end_reasons(self, env: EnvState) -> np.ndarray:
-        """Per world, the outcome that replaces no_action (0: none)."""
-        reasons = getattr(self.policy, "end_reasons", None)
-        return np.zeros_like(env.outcome) if reasons is None else reasons
+def run_blocking(steps: Generator[concurrent.futures.Future, Any, Any]) -> Any:
+    """Drive a generator of futures to its return value, waiting on each future."""
+    try:
+        future = next(steps)
+        while True:
+            concurrent.futures.wait([future])
+            future = steps.send(None)
+    except StopIteration as stop:
+        return stop.value
+
+
+class Policy:
+    """One key action per world per round for a batch of episodes of one task (see the
+    module docstring).  A subclass overrides `act` or `act_steps`."""
+
+    name: str = "policy"
+    observation_spec: ObservationSpec | None = None
+    privileged: bool = False
+    action_modes: tuple[str, ...] = ("keyaction",)
+    relative: bool = False
+    end_reasons: np.ndarray | None = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.act is Policy.act and cls.act_steps is Policy.act_steps:
+            raise TypeError(f"{cls.__name__} must override act (or act_steps)")
+
+    def reset(self, view: Round) -> None:
+        """Start a new batch: `view.instructions[i]` is world i's language goal and
+        `view.episode_seeds[i]` seeds its own randomness (a function of the episode alone,
+        not of the batch it runs in).  Default: nothing kept per batch."""
+
+    def act(self, view: Round) -> KeyActions:
+        """The next key action of every world: pos (B, 3) tip position in world
+        coordinates, quat (B, 4) wxyz, gripper (B,) open amount in [0, 1] and valid (B,)
+        bool; valid=False ends that world with Outcome.NO_ACTION.  Default: `act_steps`,
+        waiting on each future."""
+        return run_blocking(self.act_steps(view))
+
+    def act_steps(self, view: Round) -> ActSteps:
+        """`act` as a generator that yields the futures it waits on and returns the
+        actions.  Default: `act`, which blocks (no other task runs meanwhile)."""
+        return self.act(view)
+        yield  # noqa: B901 - makes this a generator
+
+    def interleaves(self) -> bool:
+        """Whether `act_steps` yields while it waits, so that other tasks can run meanwhile."""
+        return type(self).act_steps is not Policy.act_steps
 
     def episode_info(self, world: int) -> dict | None:
-        """The record's policy_info of `world`, None when the policy keeps none."""
-        info = getattr(self.policy, "episode_info", None)
-        return None if info is None else info(world)
+        """What the evaluator stores as ``policy_info`` in world's record once it finishes
+        (None: nothing)."""
+        return None
 
     def report(self) -> dict[str, Any]:
-        """Sections of results.json on the run's requests ({} for none)."""
-        report = getattr(self.policy, "report", None)
-        return {} if report is None else report()
+        """Sections of results.json about the run's requests (``{"llm": {...}}``); called
+        as results are written.  Default: none."""
+        return {}
 
+    def fork(self) -> Policy:
+        """A shallow copy for a task running beside others: shared heavy parts (an LLM
+        client, a model), its own per-batch state, which reset() replaces."""
+        return copy.copy(self)
 
-def _accepts(func: Callable, name: str) -> bool:
-    try:
-        return name in inspect.signature(func).parameters
-    except (TypeError, ValueError):
-        return False
+    def end_reason_codes(self, batch: int) -> np.ndarray:
+        """`end_reasons` as (batch,) codes, zeros where the policy gives none."""
+        reasons = self.end_reasons
+        return np.zeros(batch, np.int32) if reasons is None else np.asarray(reasons)
 
 
 def no_actions(batch: int) -> KeyActions:
@@ -271,28 +282,27 @@ def load_object(spec: str) -> Any:
 def make_policy(spec: str, **kwargs: Any) -> Policy:
     """A policy from a registered name or a "module:attr" / "file.py:attr" string.
 
-    The target may be a class or a factory (called with `kwargs`) or an
-    instance (used as is; kwargs must then be empty).  A policy without a
-    `name` attribute is named after `spec`."""
+    The target may be a `Policy` subclass or a factory (called with `kwargs`) or a
+    `Policy` instance (used as is; kwargs must then be empty).  A policy that keeps the
+    default name is named after `spec`."""
     target = _REGISTRY.get(spec, spec)
     if isinstance(target, str):
         if ":" not in target:
             raise KeyError(f"unknown policy {spec!r}; registered policies: "
                            f"{', '.join(list_policies())}; or give 'module:attr'")
         target = load_object(target)
-    if isinstance(target, type) or not (hasattr(target, "act") and hasattr(target, "reset")):
-        if not callable(target):
-            raise TypeError(f"{spec!r} is neither a policy nor a policy factory")
-        policy = target(**kwargs)
-    else:
+    if isinstance(target, Policy):
         if kwargs:
             raise TypeError(f"{spec!r} is a policy instance; it takes no arguments")
         policy = target
-    if not (callable(getattr(policy, "act", None)) and callable(getattr(policy, "reset", None))):
-        raise TypeError(f"{spec!r} gave {type(policy).__name__}, which lacks reset()/act()")
-    if not getattr(policy, "name", None):
-        try:
-            policy.name = spec
-        except AttributeError:
-            pass
+    elif callable(target):
+        policy = target(**kwargs)
+    else:
+        raise TypeError(f"{spec!r} is neither a policy nor a policy factory")
+    if not isinstance(policy, Policy):
+        raise TypeError(f"{spec!r} gave a {type(policy).__name__}, not an "
+                        "agnostos_mjx.policies.Policy: subclass Policy and override act "
+                        "(see agnostos_mjx/policies/base.py)")
+    if policy.name == Policy.name:
+        policy.name = spec
     return policy

@@ -17,24 +17,21 @@ tip pose measured now, the others from the previous row's target).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from agnostos_mjx.data.expert_frames import frame_every, next_frame_actions, proprio_frames
 from agnostos_mjx.math3d import pose_delta
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.tasks.base import KeyActions
 
-if TYPE_CHECKING:
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
 
-
-class DenseReplayPolicy:
-    """Replays each world's expert demo as dense actions (see the module docstring)."""
+class DenseReplayPolicy(Policy):
+    """Replays each world's expert demo as dense actions (see the module docstring).
+    Privileged: it records the expert on a copy of the scene."""
 
     name = "dense-replay"
     action_modes = ("dense",)
+    privileged = True
 
     def __init__(self, every: int | str = "rlbench", chunk: int = 1, relative: bool = False
                  ) -> None:
@@ -49,9 +46,10 @@ class DenseReplayPolicy:
         self.frames = np.zeros(0, np.int64)
         self.demo_success = np.zeros(0, bool)
 
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str]) -> None:
+    def reset(self, view: Round) -> None:
         from agnostos_mjx.runtime.outcome import Outcome
 
+        episodes, env = view.episodes, view.env
         every = frame_every(self.every, episodes.dt)
         demo, frames, _ = proprio_frames(episodes, env.replace(stop_at_success=False), every)
         self.demo_success = np.asarray(demo.outcome) == Outcome.SUCCESS
@@ -63,16 +61,16 @@ class DenseReplayPolicy:
         self.pose = np.stack([a[0][t] for a, t in zip(actions, take)])
         self.gripper = np.stack([a[1][t] for a, t in zip(actions, take)]).astype(np.float64)
 
-    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
+    def act(self, view: Round) -> KeyActions:
         b, n = self.gripper.shape
         # Control steps executed so far: the next frame's action, whatever chunks ran.
-        k = np.asarray(env.key_actions, np.int64)[:, None] + np.arange(self.chunk)[None]
+        k = np.asarray(view.key_actions, np.int64)[:, None] + np.arange(self.chunk)[None]
         idx = np.minimum(k, n - 1)
         rows = np.arange(b)[:, None]
         pose = self.pose[rows, idx]
         pos, quat = pose[..., :3], pose[..., [6, 3, 4, 5]]
         if self.relative:
-            obs = env.obs
+            obs = view.env.obs
             ref_pos = np.concatenate([np.asarray(obs["tip.pos"], np.float64)[:, None],
                                       pos[:, :-1]], 1)
             ref_quat = np.concatenate([np.asarray(obs["tip.quat"], np.float64)[:, None],

@@ -5,33 +5,30 @@ with the runtime's control stack (X-ICM's demos come from the same expert)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.tasks.base import KeyActions
 
-if TYPE_CHECKING:
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
 
-
-class OraclePolicy:
+class OraclePolicy(Policy):
     """Plans every world's expert key actions at reset and pops one per step,
     skipping padding (invalid) entries; when a world's plan is used up its
-    action is invalid, which ends it with Outcome.NO_ACTION."""
+    action is invalid, which ends it with Outcome.NO_ACTION.  Privileged: the
+    expert reads the scene's state."""
 
     name = "oracle"
+    privileged = True
 
     def __init__(self) -> None:
         self._plan: KeyActions | None = None
         self._cursor = np.zeros(0, np.int64)
 
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str]) -> None:
-        self._plan = episodes.expert_actions(env)  # arrays (B, K, ...)
-        self._cursor = np.zeros(len(instructions), np.int64)
+    def reset(self, view: Round) -> None:
+        self._plan = view.episodes.expert_actions(view.env)  # arrays (B, K, ...)
+        self._cursor = np.zeros(view.batch, np.int64)
 
-    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
+    def act(self, view: Round) -> KeyActions:
         if self._plan is None:
             raise RuntimeError("OraclePolicy.act called before reset")
         plan = self._plan

@@ -12,15 +12,12 @@ from __future__ import annotations
 import concurrent.futures
 from collections import deque
 from collections.abc import Generator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from agnostos_mjx.policies.base import Policy, Round, run_blocking
 from agnostos_mjx.tasks.base import KeyActions
-
-if TYPE_CHECKING:
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
 
 
 class PlanResult:
@@ -37,8 +34,9 @@ class PlanResult:
         return 0 if self.pos is None else len(self.pos)
 
 
-class PlanningPolicy:
-    """Subclasses implement `plan(episodes, env, worlds) -> list[PlanResult]`."""
+class PlanningPolicy(Policy):
+    """Subclasses implement `plan(view, worlds) -> list[PlanResult]`, or `plan_steps` when
+    planning waits on futures."""
 
     name = "planning"
 
@@ -46,43 +44,45 @@ class PlanningPolicy:
         self._queues: list[deque] = []
         self._logs: list[list[dict]] = []
         self.end_reasons = np.zeros(0, np.int32)
-        self._seeds: list[int] = []
+        self._seeds: tuple[int, ...] = ()
 
-    def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
-        raise NotImplementedError
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.plan is PlanningPolicy.plan and cls.plan_steps is PlanningPolicy.plan_steps:
+            raise TypeError(f"{cls.__name__} must override plan (or plan_steps)")
 
-    def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray
+    def plan(self, view: Round, worlds: np.ndarray) -> list[PlanResult]:
+        """New plans of `worlds` (the running worlds whose queue is empty)."""
+        return run_blocking(self.plan_steps(view, worlds))
+
+    def plan_steps(self, view: Round, worlds: np.ndarray
                    ) -> Generator[concurrent.futures.Future, Any, list[PlanResult]]:
         """`plan` as a generator that yields the futures it waits on (LLM batches), so
         the evaluator can simulate other tasks meanwhile.  Default: no waiting."""
-        return self.plan(episodes, env, worlds)
+        return self.plan(view, worlds)
         yield  # noqa: B901 - makes this a generator
 
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
-              episode_seeds: list[int] | None = None) -> None:
-        b = len(instructions)
-        self.instructions = list(instructions)
+    def reset(self, view: Round) -> None:
+        b = view.batch
+        self.instructions = list(view.instructions)
         self._queues = [deque() for _ in range(b)]
         self._logs = [[] for _ in range(b)]
         self._replans = np.zeros(b, np.int32)
-        self._seeds = list(episode_seeds) if episode_seeds is not None else list(range(b))
+        self._seeds = view.episode_seeds
         self.end_reasons = np.zeros(b, np.int32)
 
     def plan_seed(self, world: int) -> int:
         """A reproducible seed per (episode, replan)."""
         return (int(self._seeds[world]) * 1_000_003 + int(self._replans[world])) & 0x7FFFFFFF
 
-    def act(self, episodes: Episodes, env: EnvState) -> KeyActions:
-        return run_blocking(self.act_steps(episodes, env))
-
-    def act_steps(self, episodes: Episodes, env: EnvState
-                  ) -> Generator[concurrent.futures.Future, Any, KeyActions]:
+    def act_steps(self, view: Round) -> Generator[concurrent.futures.Future, Any, KeyActions]:
         """`act` as a generator over the futures planning waits on (see plan_steps)."""
         b = len(self._queues)
-        need = np.array([not env.done[i] and not self._queues[i] for i in range(b)])
+        running = view.running
+        need = np.array([running[i] and not self._queues[i] for i in range(b)])
         worlds = np.nonzero(need)[0]
         if len(worlds):
-            results = yield from self.plan_steps(episodes, env, worlds)
+            results = yield from self.plan_steps(view, worlds)
             for w, result in zip(worlds, results):
                 self._replans[w] += 1
                 self._logs[w].append(result.info)
@@ -95,7 +95,7 @@ class PlanningPolicy:
         grip = np.ones(b, np.float32)
         valid = np.zeros(b, bool)
         for i, queue in enumerate(self._queues):
-            if queue and not env.done[i]:
+            if queue and running[i]:
                 pos[i], quat[i], grip[i] = queue.popleft()
                 valid[i] = True
         return KeyActions(pos, quat, grip, valid)
@@ -104,13 +104,3 @@ class PlanningPolicy:
         """What the evaluator stores with the episode record."""
         return {"plans": self._logs[world]}
 
-
-def run_blocking(steps: Generator[concurrent.futures.Future, Any, Any]) -> Any:
-    """Drive a generator of futures to its return value, waiting on each future."""
-    try:
-        future = next(steps)
-        while True:
-            concurrent.futures.wait([future])
-            future = steps.send(None)
-    except StopIteration as stop:
-        return stop.value

@@ -18,18 +18,14 @@ evaluation processes on one H100 ran out of it.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from agnostos_mjx.observation import ObservationSpec
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.tasks.base import KeyActions
 
-if TYPE_CHECKING:
-    from agnostos_mjx.observation import RLBenchObservation
 
-
-class ReferenceVLAPolicy:
+class ReferenceVLAPolicy(Policy):
     """A trained reference VLA (vla/model.py) behind the policy interface."""
 
     name = "reference-vla"
@@ -74,17 +70,16 @@ class ReferenceVLAPolicy:
         self._forward, self._params = forward, params
         self.steps = np.zeros(0, np.int32)
 
-    def reset(self, episodes, env, instructions: list[str]) -> None:
+    def reset(self, view: Round) -> None:
         from agnostos_mjx.dynamics.text import tokenize
 
-        self.ids, self.mask = tokenize(list(instructions), self.cfg.text_len)
-        self.steps = np.zeros(len(instructions), np.int32)
+        self.ids, self.mask = tokenize(list(view.instructions), self.cfg.text_len)
+        self.steps = np.zeros(view.batch, np.int32)
 
-    def act(self, episodes, env, observation: RLBenchObservation | None = None) -> KeyActions:
+    def act(self, view: Round) -> KeyActions:
         from agnostos_mjx.textualise import euler_bins_to_quat
 
-        if observation is None:
-            raise ValueError("reference-vla acts on observations (its observation_spec)")
+        observation = view.observation
         b = observation.batch
         cams = [observation.cameras[c] for c in self.cameras]
         points = np.concatenate([np.asarray(c.point_cloud).reshape(b, -1, 3) for c in cams], 1)

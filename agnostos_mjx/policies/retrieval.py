@@ -11,19 +11,14 @@ beat.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from agnostos_mjx.control import ACTION_BOUNDS
-from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult, run_blocking
+from agnostos_mjx.policies.base import Round
+from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.policies.xicm import queries_for
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.selection import make_selector, resolve_selection
-
-if TYPE_CHECKING:
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
 
 
 def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.ndarray
@@ -40,7 +35,10 @@ def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.nd
 
 
 class RetrievalPolicy(PlanningPolicy):
+    """Privileged: the query scene's object positions come from the simulator."""
+
     name = "retrieval"
+    privileged = True
 
     def __init__(self, selection: str = "auto", memory: str | None = None,
                  sample_steps: int | None = None) -> None:
@@ -50,14 +48,10 @@ class RetrievalPolicy(PlanningPolicy):
         self.selector = make_selector(self.selection, self.memory, sample_steps=sample_steps)
         self.name = f"retrieval[{self.selection}]"
 
-    def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
-        return run_blocking(self.plan_steps(episodes, env, worlds))
-
-    def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray):
-        task = episodes.task
+    def plan_steps(self, view: Round, worlds: np.ndarray):
+        task, env = view.episodes.task, view.env
         names = list(task.objects)
-        selected = self.selector.submit(
-            queries_for(self, episodes, env, worlds, self.selection), 1)
+        selected = self.selector.submit(queries_for(self, view, worlds, self.selection), 1)
         yield selected  # the evaluator runs other tasks while the features are computed
         chosen = selected.result()
         results = []

@@ -14,7 +14,6 @@ publishes one, so a too-small context is one clear error, not a run of
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,16 +26,13 @@ from agnostos_mjx.llm.client import (
 )
 from agnostos_mjx.llm.server import context_advice
 from agnostos_mjx.observation import CAMERAS, ObservationSpec
-from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult, run_blocking
+from agnostos_mjx.policies.base import Round
+from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.scene_text import query_texts, segmented_object_voxels
 from agnostos_mjx.textualise import decode_action
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.prompt import messages, parse_actions
 from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
-
-if TYPE_CHECKING:
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
 
 log = logging.getLogger("agnostos_mjx.xicm")
 
@@ -51,19 +47,23 @@ def needs_frames(selection: str) -> bool:
     return "vis" in selection
 
 
-def queries_for(policy: PlanningPolicy, episodes: Episodes, env: EnvState, worlds: np.ndarray,
-                selection: str) -> list[Query]:
+def queries_for(policy: PlanningPolicy, view: Round, worlds: np.ndarray, selection: str
+                ) -> list[Query]:
     """Selection queries of the worlds being (re)planned: instruction, a seed
     per (episode, replan) and, for dynamics features, the current front frame."""
     frames = None
     if needs_frames(selection):  # only the worlds being replanned
-        frames = episodes.render(env, "front", 128, 128, worlds=worlds)
+        frames = view.episodes.render(view.env, "front", 128, 128, worlds=worlds)
     return [Query(policy.instructions[w], policy.plan_seed(w),
                   None if frames is None else frames[i]) for i, w in enumerate(worlds)]
 
 
 class XICMPolicy(PlanningPolicy):
+    """Privileged: the query's text holds the scene's object poses, from the simulator
+    (``objects="ground_truth"``) or from its segmented point clouds, as X-ICM's harness."""
+
     name = "xicm"
+    privileged = True
 
     def __init__(self, llm_url: str | None = None, llm_model: str | None = None,
                  selection: str = "auto", num_demos: int = 18,
@@ -138,12 +138,10 @@ class XICMPolicy(PlanningPolicy):
         report = getattr(self.client, "report", None)
         return {"llm": report() if report is not None else {}}
 
-    def plan(self, episodes: Episodes, env: EnvState, worlds: np.ndarray) -> list[PlanResult]:
-        return run_blocking(self.plan_steps(episodes, env, worlds))
-
-    def plan_steps(self, episodes: Episodes, env: EnvState, worlds: np.ndarray):
+    def plan_steps(self, view: Round, worlds: np.ndarray):
         from agnostos_mjx.runtime.outcome import Outcome
 
+        episodes, env = view.episodes, view.env
         variations = env.variation[worlds]
         obs = type(env.obs)(env.obs.data[worlds], env.obs.layout, env.obs.attached[worlds])
         voxels = None
@@ -151,8 +149,8 @@ class XICMPolicy(PlanningPolicy):
             observation = episodes.observe(env, SEGMENTED_SPEC)
             voxels = segmented_object_voxels(observation, worlds)
         query_lines = query_texts(episodes.task, obs, variations, voxels)
-        selected = self.selector.submit(
-            queries_for(self, episodes, env, worlds, self.selection), self.num_demos)
+        selected = self.selector.submit(queries_for(self, view, worlds, self.selection),
+                                        self.num_demos)
         yield selected  # the evaluator runs other tasks while the features are computed
         chosen = selected.result()
         batch = [messages([str(self.memory.text[i]) for i in idx], q)

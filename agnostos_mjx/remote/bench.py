@@ -25,22 +25,22 @@ from agnostos_mjx.settings import configure_jax
 def run_batch(runner, policy, batch: int, seed: int) -> tuple[float, int, int, np.ndarray]:
     """(seconds, key actions, steps, outcomes) of one batch of `policy` on `runner`."""
     from agnostos_mjx.evaluation.protocol import episode_keys, policy_seed
-    from agnostos_mjx.policies.base import PolicyAdapter
+    from agnostos_mjx.policies.base import Round
 
-    policy = PolicyAdapter(policy)
     episodes = np.arange(batch)
     keys = episode_keys(np.full(batch, seed), episodes)
     variations = np.zeros(batch, np.int32)
     t0 = time.perf_counter()
     env = runner.reset(keys, variations)
     instructions = [runner.task.descriptions(0)[0]] * batch
-    policy.reset(runner, env, instructions,
-                 episode_seeds=[policy_seed(seed, e) for e in episodes])
+    view = Round.for_policy(policy, runner, env, instructions,
+                            [policy_seed(seed, e) for e in episodes])
+    policy.reset(view)
     steps = 0
     for _ in range(runner.task.max_key_actions):
         if env.done.all():
             break
-        env, _ = runner.step(env, policy.act(runner, env))
+        env, _ = runner.step(env, policy.act(view.at(env)))
         steps += 1
     return time.perf_counter() - t0, int(env.key_actions.sum()), steps, env.outcome.copy()
 

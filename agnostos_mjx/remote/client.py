@@ -37,13 +37,14 @@ import contextlib
 import ssl
 import threading
 import time
-from collections.abc import Generator, Sequence
+from collections.abc import Generator
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 import numpy as np
 
 from agnostos_mjx import settings
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.remote import json_wire
 from agnostos_mjx.remote.adapter import (
     BadAnswer,
@@ -58,8 +59,6 @@ from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
     from agnostos_mjx.observation import RLBenchObservation
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.state import EnvState
 
 DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
 SCHEMES = ("ws", "wss", "http", "https")
@@ -285,9 +284,10 @@ def make_transport(url: str) -> WebsocketTransport | HttpTransport:
 
 
 # ---- the policy ---------------------------------------------------------------------------
-class RemotePolicy:
+class RemotePolicy(Policy):
     """Sends each running world's observation (mapped by an Adapter) to the server and
-    executes the key actions in its answers.
+    executes the key actions in its answers.  Privileged only with the ``sim`` preset,
+    which sends the simulator's state (for a server that runs a privileged policy).
 
     `preset`: rlbench, libero, droid, xicm, openvla, openvla_oft, sim, or auto (what the
     server's metadata names as ``agnostos_preset``, else rlbench over websockets and
@@ -320,6 +320,8 @@ class RemotePolicy:
             preset = str(meta.get("agnostos_preset", default))
         self.preset = preset
         self.adapter = make_adapter(preset, keys, **adapter_options)
+        self.observation_spec = self.adapter.spec()
+        self.privileged = self.adapter.wants_sim_state
         served = meta.get("policy")
         self.name = f"{self.name}[{served}]" if served else self.name
         # Shared by the copies the evaluator makes per task: one report for the run.
@@ -334,35 +336,26 @@ class RemotePolicy:
             return await self.transport.probe()
 
     # ---- the plug-in interface ------------------------------------------------------------
-    def reset(self, episodes: Episodes, env: EnvState, instructions: list[str],
-              episode_seeds: Sequence[int] | None = None) -> None:
+    def reset(self, view: Round) -> None:
         self._close(self._conns)
-        b = len(instructions)
-        self.instructions = list(instructions)
-        self._seeds = list(episode_seeds) if episode_seeds is not None else list(range(b))
+        b = view.batch
+        self.instructions = list(view.instructions)
+        self._seeds = view.episode_seeds
         self._conns = {}
         self._queue = {}
         self._errors = {}
         self.end_reasons = np.zeros(b, np.int32)
 
-    def act(self, episodes: Episodes, env: EnvState,
-            observation: RLBenchObservation | None = None) -> KeyActions:
-        from agnostos_mjx.policies.planning import run_blocking
-
-        return run_blocking(self.act_steps(episodes, env, observation))
-
-    def act_steps(self, episodes: Episodes, env: EnvState,
-                  observation: RLBenchObservation | None = None
-                  ) -> Generator[concurrent.futures.Future, Any, KeyActions]:
+    def act_steps(self, view: Round) -> Generator[concurrent.futures.Future, Any, KeyActions]:
         """`act` as a generator that yields the future of the step's requests.  Worlds
         with rows left of their last chunk execute the next one without a request."""
         b = len(self.end_reasons)
-        running = np.nonzero(~np.asarray(env.done[:b]) & (self.end_reasons == 0))[0]
+        running = np.nonzero(view.running[:b] & (self.end_reasons == 0))[0]
         ask = np.array([w for w in running if not self._queue.get(int(w))], np.int64)
         sources = None
         if len(ask) or (self.adapter.relative and len(running)):
-            sources = lowdim(episodes.observer.proprioception(env))
-        payloads = self._requests(episodes, env, ask, observation, sources)
+            sources = lowdim(view.proprioception)
+        payloads = self._requests(view, ask, sources)
         future = self._loop.submit(self._exchange(self._conns, payloads))
         yield future
         for w, (code, answer) in zip(ask, future.result()):
@@ -404,19 +397,18 @@ class RemotePolicy:
                                         / max(answered, 1), 3)}}
 
     # ---- pieces ---------------------------------------------------------------------------
-    def _requests(self, episodes: Episodes, env: EnvState, worlds: np.ndarray,
-                  observation: RLBenchObservation | None, sources: dict | None
+    def _requests(self, view: Round, worlds: np.ndarray, sources: dict | None
                   ) -> list[tuple[int, bytes]]:
         """Encoded requests of `worlds` (rendering what the adapter needs, once)."""
         if not len(worlds):
             return []
         assert sources is not None
-        spec = self.adapter.spec()
-        if spec is not None and observation is None:
-            observation = episodes.observe(env, spec)
+        observation: RLBenchObservation | None = None
+        if self.observation_spec is not None:
+            observation = view.observation
         sources = dict(sources, instruction=self.instructions)
-        if self.adapter.wants_sim_state:
-            sources["sim_state"] = {int(w): world_sim_state(episodes, env, int(w),
+        if self.privileged:
+            sources["sim_state"] = {int(w): world_sim_state(view.episodes, view.env, int(w),
                                                             self._seeds[int(w)])
                                     for w in worlds}
         return [(int(w), self.transport.encode(request(self.adapter, int(w), sources,

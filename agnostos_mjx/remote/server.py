@@ -27,7 +27,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import concurrent.futures
-import copy
 import functools
 import http
 import http.server
@@ -42,7 +41,7 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
-from agnostos_mjx.policies.base import PolicyAdapter
+from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.remote import json_wire, wire
 
 log = logging.getLogger("agnostos_mjx.serve")
@@ -90,9 +89,10 @@ def mirror_env(runner, state: dict):
 class Session:
     """One connection's policy copy, driven through mirror EnvStates."""
 
-    def __init__(self, policy: Any) -> None:
-        self.policy = PolicyAdapter(copy.copy(policy))
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy.fork()
         self.episode: tuple | None = None
+        self.view: Round | None = None
 
     def infer(self, obs: dict) -> dict:
         state = obs.get("sim_state") if isinstance(obs, dict) else None
@@ -101,11 +101,12 @@ class Session:
         runner = runner_for(str(state["task"]))
         env = mirror_env(runner, state)
         episode = (state["task"], int(state["episode_seed"]))
-        if self.episode != episode or int(state["key_actions"]) == 0:
+        if self.view is None or self.episode != episode or int(state["key_actions"]) == 0:
             prompt = str(obs.get("prompt", ""))
-            self.policy.reset(runner, env, [prompt], episode_seeds=[episode[1]])
+            self.view = Round.for_policy(self.policy, runner, env, [prompt], [episode[1]])
+            self.policy.reset(self.view)
             self.episode = episode
-        actions = self.policy.act(runner, env)
+        actions = self.policy.act(self.view.at(env))
         if not bool(np.asarray(actions.valid)[0]):
             return {"actions": np.zeros((0, 8), np.float32)}
         quat = np.asarray(actions.quat, np.float32)[0]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from agnostos_mjx.policies.base import Round
 from agnostos_mjx.policies.oracle import OraclePolicy
 from agnostos_mjx.tasks.base import KeyActions
 from agnostos_mjx.textualise import euler_bins_to_quat, quat_to_euler_bins
@@ -25,8 +26,8 @@ class QuantisedOracle(OraclePolicy):
         self.view_size, self.sigma = int(view_size), float(sigma)
         self.parts = set(parts.split(","))  # which of pos, rot are quantised
 
-    def act(self, episodes, env) -> KeyActions:
-        a = super().act(episodes, env)
+    def act(self, view: Round) -> KeyActions:
+        a = super().act(view)
         pos, quat = np.asarray(a.pos, np.float32), np.asarray(a.quat, np.float32)
         if "pos" in self.parts:
             maps = target_heatmaps(pos, self.view_size, self.sigma)
