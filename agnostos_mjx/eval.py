@@ -76,9 +76,10 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     if cfg.backend == "warp" and cfg.num_processes == 1:
         setup_logging(cfg.quiet)
         warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner, selection=default_selection)
-    elif cfg.local_processes > 1 and default_selection:
+    elif cfg.local_processes > 1:
         setup_logging(cfg.quiet)
-        warmup.ensure_selection(cfg.tasks, cfg.batch, cfg.planner)
+        warmup.ensure_shared_programs(cfg.tasks, cfg.batch, cfg.planner,
+                                      selection=default_selection)
     if cfg.local_processes > 1:
         setup_logging(cfg.quiet)
         if guard is not None and cfg.out:  # the resume hint even if stopping takes long

@@ -13,7 +13,9 @@ once, two things at the same time:
 - the default policies' demo selection once (X-ICM's lang+vis.out dynamics features, which
   the retrieval baseline uses too): its networks are one set of programs per machine, and
   without this every process of the first run compiled them at once (16 s for the sampler
-  alone on an H100, 2026-11-26).
+  alone on an H100, 2026-11-26);
+- the device planner's programs (a key action's plan, the reset's reachability checks),
+  which every task shares: the robot is the same in every scene.
 Then, with `--task-runs` (the default off warp), tasks run once in parallel processes
 (`--jobs`): reset and settle, one key action of the expert, on warp one rendered frame.
 A second run on the same machine finds everything built.  The key-action programs that
@@ -42,6 +44,7 @@ log = logging.getLogger("agnostos_mjx.warmup")
 
 
 SELECTION_WORKER = "(selection)"  # --worker name of the selection step
+PLANNER_WORKER = "(planner)"  # --worker name of the planner step
 
 
 def warm_selection() -> None:
@@ -56,6 +59,38 @@ def warm_selection() -> None:
 
     frame = np.zeros((128, 128, 3), np.uint8)  # the size policies.xicm.queries_for renders
     RetrievalPolicy().selector.select([Query("press the button", 0, frame)], 1)
+
+
+def warm_planner(batch: int, planner: str = "auto") -> dict:
+    """The device planner's programs, which every task of a run shares (one robot,
+    control.jit_for_robot): a key action's plan (control.plan_arm) and the reset's
+    reachability check at each multiple of REACH_STEPS key actions up to the longest
+    task, all at the run's batch.  Without this every process compiled them at its first
+    reset (an H100 process: 5.6 s for the plan, 13.5 s for the checks).  The host planner
+    (numpy) has nothing to compile."""
+    import numpy as np
+
+    from agnostos_mjx import control
+    from agnostos_mjx.runtime.env import REACH_STEPS, resolve_planner
+    from agnostos_mjx.tasks import get_task, list_tasks
+    from agnostos_mjx.world import HOME_QPOS, build_scene
+
+    if resolve_planner(planner) != "device":
+        return {"programs": 0}
+    kin = control.PandaKinematics.from_model(build_scene(get_task("lamp_on")).model)
+    # The dtypes and shapes the runtime passes (Episodes._run_on_host, expert_reachable).
+    q = np.tile(np.asarray(HOME_QPOS, np.float64), (batch, 1))
+    pos = np.tile(np.array([0.3, 0.0, 1.0]), (batch, 1))
+    quat = np.tile(np.array([0.0, 1.0, 0.0, 0.0]), (batch, 1))
+    np.asarray(control.jit_for_robot(control.plan_arm, kin)(q, pos, quat)[0])
+    reachable = control.jit_for_robot(control.reachable, kin)
+    longest = max(get_task(name).max_key_actions for name in list_tasks())
+    sizes = range(REACH_STEPS, longest + REACH_STEPS, REACH_STEPS)
+    for k in sizes:
+        np.asarray(reachable(q, np.repeat(pos[:, None], k, 1).astype(np.float32),
+                             np.repeat(quat[:, None], k, 1).astype(np.float32),
+                             np.ones((batch, k), bool)))
+    return {"programs": 1 + len(sizes)}
 
 
 def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dict:
@@ -114,7 +149,7 @@ def one_per_size(names: list[str]) -> list[str]:
 
 def _worker(name: str, args: argparse.Namespace) -> dict:
     """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks;
-    SELECTION_WORKER, warm_selection) in its own process (its GPU memory and Warp context
+    SELECTION_WORKER, warm_selection; PLANNER_WORKER, warm_planner) in its own process (its GPU memory and Warp context
     go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
            "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
@@ -156,30 +191,36 @@ def _installed(package: str) -> str:
         return "none"
 
 
-def selection_marker(batch: int) -> Path:
-    """The file that says this machine compiled the demo selection's networks for runs at
-    `batch` into JAX's persistent cache (keyed by the jax and agnostos-mjx versions and the
-    cache's folder; a wiped cache only makes the processes compile again as they go)."""
+def shared_marker(batch: int, selection: bool) -> Path:
+    """The file that says this machine compiled the programs every process of a run at
+    `batch` shares (the device planner's; with `selection`, the demo selection's networks)
+    into JAX's persistent cache (keyed by the jax and agnostos-mjx versions and the cache's
+    folder; a wiped cache only makes the processes compile again as they go)."""
     from agnostos_mjx.settings import JAX_CACHE
 
-    key = json.dumps([_installed("jax"), _installed("agnostos-mjx"), JAX_CACHE.get(), batch])
-    return cache_root() / "warm_selection" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+    key = json.dumps([_installed("jax"), _installed("agnostos-mjx"), JAX_CACHE.get(), batch,
+                      "planner", selection])
+    return cache_root() / "warm_shared" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
 
 
-def ensure_selection(tasks: str, batch: int, planner: str = "auto") -> int | None:
-    """Before a run of several processes with the default policies (on a backend without
-    Warp's kernel step, which does this too): the demo selection's networks, which every
-    process runs, compiled once in a process of its own (warm_selection), unless this
-    machine did it already (selection_marker).  Returns its exit code,
-    None if skipped; on failure the processes compile as they go."""
-    marker = selection_marker(batch)
+def ensure_shared_programs(tasks: str, batch: int, planner: str = "auto",
+                           selection: bool = True) -> int | None:
+    """Before a run of several processes (on a backend without Warp's kernel step, which
+    does this too): the programs every process would compile alike, compiled once in a
+    process of its own: the device planner's (warm_planner) and, with `selection` (the
+    default policies), the demo selection's networks (warm_selection), unless this machine
+    did it already (shared_marker).  Returns its exit code, None if skipped; on failure
+    the processes compile as they go."""
+    if planner == "host" and not selection:
+        return None
+    marker = shared_marker(batch, selection)
     if marker.exists():
         return None
-    log.info("compiling the demo selection's networks once for the run's processes "
+    log.info("compiling the programs every process shares once, before them "
              "(python -m agnostos_mjx.warmup does it ahead of time)")
     t0 = time.perf_counter()
-    code = _warmup_process(tasks, "native", batch, planner, selection=True,
-                           what="compiling the selection")
+    code = _warmup_process(tasks, "native", batch, planner, selection=selection,
+                           what="compiling the shared programs")
     if code == 0:
         _write_marker(marker, {"wall_s": round(time.perf_counter() - t0, 2)})
     return code
@@ -187,7 +228,7 @@ def ensure_selection(tasks: str, batch: int, planner: str = "auto") -> int | Non
 
 def _warmup_process(tasks: str, backend: str, batch: int, planner: str, selection: bool,
                     what: str) -> int:
-    """This command's kernel and selection step (no task runs) in a process of its own;
+    """This command's kernel, planner and selection step (no task runs) in a process of its own;
     its exit code, a failure logged (the run then does `what` as it goes)."""
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", backend,
@@ -246,17 +287,20 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
 
 
 def kernels_and_selection(args: argparse.Namespace, selection: bool) -> list[dict]:
-    """At once: on warp every scene's Warp kernels (many processes), and with `selection`
-    the default policies' demo selection (warm_selection: no scene, no physics) in a
-    process of its own.  The results, logged."""
+    """At once, each in processes of its own: on warp every scene's Warp kernels (many
+    processes), the device planner's programs (warm_planner), and with `selection` the
+    default policies' demo selection (warm_selection: no scene, no physics).  The
+    results, logged."""
     results = []
-    with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 1) as pool:
-        chosen = pool.submit(_worker, SELECTION_WORKER, args) if selection else None
+    with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 2) as pool:
+        shared = [] if args.planner == "host" else [pool.submit(_worker, PLANNER_WORKER, args)]
+        if selection:
+            shared.append(pool.submit(_worker, SELECTION_WORKER, args))
         if args.backend == "warp":
             results.append(build_kernels_in_parallel(args, pool))
             log.info("warmup: %s", results[-1])
-        if chosen is not None:
-            results.append(chosen.result())
+        for future in shared:
+            results.append(future.result())
             log.info("warmup: %s", results[-1])
     return results
 
@@ -293,7 +337,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "per-size otherwise")
     p.add_argument("--no-selection", action="store_true",
                    help="skip the default policies' demo selection (its networks; for runs "
-                        "of other policies, e.g. --policy oracle or reference-vla)")
+                        "of other policies, e.g. --policy oracle or reference-vla); the "
+                        "device planner's programs are compiled either way")
     p.add_argument("--worker", metavar="TASK", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
@@ -310,6 +355,12 @@ def main(argv: list[str] | None = None) -> int:
         warm_selection()
         print(json.dumps({"task": SELECTION_WORKER,
                           "selection_s": round(time.perf_counter() - t0, 2)}))
+        return 0
+    if args.worker == PLANNER_WORKER:
+        t0 = time.perf_counter()
+        done = warm_planner(args.batch, args.planner)
+        print(json.dumps({"task": PLANNER_WORKER, **done,
+                          "planner_s": round(time.perf_counter() - t0, 2)}))
         return 0
     if args.worker:
         print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner)))

@@ -24,6 +24,49 @@ def test_one_per_size_and_bad_task(capsys):
     assert "unknown task 'no_such_task'" in capsys.readouterr().err
 
 
+FIRST_KEY_ACTION = """
+import logging, jax, numpy as np
+from agnostos_mjx.settings import configure_jax
+configure_jax()
+hits = []
+class Hits(logging.Handler):
+    def emit(self, record):
+        hits.append(record.getMessage())
+log = logging.getLogger("jax._src.compiler")
+log.setLevel(logging.DEBUG)
+log.addHandler(Hits())
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.tasks import get_task
+ep = Episodes(get_task("phone_on_base"), "native", planner="device")
+env = ep.reset(jax.random.split(jax.random.PRNGKey(0), 4), np.zeros(4, np.int32))
+env, _ = ep.step(env, jax.tree.map(lambda x: x[:, 0], ep.expert_actions(env)))
+print(sorted({m.split("'")[1] for m in hits if m.startswith("Persistent compilation cache hit")}))
+"""
+
+
+@pytest.mark.slow
+def test_the_planner_warm_up_leaves_what_a_first_reset_and_key_action_plan(tmp_path):
+    """After the planner step of the warm-up (one process, no scene), a new process's reset
+    and first key action of a task on the device planner find the plan and the reset's
+    reachability check in JAX's persistent cache: the run's processes do not compile them."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "AGNOSTOS_JAX_CACHE": str(tmp_path)}
+    warm = subprocess.run([sys.executable, "-m", "agnostos_mjx.warmup", "--worker",
+                           warmup.PLANNER_WORKER, "--planner", "device", "--batch", "4"],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert warm.returncode == 0, warm.stderr[-2000:]
+    assert json.loads(warm.stdout.strip().splitlines()[-1])["programs"] == 5
+    first = subprocess.run([sys.executable, "-c", FIRST_KEY_ACTION], env=env,
+                           capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr[-2000:]
+    hits = first.stdout.strip().splitlines()[-1]
+    assert "jit_plan_arm" in hits and "jit_reachable" in hits, hits
+
+
 @pytest.mark.slow
 def test_warm_selection_compiles_what_the_default_policy_runs():
     """After warm_selection (one blank query, no scene), the retrieval policy's (= X-ICM's)
@@ -55,16 +98,20 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
 
 
 def test_task_runs_choice(caplog):
-    """--task-runs none with --no-selection warms nothing (and says so); a bad choice is a
-    usage error, not a trace."""
+    """--task-runs none with --no-selection warms the planner's programs alone (none with
+    the host planner, and says so); a bad choice is a usage error, not a trace."""
     import logging
 
     import pytest
 
     with caplog.at_level(logging.INFO, logger="agnostos_mjx.warmup"):
         assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
-                            "--no-selection"]) == 0
+                            "--no-selection", "--planner", "host"]) == 0
     assert "0 of 0 steps done" in caplog.text
+    with caplog.at_level(logging.INFO, logger="agnostos_mjx.warmup"):
+        assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
+                            "--no-selection"]) == 0
+    assert "1 of 1 steps done" in caplog.text and "(planner)" in caplog.text
     with pytest.raises(SystemExit) as exit_:
         warmup.parse_args(["--task-runs", "sometimes"])
     assert exit_.value.code == 2
@@ -108,10 +155,11 @@ def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
     assert not warmup.kernels_marker("lamp_on", 75).exists()
 
 
-def test_a_run_of_several_processes_compiles_the_selection_once(tmp_path, monkeypatch):
-    """eval --local-processes N with the default selection first compiles the selection's
-    networks in one warm-up process (native physics, no task runs), once per machine: a
-    success writes the marker and the next run skips it; a failure writes none."""
+def test_a_run_of_several_processes_compiles_the_shared_programs_once(tmp_path, monkeypatch):
+    """eval --local-processes N first compiles the programs every process shares (the
+    device planner's; the selection's networks with the default selection) in one warm-up
+    process (native physics, no task runs), once per machine: a success writes the marker
+    and the next run skips it; a failure writes none."""
     import subprocess
     import types
 
@@ -123,15 +171,21 @@ def test_a_run_of_several_processes_compiles_the_selection_once(tmp_path, monkey
         commands.append(cmd), types.SimpleNamespace(returncode=codes.pop(0)))[1])
     monkeypatch.setattr(ev.processes, "main", lambda cfg, argv: 0)  # not the processes
     args = ["--tasks", "lamp_on,lamp_off", "--local-processes", "2", "--out", str(tmp_path / "r")]
-    assert ev.main(args) == 0 and not warmup.selection_marker(75).exists()  # failed: no marker
-    assert ev.main(args) == 0 and warmup.selection_marker(75).exists()
+    assert ev.main(args) == 0 and not warmup.shared_marker(75, True).exists()  # failed
+    assert ev.main(args) == 0 and warmup.shared_marker(75, True).exists()
     assert commands[-1][1:3] == ["-m", "agnostos_mjx.warmup"]
     assert commands[-1][commands[-1].index("--backend") + 1] == "native"
     assert "--no-selection" not in commands[-1] and "none" in commands[-1]
     n = len(commands)
     assert ev.main(args) == 0 and len(commands) == n  # this machine did it
-    assert ev.main([*args, "--selection", "text"]) == 0 and len(commands) == n
-    assert not warmup.selection_marker(16).exists()  # per batch
+    codes.append(0)  # another selection: the planner's programs alone, once
+    assert ev.main([*args, "--selection", "text"]) == 0 and len(commands) == n + 1
+    assert "--no-selection" in commands[-1]
+    assert ev.main([*args, "--selection", "text"]) == 0 and len(commands) == n + 1
+    # the host planner (numpy) compiles nothing: no warm-up without the selection
+    assert ev.main([*args, "--selection", "text", "--planner", "host", "--batch", "8"]) == 0
+    assert len(commands) == n + 1
+    assert not warmup.shared_marker(16, True).exists()  # per batch
 
 
 def test_the_parent_of_a_warp_run_does_not_start_jax():
