@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hashlib
+import importlib.util
 import json
 import logging
 import os
@@ -191,6 +192,14 @@ def _installed(package: str) -> str:
         return "none"
 
 
+def device_planner_possible(planner: str) -> bool:
+    """Whether a run's `planner` may resolve to the jitted device planner, found without
+    starting JAX (the parent of a GPU run must not: runtime.env.resolve_planner picks
+    `device` where JAX has an accelerator, which needs a GPU plugin installed)."""
+    return planner == "device" or (planner == "auto" and
+                                   importlib.util.find_spec("jax_plugins") is not None)
+
+
 def shared_marker(batch: int, selection: bool) -> Path:
     """The file that says this machine compiled the programs every process of a run at
     `batch` shares (the device planner's; with `selection`, the demo selection's networks)
@@ -211,7 +220,7 @@ def ensure_shared_programs(tasks: str, batch: int, planner: str = "auto",
     default policies), the demo selection's networks (warm_selection), unless this machine
     did it already (shared_marker).  Returns its exit code, None if skipped; on failure
     the processes compile as they go."""
-    if planner == "host" and not selection:
+    if not device_planner_possible(planner) and not selection:
         return None
     marker = shared_marker(batch, selection)
     if marker.exists():
@@ -256,8 +265,6 @@ def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection
     of its own, unless this machine did it already (kernels_marker).  Returns its exit
     code, None if skipped.  A failed build is logged and the run goes on (it then builds
     what it needs as it goes)."""
-    import importlib.util
-
     if importlib.util.find_spec("warp") is None or kernels_marker(tasks, batch).exists():
         return None  # without warp-lang the run says what is missing
     log.info("warp: building Warp's kernels of the tasks' scenes in %d processes first, once "
@@ -293,7 +300,8 @@ def kernels_and_selection(args: argparse.Namespace, selection: bool) -> list[dic
     results, logged."""
     results = []
     with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 2) as pool:
-        shared = [] if args.planner == "host" else [pool.submit(_worker, PLANNER_WORKER, args)]
+        shared = ([pool.submit(_worker, PLANNER_WORKER, args)]
+                  if device_planner_possible(args.planner) else [])
         if selection:
             shared.append(pool.submit(_worker, SELECTION_WORKER, args))
         if args.backend == "warp":
@@ -366,13 +374,13 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(warm_task(args.worker, args.backend, args.batch, args.planner)))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    try:
-        names = _task_names(args.tasks)
+    runs = args.task_runs if args.task_runs != "auto" else (
+        "none" if args.backend == "warp" else "per-size")
+    try:  # the planner and the selection are the same for every task: no names needed
+        names = _task_names(args.tasks) if runs != "none" or args.backend == "warp" else []
     except (KeyError, ValueError) as err:
         print(f"warmup: {err.args[0] if err.args else err}", file=sys.stderr)
         return 2
-    runs = args.task_runs if args.task_runs != "auto" else (
-        "none" if args.backend == "warp" else "per-size")
     todo = {"none": [], "per-size": one_per_size(names), "every": names}[runs]
     t0 = time.perf_counter()
     results = kernels_and_selection(args, selection=not args.no_selection)

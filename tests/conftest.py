@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import gc
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,33 @@ TASKS = ("open_drawer", "push_buttons")  # the tiny bank's seen tasks
 # with a cold cache), so the default suite touches few; a hinged door is reset in
 # test_compile_once and a failure condition checked in test_tasks_delicate_physics.
 DEFAULT_SUITE_TASKS = frozenset({"lamp_on", "phone_on_base"})
+
+
+# Each compiled XLA program maps its own code pages, and Linux caps a process's mappings
+# (vm.max_map_count, 65,530 by default).  The slow group compiles thousands of programs in
+# one process: it reached 57,000 mappings here and, run whole, crashed inside XLA when a
+# mapping failed.  Past this many, the compiled programs are dropped between test modules
+# (JAX's disk cache brings back the ones a later module needs).
+MAX_MAPPINGS = 25_000
+
+
+def mappings() -> int:
+    """This process's memory mappings (0 where /proc is not there)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _bounded_mappings():
+    yield
+    if mappings() > MAX_MAPPINGS:
+        import jax
+
+        jax.clear_caches()
+        gc.collect()
 
 
 def task_params(names):

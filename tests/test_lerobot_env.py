@@ -470,6 +470,7 @@ def test_dense_rows_of_the_dense_export_replay_to_success() -> None:
     """control_mode dense: one step = one 50 ms control period; the dense export's action
     rows of each world's expert demo (the dense-replay policy's, in the export's Euler
     layout) replayed one per step succeed within the dense budget."""
+    from agnostos_mjx.policies import Round
     from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
 
     env = _env("turn_tap", 2, control_mode="dense", rotation="euler")
@@ -477,7 +478,7 @@ def test_dense_rows_of_the_dense_export_replay_to_success() -> None:
     assert env.metadata["render_fps"] == 20.0
     env.reset(seed=0)
     replay = DenseReplayPolicy()
-    replay.reset(env.runner, env._state, ["", ""])
+    replay.reset(Round.for_policy(replay, env.runner, env._state, ["", ""]))
     n = replay.gripper.shape[1]
     ended, success = np.zeros(2, bool), np.zeros(2, bool)
     for k in range(n + 20):

@@ -97,9 +97,10 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
     episodes.close()
 
 
-def test_task_runs_choice(caplog):
-    """--task-runs none with --no-selection warms the planner's programs alone (none with
-    the host planner, and says so); a bad choice is a usage error, not a trace."""
+def test_task_runs_choice(caplog, monkeypatch):
+    """--task-runs none with --no-selection warms the device planner's programs alone
+    (nothing with the host planner, and says so); a bad choice is a usage error, not a
+    trace."""
     import logging
 
     import pytest
@@ -108,9 +109,11 @@ def test_task_runs_choice(caplog):
         assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
                             "--no-selection", "--planner", "host"]) == 0
     assert "0 of 0 steps done" in caplog.text
+    # (the planner step's compile is tested by the slow test above; here, that it runs)
+    monkeypatch.setattr(warmup, "_worker", lambda name, args: {"task": name, "programs": 5})
     with caplog.at_level(logging.INFO, logger="agnostos_mjx.warmup"):
         assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
-                            "--no-selection"]) == 0
+                            "--no-selection", "--planner", "device"]) == 0
     assert "1 of 1 steps done" in caplog.text and "(planner)" in caplog.text
     with pytest.raises(SystemExit) as exit_:
         warmup.parse_args(["--task-runs", "sometimes"])
@@ -178,12 +181,14 @@ def test_a_run_of_several_processes_compiles_the_shared_programs_once(tmp_path, 
     assert "--no-selection" not in commands[-1] and "none" in commands[-1]
     n = len(commands)
     assert ev.main(args) == 0 and len(commands) == n  # this machine did it
-    codes.append(0)  # another selection: the planner's programs alone, once
-    assert ev.main([*args, "--selection", "text"]) == 0 and len(commands) == n + 1
-    assert "--no-selection" in commands[-1]
-    assert ev.main([*args, "--selection", "text"]) == 0 and len(commands) == n + 1
-    # the host planner (numpy) compiles nothing: no warm-up without the selection
-    assert ev.main([*args, "--selection", "text", "--planner", "host", "--batch", "8"]) == 0
+    # Without the selection, the device planner's programs alone, once; the host planner
+    # (numpy, the CPU's auto) compiles nothing: no warm-up.
+    assert ev.main([*args, "--selection", "text", "--planner", "host"]) == 0
+    assert len(commands) == n
+    codes.append(0)
+    assert ev.main([*args, "--selection", "text", "--planner", "device"]) == 0
+    assert len(commands) == n + 1 and "--no-selection" in commands[-1]
+    assert ev.main([*args, "--selection", "text", "--planner", "device"]) == 0
     assert len(commands) == n + 1
     assert not warmup.shared_marker(16, True).exists()  # per batch
 
