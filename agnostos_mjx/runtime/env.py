@@ -159,8 +159,8 @@ class Episodes:
         b = len(variations)
         self._jit_rows = b
         sampled = list(map(np.asarray, self._jit_sample(keys, variations, np.int32(0))))
-        state = self._settle(sampled, variations)
-        ok = np.array(self.expert_reachable(state), copy=True)
+        state, expert = self._settle(sampled, variations)
+        ok = np.array(self.expert_reachable(state, expert), copy=True)
         for attempt in range(1, placement_tries):
             if ok.all():
                 break
@@ -172,10 +172,10 @@ class Episodes:
                        for a, f in zip(sampled, fresh)]
             idx = np.nonzero(bad)[0]
             rows = self._padded_rows(idx, b)
-            part = self._settle([a[rows] for a in sampled], variations[rows])
-            ok[idx] = self.expert_reachable(part)[: len(idx)]
+            part, expert = self._settle([a[rows] for a in sampled], variations[rows])
+            ok[idx] = self.expert_reachable(part, expert)[: len(idx)]
             if ok.all() or attempt == placement_tries - 1:
-                state = self._settle(sampled, variations)
+                state, _ = self._settle(sampled, variations)
         if not ok.all():
             log.warning("%s: %d of %d scenes kept although the expert cannot reach them "
                         "after %d placements", self.task.name, (~ok).sum(), b, placement_tries)
@@ -186,7 +186,9 @@ class Episodes:
         there without compiling), repeated up to the full batch on MJX."""
         return idx if self.backend_name == "native" else np.resize(idx, batch)
 
-    def _settle(self, sampled, variations) -> EnvState:
+    def _settle(self, sampled, variations) -> tuple[EnvState, KeyActions]:
+        """The settled scenes of `sampled` placements, and their experts' key actions (one
+        program gives both, with the conditions' first carry)."""
         qpos, mocap_pos, mocap_quat, rgba = sampled
         b = len(variations)
         m = self.scene.model
@@ -203,14 +205,14 @@ class Episodes:
         physics, sens = self.backend.run(physics, np.repeat(ctrl[:, None], SETTLE_STEPS, axis=1))
         attached = np.zeros((b, len(self.task.graspables)), bool)
         data = np.asarray(sens[:, -1])
-        carry, _ = self._padded(self._jit_settled, data, attached, variations)
+        carry, expert = self._padded(self._jit_settled, data, attached, variations)
         return EnvState(
             physics=physics.numpy(), data=data, attached=attached, carry=carry,
             variation=variations, gripper=np.full(b, FINGER_OPEN),
             outcome=np.zeros(b, np.int32), key_actions=np.zeros(b, np.int32),
             sim_steps=np.zeros(b, np.int32), world_steps=np.zeros(b, np.int32),
             geom_rgba=rgba, initial_data=data,
-            layout=self.scene.layout)
+            layout=self.scene.layout), expert
 
     # ---- the expert ---------------------------------------------------------------------
     def run_expert(self, state: EnvState, record: list[StepResult] | None = None) -> EnvState:
@@ -226,10 +228,12 @@ class Episodes:
                 record.extend(results)
         return state
 
-    def expert_reachable(self, state: EnvState) -> np.ndarray:
+    def expert_reachable(self, state: EnvState, actions: KeyActions | None = None
+                         ) -> np.ndarray:
         """Whether every expert key action of each world is inside the action
-        bounds and solvable by IK (warm-started along the sequence)."""
-        actions = self.expert_actions(state)
+        bounds and solvable by IK (warm-started along the sequence); `actions`: the
+        experts' key actions when the caller has them (reset does)."""
+        actions = self.expert_actions(state) if actions is None else actions
         q = np.asarray(state.data[:, self.spec.arm_q], np.float64)
         if self.planner != "device":
             return np.asarray(self._reachable(q, actions.pos, actions.quat, actions.valid))
