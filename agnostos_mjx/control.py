@@ -1,8 +1,7 @@
 """Key actions -> joint position targets, batched over worlds.
 
-Pure functions over numpy or jax arrays (see math3d.array_module): jax on
-device next to MJX-warp; numpy on CPU, where XLA's per-op overhead on these
-tiny 7-joint kernels made a batch-75 IK take 20 s against milliseconds here.
+Pure functions over numpy or jax arrays (see math3d.array_module): jax on a device,
+numpy on CPU (XLA's per-op overhead on these tiny 7-joint kernels is large there).
 
 Pipeline per key action (RLBench's MoveArmThenGripper with planning):
 workspace check -> damped-least-squares IK (joint limits, warm start, a few
@@ -457,13 +456,23 @@ def plan_arm(kin: PandaKinematics, q0, target_pos, target_quat):
     else:  # a scan over the segments: one traced segment, so the program compiles quickly
         def segment(carry, t):
             q, ok = carry
-            q_next, pe, re = _ik_from(kin, q, p0 + t * (target_pos - p0),
-                                      slerp(r0, target_quat, xp.full(q0.shape[0], t)), CART_ITERS)
-            ok = ok & _ok(pe, re) & (xp.max(xp.abs(q_next - q), -1) < MAX_SEGMENT_JUMP)
+            goal_p, goal_q = p0 + t * (target_pos - p0), slerp(r0, target_quat, xp.full(len(q0), t))
+
+            def step(c):  # as _cartesian_np: a world stops once within a tenth of tolerance
+                i, q, live = c
+                q_next, pe, re = _dls_step(kin, q, goal_p, goal_q)
+                live = live & ~_ok(pe, re, 0.1)
+                return i + 1, xp.where(live[:, None], q_next, q), live
+
+            _, q_next, _ = jax.lax.while_loop(lambda c: (c[0] < CART_ITERS) & c[2].any(),
+                                              step, (0, q, ok))
+            pos, quat = kin.tip_pose(q_next)
+            ok = ok & _ok(xp.linalg.norm(goal_p - pos, axis=-1), quat_angle(goal_q, quat)) \
+                & (xp.max(xp.abs(q_next - q), -1) < MAX_SEGMENT_JUMP)
             return (q_next, ok), q_next
 
         ts = xp.arange(1, CART_SEGMENTS + 1, dtype=q0.dtype) / CART_SEGMENTS
-        (_, cart_ok), qs = jax.lax.scan(segment, (q0, xp.ones(q0.shape[0], bool)), ts)
+        (_, cart_ok), qs = jax.lax.scan(segment, (q0, finite & inside), ts)
         cart_path = xp.concatenate([q0[:, None], xp.swapaxes(qs, 0, 1)], 1)
     ts = xp.linspace(0.0, 1.0, CART_SEGMENTS + 1)[None, :, None]
     joint_path = q0[:, None] + ts * (q_goal - q0)[:, None]

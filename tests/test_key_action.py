@@ -9,6 +9,7 @@ import jax
 import numpy as np
 import pytest
 
+from agnostos_mjx import control
 from agnostos_mjx.runtime.env import SETTLE_STEPS, Episodes
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task
@@ -181,6 +182,16 @@ def test_planner_choice():
         outcomes[planner] = np.asarray(env.outcome)
     np.testing.assert_array_equal(outcomes["host"], outcomes["device"])
     assert (outcomes["host"] == Outcome.SUCCESS).all()
+    # The device's Cartesian segments stop as the host's do (each world once within a tenth
+    # of the tolerance): the same paths up to float32 rounding.
+    start = ep.reset(_keys(b), np.zeros(b, np.int32))
+    first = _expert_steps(ep, start)[0]
+    q0 = np.asarray(start.data[:, ep.spec.arm_q], np.float64)
+    host = control.plan_arm(ep.kin, q0, np.asarray(first.pos, np.float64),
+                            np.asarray(first.quat, np.float64))
+    device = control.jit_for_robot(control.plan_arm, ep.kin)(q0, first.pos, first.quat)
+    np.testing.assert_array_equal(np.asarray(device[2]), host[2])
+    np.testing.assert_allclose(np.asarray(device[0]), host[0], atol=1e-4)
 
 
 def _expert_steps(ep: Episodes, env) -> list[KeyActions]:
