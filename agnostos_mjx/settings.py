@@ -130,18 +130,23 @@ def enable_compilation_cache() -> str | None:
     return path
 
 
+def gpu_plugin_installed() -> bool:
+    """Whether a JAX GPU plugin is installed, found without starting JAX."""
+    return importlib.util.find_spec("jax_plugins") is not None
+
+
 def configure_jax(cpu: bool = False) -> None:
     """Set XLA's flags and JAX's compile cache for this process, before JAX starts.
 
     XLA's CPU optimisation level is lowered (`lower_cpu_optimisation`) unless
     AGNOSTOS_XLA_TUNE=0, on installs without a GPU plugin, or with `cpu` for a process
     that keeps JAX on the CPU whatever is installed.  Calling it again changes nothing."""
-    gpu_plugin = importlib.util.find_spec("jax_plugins") is not None
-    if XLA_TUNE.get_switch(default=True) and (cpu or not gpu_plugin):
+    if XLA_TUNE.get_switch(default=True) and (cpu or not gpu_plugin_installed()):
         lower_cpu_optimisation()
     enable_compilation_cache()
 
 
 __all__ = ["CACHE", "GPU_MEM_FRACTION", "JAX_CACHE", "LLM_API_KEY", "LLM_MODEL", "LLM_URL",
            "POLICY_URL", "RENDER_THREADS", "SETTINGS", "XLA_TUNE", "Setting", "cache_root",
-           "configure_jax", "enable_compilation_cache", "lower_cpu_optimisation"]
+           "configure_jax", "enable_compilation_cache", "gpu_plugin_installed",
+           "lower_cpu_optimisation"]

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.evaluation.config import positive_int
-from agnostos_mjx.settings import cache_root, configure_jax
+from agnostos_mjx.settings import cache_root, configure_jax, gpu_plugin_installed
 
 log = logging.getLogger("agnostos_mjx.warmup")
 
@@ -150,8 +150,8 @@ def one_per_size(names: list[str]) -> list[str]:
 
 def _worker(name: str, args: argparse.Namespace) -> dict:
     """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks;
-    SELECTION_WORKER, warm_selection; PLANNER_WORKER, warm_planner) in its own process (its GPU memory and Warp context
-    go away with it)."""
+    SELECTION_WORKER, warm_selection; PLANNER_WORKER, warm_planner) in its own process
+    (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
            "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
@@ -196,8 +196,7 @@ def device_planner_possible(planner: str) -> bool:
     """Whether a run's `planner` may resolve to the jitted device planner, found without
     starting JAX (the parent of a GPU run must not: runtime.env.resolve_planner picks
     `device` where JAX has an accelerator, which needs a GPU plugin installed)."""
-    return planner == "device" or (planner == "auto" and
-                                   importlib.util.find_spec("jax_plugins") is not None)
+    return planner == "device" or (planner == "auto" and gpu_plugin_installed())
 
 
 def shared_marker(batch: int, selection: bool) -> Path:
@@ -237,8 +236,8 @@ def ensure_shared_programs(tasks: str, batch: int, planner: str = "auto",
 
 def _warmup_process(tasks: str, backend: str, batch: int, planner: str, selection: bool,
                     what: str) -> int:
-    """This command's kernel, planner and selection step (no task runs) in a process of its own;
-    its exit code, a failure logged (the run then does `what` as it goes)."""
+    """This command's kernel, planner and selection step (no task runs) in a process of its
+    own; its exit code, a failure logged (the run then does `what` as it goes)."""
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", backend,
            "--batch", str(batch), "--planner", planner, "--task-runs", "none",
@@ -293,7 +292,7 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
     return result
 
 
-def kernels_and_selection(args: argparse.Namespace, selection: bool) -> list[dict]:
+def kernels_and_shared_programs(args: argparse.Namespace, selection: bool) -> list[dict]:
     """At once, each in processes of its own: on warp every scene's Warp kernels (many
     processes), the device planner's programs (warm_planner), and with `selection` the
     default policies' demo selection (warm_selection: no scene, no physics).  The
@@ -383,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     todo = {"none": [], "per-size": one_per_size(names), "every": names}[runs]
     t0 = time.perf_counter()
-    results = kernels_and_selection(args, selection=not args.no_selection)
+    results = kernels_and_shared_programs(args, selection=not args.no_selection)
     with ThreadPoolExecutor(args.jobs) as pool:
         for result in pool.map(lambda n: _worker(n, args), todo):
             log.info("warmup: %s", result)
