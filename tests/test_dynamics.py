@@ -480,7 +480,7 @@ def test_map_chunks_runs_one_shape():
 def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     import threading
 
-    from agnostos_mjx.dynamics.batching import RowBatcher
+    from agnostos_mjx.dynamics.batching import RowBatcher, flush
 
     gate, calls = threading.Event(), []
 
@@ -502,13 +502,55 @@ def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     with pytest.raises(ValueError, match="bad row"):
         batcher.submit(["g", "bad"]).result(10)
     assert batcher.submit(["h"]).result(10) == ["h!"]  # a failed call stops no worker
-    # Without sharing (a GPU) each call holds one request's rows, from the call's first place.
+    # Gathering (a GPU): nothing runs until flush, then the requests go out in key order,
+    # whatever order they came in, and share calls.
     calls.clear()
-    solo = RowBatcher(fn, size=4, share=False)
-    futures = [solo.submit(list("abcde")), solo.submit(["x"])]
-    assert [f.result(10) for f in futures] == [[f"{c}!" for c in "abcde"],
-                                               ["x!"]]
-    assert calls == [list("abcd"), ["e"], ["x"]]
+    held = RowBatcher(fn, size=4, gather=True)
+    late, early = held.submit(list("xyz"), key=2), held.submit(list("ab"), key=1)
+    with pytest.raises(ValueError, match="needs a key"):
+        held.submit(["k"])
+    assert not late.done() and not early.done() and calls == []
+    flush(late)
+    assert late.result(10) == ["x!", "y!", "z!"] and early.result(10) == ["a!", "b!"]
+    assert calls == [["a", "b", "x", "y"], ["z"]]
+    flush(late)  # a finished request: nothing to send
+    assert calls == [["a", "b", "x", "y"], ["z"]]
+
+
+def test_tasks_waiting_on_gathered_rows_are_released_together_in_key_order():
+    import concurrent.futures
+    import time
+
+    from agnostos_mjx.dynamics.batching import RowBatcher
+    from agnostos_mjx.evaluation import scheduler
+    from agnostos_mjx.policies.base import run_blocking
+    from agnostos_mjx.xicm.query import then
+
+    calls = []
+
+    def fn(items):
+        calls.append(list(items))
+        return [f"{x}!" for x in items]
+
+    batcher = RowBatcher(fn, size=8, gather=True)
+    physics: concurrent.futures.Future = concurrent.futures.Future()
+
+    def task(name, key, before=None):
+        if before is not None:  # another wait first (physics): the rows must wait for it
+            yield before
+        rows = then(batcher.submit([f"{name}1", f"{name}2"], key=key), list)  # as selectors
+        yield rows
+        return rows.result()
+
+    jobs = [task("b", 2), task("a", 1, before=physics), task("c", 3)]
+    pool = concurrent.futures.ThreadPoolExecutor(1)
+    pool.submit(lambda: (time.sleep(0.2), physics.set_result(None)))
+    values = scheduler.run_interleaved(jobs, limit=3)
+    assert values == [["b1!", "b2!"], ["a1!", "a2!"], ["c1!", "c2!"]]
+    # One call, sent after the physics ended, in key order (a, b, c), not arrival order.
+    assert calls == [["a1", "a2", "b1", "b2", "c1", "c2"]]
+    calls.clear()
+    assert run_blocking(task("d", 4)) == ["d1!", "d2!"] and calls == [["d1", "d2"]]
 
 
 @pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores

@@ -1,6 +1,8 @@
 """Tasks side by side: while one task's policy waits (an LLM batch, a policy server's
 answers), another task simulates.  Results do not depend on the overlap: each task's
-episodes run in their own order on their own policy copy."""
+episodes run in their own order on their own policy copy.  A request that gathers
+(dynamics/batching.py: the demo selection on a GPU) is released once every running task
+waits on one, so the tasks' rows go out together in an order that timing cannot change."""
 
 from __future__ import annotations
 
@@ -30,8 +32,12 @@ def run_interleaved(jobs: Sequence[Steps], limit: int,
                 active.append([*pending.popleft(), None])
             ready = [slot for slot in active if slot[2] is None or slot[2].done()]
             if not ready:
-                concurrent.futures.wait([slot[2] for slot in active],
-                                        return_when=concurrent.futures.FIRST_COMPLETED)
+                waiting = [slot[2] for slot in active]
+                releases = [getattr(f, "flush", None) for f in waiting]
+                if all(releases):  # every task waits on gathered rows: send them together
+                    for release in releases:  # the first sends them, the others find none
+                        release()
+                concurrent.futures.wait(waiting, return_when=concurrent.futures.FIRST_COMPLETED)
                 continue
             for slot in ready:
                 try:

@@ -9,13 +9,14 @@ the memory holds the same features of every seen demo, computed once by
 from __future__ import annotations
 
 import concurrent.futures
+import hashlib
 import logging
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.dynamics.batching import RowBatcher, rows_share_calls
+from agnostos_mjx.dynamics.batching import RowBatcher, flush, rows_share_calls
 from agnostos_mjx.xicm.memory import DemoMemory
 from agnostos_mjx.xicm.query import Query, then, top_k
 
@@ -53,6 +54,16 @@ def bank_features(bank, checkpoint: str | Path | None = None) -> dict[str, np.nd
     return extract(load_pipeline(checkpoint), first, instructions)
 
 
+def request_key(queries: Sequence[Query]) -> tuple:
+    """What orders gathered requests: their content (instructions, seeds, frames), which
+    the run's tasks and seeds fix, unlike the order in which tasks reach the selector."""
+    digest = hashlib.blake2b(digest_size=16)
+    for q in queries:
+        digest.update(np.ascontiguousarray(q.frame).tobytes())
+    return (tuple(q.instruction for q in queries), tuple(q.seed for q in queries),
+            digest.hexdigest())
+
+
 class DynamicsSelector:
     def __init__(self, memory: DemoMemory, mode: str, checkpoint: str | Path | None = None,
                  metric: str = "cosine", sample_steps: int = QUERY_SAMPLE_STEPS):
@@ -75,10 +86,11 @@ class DynamicsSelector:
         import jax
 
         workers = CPU_WORKERS if jax.default_backend() == "cpu" else ACCELERATOR_WORKERS
-        # On the CPU the queries of every task waiting on this selector share its chunks
-        # (one task's replanning round rarely fills one); see dynamics/batching.py.
+        # The queries of every task waiting on this selector share its chunks (one task's
+        # replanning round rarely fills one): as they come on the CPU, gathered into a
+        # deterministic order on a GPU; see dynamics/batching.py.
         self._batcher = RowBatcher(self._similarities, self.pipeline.chunk_size, workers,
-                                   share=rows_share_calls(), name="selection")
+                                   gather=not rows_share_calls(), name="selection")
 
         if jax.default_backend() == "cpu" and "vis.out" in self.parts:
             # 2-core x86: 0.30-0.37 s per query at 10 steps in the evaluation's batches
@@ -88,13 +100,16 @@ class DynamicsSelector:
                      "is the fast model-free mode", 0.07 * sample_steps, sample_steps)
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
-        return self.submit(queries, k).result()
+        future = self.submit(queries, k)
+        flush(future)
+        return future.result()
 
     def submit(self, queries: Sequence[Query], k: int) -> concurrent.futures.Future:
         """A future of the top-k memory indices per query (`select`)."""
         if any(q.frame is None for q in queries):
             raise ValueError("dynamics selection needs each query's front frame")
-        rows = self._batcher.submit([(q.frame, q.instruction) for q in queries])
+        rows = self._batcher.submit([(q.frame, q.instruction) for q in queries],
+                                    key=request_key(queries))
         return then(rows, lambda sims: [top_k(s, k) for s in sims])
 
     def _similarities(self, rows: list[tuple[np.ndarray, str]]) -> list[np.ndarray]:

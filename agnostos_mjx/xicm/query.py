@@ -46,8 +46,11 @@ class ImmediateSelector:
 
 def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
          ) -> concurrent.futures.Future:
-    """A future of `fn(future.result())` (or of its exception)."""
+    """A future of `fn(future.result())` (or of its exception); a gathered `future`'s
+    `flush` (dynamics/batching.py) carries over."""
     out: concurrent.futures.Future = concurrent.futures.Future()
+    if hasattr(future, "flush"):
+        out.flush = future.flush  # type: ignore[attr-defined]
 
     def finish(done: concurrent.futures.Future) -> None:
         try:
