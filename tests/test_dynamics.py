@@ -480,7 +480,7 @@ def test_map_chunks_runs_one_shape():
 def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     import threading
 
-    from agnostos_mjx.dynamics.batching import RowBatcher, flush
+    from agnostos_mjx.gather import RowBatcher, flush
 
     gate, calls = threading.Event(), []
 
@@ -521,10 +521,9 @@ def test_tasks_waiting_on_gathered_rows_are_released_together_in_key_order():
     import concurrent.futures
     import time
 
-    from agnostos_mjx.dynamics.batching import RowBatcher
     from agnostos_mjx.evaluation import scheduler
+    from agnostos_mjx.gather import RowBatcher, then
     from agnostos_mjx.policies.base import run_blocking
-    from agnostos_mjx.xicm.query import then
 
     calls = []
 

@@ -545,6 +545,38 @@ def test_tasks_at_once_give_the_records_of_each_task_alone(tmp_path: Path, monke
     assert all(r["success"] for r in together.values())
 
 
+@pytest.mark.slow  # the device planner compiled on 2 cores at several sizes
+def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypatch) -> None:
+    """With the device planner, tasks running at once plan their key actions in shared
+    calls (runtime/plan_rows.py), gathered in an order that timing cannot change: a rerun
+    makes the same calls and records the same episodes."""
+    from agnostos_mjx.runtime.plan_rows import GatheredPlanner
+
+    calls: list[int] = []
+    plan_rows = GatheredPlanner._plan_rows
+
+    def counted(self, rows):
+        calls.append(len(rows))
+        return plan_rows(self, rows)
+
+    monkeypatch.setattr(GatheredPlanner, "_plan_rows", counted)
+    args = ["--policy", f"{__name__}:OracleThatWaits", "--seeds", "0", "--episodes", "2",
+            "--batch", "2", "--backend", "native", "--planner", "device", "--quiet",
+            "--tasks", "lamp_on,phone_on_base,push_buttons", "--overlap-tasks", "3"]
+    assert ev.main([*args, "--out", str(tmp_path / "a")]) == 0
+    first = list(calls)
+    calls.clear()
+    assert ev.main([*args, "--out", str(tmp_path / "b")]) == 0
+    assert calls == first and max(first) == 6  # the three tasks' worlds in one call
+
+    def load(folder: Path) -> dict:
+        rows = [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines()]
+        return {(r["task"], r["seed"], r["episode"]): {k: v for k, v in r.items() if k != "wall_s"}
+                for r in rows}
+
+    assert len(load(tmp_path / "a")) == 6 and load(tmp_path / "a") == load(tmp_path / "b")
+
+
 def test_a_failing_task_does_not_stop_the_others(tmp_path: Path, monkeypatch,
                                                 capsys: pytest.CaptureFixture) -> None:
     """A task that raises is recorded in results.json's failed_tasks, named on stderr and

@@ -203,7 +203,12 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
                 actions = yield from policy.act_steps(view)
                 split.seconds["policy"] += time.perf_counter() - t_policy
                 with split.measure("physics"):
-                    env, _ = yield from on_pool(physics_pool, runner.step, env, actions)
+                    plan = runner.plan_request(env, actions)  # gathers with other tasks'
+                    if plan is not None:
+                        yield plan
+                        plan = plan.result()
+                    env, _ = yield from on_pool(physics_pool, runner.step, env, actions,
+                                                False, plan)
             if videos is not None:
                 videos.capture(env)
             # A policy may say why a world got no action (bad LLM output, LLM error).

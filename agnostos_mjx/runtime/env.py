@@ -6,6 +6,7 @@ runtime/key_action.py over one of runtime/phase.py's boundaries.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import logging
 
@@ -27,6 +28,7 @@ from agnostos_mjx.runtime.phase import (
     scan_conditions,
     steps_per_iteration,
 )
+from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 from agnostos_mjx.runtime.state import EnvState, StepResult
 from agnostos_mjx.tasks.base import KeyActions, Task
 from agnostos_mjx.visual_state import StateColors
@@ -265,19 +267,31 @@ class Episodes:
         return jax.tree.map(lambda x: np.asarray(x)[:n], out)
 
     # ---- one key action -----------------------------------------------------------------
-    def step(self, state: EnvState, actions: KeyActions, record: bool = False
-             ) -> tuple[EnvState, tuple[StepResult, ...]]:
+    def step(self, state: EnvState, actions: KeyActions, record: bool = False,
+             plan: tuple | None = None) -> tuple[EnvState, tuple[StepResult, ...]]:
         """Execute one key action (arm, then gripper) in every running world.
 
         `actions` holds one action per world (pos (B,3), quat (B,4), gripper
         (B,), valid (B,)); a world whose action is not valid ends with
         Outcome.NO_ACTION.  On the MJX backends this is one device program;
         `record=True` (the per-step sensor data of every phase, for demonstrations)
-        and native MuJoCo run the same key action on the host."""
+        and native MuJoCo run the same key action on the host, with `plan` (from
+        `plan_request`) when the caller has it."""
         if self.on_mjx and not record:
             return self.step_on_device(state, actions), ()
-        return self._run_on_host(state, actions, self._plan,
+        plan_fn = self._plan if plan is None else (lambda *_: plan)
+        return self._run_on_host(state, actions, plan_fn,
                                  lambda *args: key_action(self.spec, *args))
+
+    def plan_request(self, state: EnvState, actions: KeyActions
+                     ) -> concurrent.futures.Future | None:
+        """The plan of `step` on the host as a request that gathers with other tasks' (one
+        device planner call for the worlds of every task waiting: runtime/plan_rows.py);
+        None where `step` plans by itself (the host planner, the MJX backends)."""
+        if self.on_mjx or self.planner != "device":
+            return None
+        q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
+        return GatheredPlanner.for_robot(self.kin).submit(q0, actions.pos, actions.quat)
 
     def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run
                      ) -> tuple[EnvState, tuple[StepResult, ...]]:

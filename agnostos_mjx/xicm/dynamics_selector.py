@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.dynamics.batching import RowBatcher, flush, rows_share_calls
+from agnostos_mjx.dynamics.batching import rows_share_calls
+from agnostos_mjx.gather import RowBatcher, flush, then
 from agnostos_mjx.xicm.memory import DemoMemory
-from agnostos_mjx.xicm.query import Query, then, top_k
+from agnostos_mjx.xicm.query import Query, top_k
 
 log = logging.getLogger("agnostos_mjx.xicm")
 # DDIM steps of a query's vis.out.  Measured against the shipped model's 50 on 1,800 seen
@@ -88,7 +89,7 @@ class DynamicsSelector:
         workers = CPU_WORKERS if jax.default_backend() == "cpu" else ACCELERATOR_WORKERS
         # The queries of every task waiting on this selector share its chunks (one task's
         # replanning round rarely fills one): as they come on the CPU, gathered into a
-        # deterministic order on a GPU; see dynamics/batching.py.
+        # deterministic order on a GPU; see agnostos_mjx/gather.py.
         self._batcher = RowBatcher(self._similarities, self.pipeline.chunk_size, workers,
                                    gather=not rows_share_calls(), name="selection")
 

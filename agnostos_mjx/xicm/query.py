@@ -8,9 +8,9 @@ module level.
 from __future__ import annotations
 
 import concurrent.futures
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -42,24 +42,6 @@ class ImmediateSelector:
         future: concurrent.futures.Future = concurrent.futures.Future()
         future.set_result(self.select(queries, k))
         return future
-
-
-def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
-         ) -> concurrent.futures.Future:
-    """A future of `fn(future.result())` (or of its exception); a gathered `future`'s
-    `flush` (dynamics/batching.py) carries over."""
-    out: concurrent.futures.Future = concurrent.futures.Future()
-    if hasattr(future, "flush"):
-        out.flush = future.flush  # type: ignore[attr-defined]
-
-    def finish(done: concurrent.futures.Future) -> None:
-        try:
-            out.set_result(fn(done.result()))
-        except Exception as error:  # the caller of out.result() sees it
-            out.set_exception(error)
-
-    future.add_done_callback(finish)
-    return out
 
 
 def top_k(similarity: np.ndarray, k: int) -> np.ndarray:
