@@ -8,6 +8,9 @@ their keys.  Gathering is for programs whose result for a row moves with the row
 it (on a GPU: the selection's sampler, the device planner; dynamics/batching.py and
 runtime/plan_rows.py have the measurements): which rows share a call then depends on the
 run's tasks and seeds, never on timing, and a task run alone gets the calls it got alone.
+Processes that take tasks from a shared queue (`--local-processes`) run whichever tasks
+they get first, so there each request goes alone in calls of its own rows
+(`allow_gathering(False)`): a task's records never depend on which tasks ran beside it.
 """
 
 from __future__ import annotations
@@ -18,12 +21,20 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
+_GATHERING = [True]  # this process's tasks are a fixed set (see the module docstring)
+
+
+def allow_gathering(allowed: bool) -> None:
+    """Whether gathering batchers of this process may put several requests in one call
+    (False: each request goes alone, in calls of its own rows from the first place)."""
+    _GATHERING[0] = allowed
+
 
 class _Request:
-    def __init__(self, items: Sequence[Any], key: Any = None):
+    def __init__(self, items: Sequence[Any], key: Any = None, alone: bool = False):
         self.future: concurrent.futures.Future = concurrent.futures.Future()
         self.results: list[Any] = [None] * len(items)
-        self.items, self.key = items, key
+        self.items, self.key, self.alone = items, key, alone
         self.left = len(items)
         self.closed = False  # its future is (being) set; guarded by the batcher's lock
 
@@ -59,7 +70,8 @@ class RowBatcher:
     wait on its rows while other tasks run; a call takes the items of every request pending
     when a worker is free (`fn` must give an item the same result wherever it sits in a
     call).  With `gather`, requests wait for `flush` (the future's `flush` attribute) and
-    are then queued in the order of their `key`s: see the module docstring."""
+    are then queued in the order of their `key`s, or, where `allow_gathering(False)`, go
+    alone at once: see the module docstring."""
 
     def __init__(self, fn: Callable[[list[Any]], Sequence[Any]], size: int, workers: int = 1,
                  gather: bool = False, name: str = "rows"):
@@ -74,12 +86,12 @@ class RowBatcher:
 
     def submit(self, items: Sequence[Any], key: Any = None) -> concurrent.futures.Future:
         """A future of `items`' results; `key` orders gathered requests (required then)."""
-        request = _Request(items, key)
+        request = _Request(items, key, alone=self.gather and not _GATHERING[0])
         if not items:
             request.future.set_result([])
             return request.future
         with self._ready:
-            if self.gather:
+            if self.gather and not request.alone:
                 if key is None:
                     raise ValueError(f"{self.name}: a gathering batcher needs a key per request")
                 self._held.append(request)
@@ -110,8 +122,12 @@ class RowBatcher:
             with self._ready:
                 while not self._pending:
                     self._ready.wait()
-                take = [self._pending.popleft()
-                        for _ in range(min(self.size, len(self._pending)))]
+                first = self._pending[0][0]
+                take = []
+                while (self._pending and len(take) < self.size
+                       and (self._pending[0][0] is first
+                            or not (first.alone or self._pending[0][0].alone))):
+                    take.append(self._pending.popleft())
                 if self._pending:
                     self._ready.notify()  # another worker can start on the rest
             try:

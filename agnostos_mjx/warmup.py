@@ -45,9 +45,6 @@ log = logging.getLogger("agnostos_mjx.warmup")
 
 
 SELECTION_WORKER = "(selection)"  # --worker name of the selection step
-# A gathered plan holds the worlds of 1, 2 or 4 batches (--overlap-tasks 3, the default: up
-# to 3 tasks per call); runs with more tasks at once compile their larger sizes once.
-PLAN_TASKS = (1, 2, 4)
 PLANNER_WORKER = "(planner)"  # --worker name of the planner step
 
 
@@ -67,8 +64,7 @@ def warm_selection() -> None:
 
 def warm_planner(batch: int, planner: str = "auto") -> dict:
     """The device planner's programs, which every task of a run shares (one robot,
-    control.jit_for_robot): a key action's plan (control.plan_arm, at 1, 2 and 4 batches
-    of worlds: the tasks waiting at once share a call) and the reset's
+    control.jit_for_robot): a key action's plan (control.plan_arm) and the reset's
     reachability check at each multiple of REACH_STEPS key actions up to the longest
     task, all at the run's batch.  Without this every process compiled them at its first
     reset (an H100 process: 5.6 s for the plan, 13.5 s for the checks).  The host planner
@@ -87,9 +83,7 @@ def warm_planner(batch: int, planner: str = "auto") -> dict:
     q = np.tile(np.asarray(HOME_QPOS, np.float64), (batch, 1))
     pos = np.tile(np.array([0.3, 0.0, 1.0]), (batch, 1))
     quat = np.tile(np.array([0.0, 1.0, 0.0, 0.0]), (batch, 1))
-    plan = control.jit_for_robot(control.plan_arm, kin)
-    for tasks in PLAN_TASKS:  # the sizes of gathered calls (runtime/plan_rows.py)
-        np.asarray(plan(*(np.tile(a, (tasks, 1)) for a in (q, pos, quat)))[0])
+    np.asarray(control.jit_for_robot(control.plan_arm, kin)(q, pos, quat)[0])
     reachable = control.jit_for_robot(control.reachable, kin)
     longest = max(get_task(name).max_key_actions for name in list_tasks())
     sizes = range(REACH_STEPS, longest + REACH_STEPS, REACH_STEPS)
@@ -97,7 +91,7 @@ def warm_planner(batch: int, planner: str = "auto") -> dict:
         np.asarray(reachable(q, np.repeat(pos[:, None], k, 1).astype(np.float32),
                              np.repeat(quat[:, None], k, 1).astype(np.float32),
                              np.ones((batch, k), bool)))
-    return {"programs": len(PLAN_TASKS) + len(sizes)}
+    return {"programs": 1 + len(sizes)}
 
 
 def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dict:

@@ -480,7 +480,7 @@ def test_map_chunks_runs_one_shape():
 def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     import threading
 
-    from agnostos_mjx.gather import RowBatcher, flush
+    from agnostos_mjx.gather import RowBatcher, allow_gathering, flush
 
     gate, calls = threading.Event(), []
 
@@ -515,6 +515,16 @@ def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     assert calls == [["a", "b", "x", "y"], ["z"]]
     flush(late)  # a finished request: nothing to send
     assert calls == [["a", "b", "x", "y"], ["z"]]
+    # Where gathering is not allowed (processes fed by a task queue), each request goes
+    # alone at once, in calls of its own rows from the first place.
+    calls.clear()
+    allow_gathering(False)
+    try:
+        futures = [held.submit(list("abcde"), key=1), held.submit(["x"], key=0)]
+        assert [f.result(10) for f in futures] == [[f"{c}!" for c in "abcde"], ["x!"]]
+    finally:
+        allow_gathering(True)
+    assert calls == [list("abcd"), ["e"], ["x"]]
 
 
 def test_tasks_waiting_on_gathered_rows_are_released_together_in_key_order():

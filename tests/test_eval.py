@@ -549,9 +549,12 @@ def test_tasks_at_once_give_the_records_of_each_task_alone(tmp_path: Path, monke
 def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypatch) -> None:
     """With the device planner, tasks running at once plan their key actions in shared
     calls (runtime/plan_rows.py), gathered in an order that timing cannot change: a rerun
-    makes the same calls and records the same episodes."""
+    makes the same calls and records the same episodes.  A process fed by a task queue
+    plans each task's worlds alone."""
+    from agnostos_mjx import gather
     from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 
+    monkeypatch.setattr(gather, "_GATHERING", [True])  # the queue's run turns it off
     calls: list[int] = []
     plan_rows = GatheredPlanner._plan_rows
 
@@ -562,12 +565,12 @@ def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypat
     monkeypatch.setattr(GatheredPlanner, "_plan_rows", counted)
     args = ["--policy", f"{__name__}:OracleThatWaits", "--seeds", "0", "--episodes", "2",
             "--batch", "2", "--backend", "native", "--planner", "device", "--quiet",
-            "--tasks", "lamp_on,phone_on_base,push_buttons", "--overlap-tasks", "3"]
+            "--tasks", "lamp_on,phone_on_base,push_buttons", "--overlap-tasks", "2"]
     assert ev.main([*args, "--out", str(tmp_path / "a")]) == 0
-    first = list(calls)
+    first = list(calls)  # two tasks at once, the third once one has finished
     calls.clear()
     assert ev.main([*args, "--out", str(tmp_path / "b")]) == 0
-    assert calls == first and max(first) == 6  # the three tasks' worlds in one call
+    assert calls == first and max(first) == 4  # two tasks' worlds in one call
 
     def load(folder: Path) -> dict:
         rows = [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines()]
@@ -575,6 +578,11 @@ def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypat
                 for r in rows}
 
     assert len(load(tmp_path / "a")) == 6 and load(tmp_path / "a") == load(tmp_path / "b")
+    calls.clear()
+    (tmp_path / "queue").mkdir()
+    queue = ["--task-queue", str(tmp_path / "queue"), "--out", str(tmp_path / "c")]
+    assert ev.main([*args, *queue]) == 0
+    assert max(calls) == 2  # one task's worlds a call
 
 
 def test_a_failing_task_does_not_stop_the_others(tmp_path: Path, monkeypatch,

@@ -59,7 +59,7 @@ def test_the_planner_warm_up_leaves_what_a_first_reset_and_key_action_plan(tmp_p
                            warmup.PLANNER_WORKER, "--planner", "device", "--batch", "4"],
                           env=env, capture_output=True, text=True, timeout=600)
     assert warm.returncode == 0, warm.stderr[-2000:]
-    assert json.loads(warm.stdout.strip().splitlines()[-1])["programs"] == 7  # 3 plans, 4 checks
+    assert json.loads(warm.stdout.strip().splitlines()[-1])["programs"] == 5
     first = subprocess.run([sys.executable, "-c", FIRST_KEY_ACTION], env=env,
                            capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr[-2000:]

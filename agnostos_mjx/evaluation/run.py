@@ -118,7 +118,7 @@ def load_policy(cfg: EvalConfig) -> tuple[str, str, Policy]:
 # ---- the run -----------------------------------------------------------------------------
 def evaluate(cfg: EvalConfig) -> dict:
     """Run the evaluation described by `cfg`, write the outputs, return results.json's dict."""
-    from agnostos_mjx import sharding
+    from agnostos_mjx import gather, sharding
     from agnostos_mjx.physics import resolve_backend
 
     tasks = select_tasks(cfg)
@@ -129,6 +129,9 @@ def evaluate(cfg: EvalConfig) -> dict:
     sharding.configure(cfg.devices)
     backend = resolve_backend(cfg.backend, cfg.batch)
     queue = None
+    # Tasks from a shared queue run beside whichever others this process got first: their
+    # requests then go alone (agnostos_mjx/gather.py).
+    gather.allow_gathering(cfg.task_queue is None)
     if cfg.task_queue is not None:  # take tasks as this process gets free, longest first
         queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
         tasks = [tasks[i] for i in longest_first([t.name for t in tasks], backend)]
