@@ -192,31 +192,14 @@ def test_planner_choice():
     device = control.jit_for_robot(control.plan_arm, ep.kin)(q0, first.pos, first.quat)
     np.testing.assert_array_equal(np.asarray(device[2]), host[2])
     np.testing.assert_allclose(np.asarray(device[0]), host[0], atol=1e-4)
-    # Gathered (runtime/plan_rows.py): a task alone gets the call of its own rows; the
-    # requests of several tasks go out in one call, in an order their arrival cannot change.
+    # Gathered (runtime/plan_rows.py): a task alone gets the call of its own rows, bit for
+    # bit (tasks sharing calls: tests/test_eval.py, slow).
     from agnostos_mjx.gather import flush
-    from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 
     alone = ep.plan_request(start, first)
     flush(alone)
     for a, b_ in zip(alone.result(), device, strict=True):
         np.testing.assert_array_equal(a, np.asarray(b_))
-    other = ep.reset(jax.random.split(jax.random.PRNGKey(7), b), np.zeros(b, np.int32))
-    planner = GatheredPlanner.for_robot(ep.kin)
-    calls = []
-    plan = planner.plan
-    planner.plan = lambda *args: (calls.append(len(args[0])), plan(*args))[1]
-    try:
-        results = []
-        for pair in ((start, other), (other, start)):
-            futures = [ep.plan_request(env, _expert_steps(ep, env)[0]) for env in pair]
-            flush(futures[0])
-            results.append([f.result() for f in futures])
-    finally:
-        planner.plan = plan
-    assert calls == [2 * b, 2 * b]  # one call each time, for both tasks' worlds
-    for a, b_ in zip(results[0][0] + results[0][1], results[1][1] + results[1][0], strict=True):
-        np.testing.assert_array_equal(a, b_)
 
 
 def _expert_steps(ep: Episodes, env) -> list[KeyActions]:

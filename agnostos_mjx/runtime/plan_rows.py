@@ -23,7 +23,7 @@ from agnostos_mjx.gather import RowBatcher, then
 if TYPE_CHECKING:
     import concurrent.futures
 
-MAX_ROWS = 4800  # rows in one call (64 tasks of 75 worlds); more go out in several
+MAX_ROWS = 1 << 20  # every gathered request in one call (a request is never split)
 _PLANNERS: dict[Any, GatheredPlanner] = {}
 
 
