@@ -48,6 +48,8 @@ def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
         out.flush = future.flush  # type: ignore[attr-defined]
 
     def finish(done: concurrent.futures.Future) -> None:
+        if not out.set_running_or_notify_cancel():  # cancelled (Ctrl-C): nobody waits
+            return
         try:
             out.set_result(fn(done.result()))
         except Exception as error:  # the caller of out.result() sees it
@@ -141,7 +143,8 @@ class RowBatcher:
                     for request in failed.values():
                         request.closed = True
                 for request in failed.values():
-                    request.future.set_exception(error)
+                    if request.future.set_running_or_notify_cancel():
+                        request.future.set_exception(error)
                 continue
             with self._ready:  # two workers may hold rows of one request
                 done = []
@@ -151,5 +154,6 @@ class RowBatcher:
                     if request.left == 0 and not request.closed:
                         request.closed = True
                         done.append(request)
-            for request in done:
-                request.future.set_result(request.results)
+            for request in done:  # a cancelled request (Ctrl-C) is dropped, the worker goes on
+                if request.future.set_running_or_notify_cancel():
+                    request.future.set_result(request.results)

@@ -480,7 +480,7 @@ def test_map_chunks_runs_one_shape():
 def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     import threading
 
-    from agnostos_mjx.gather import RowBatcher, allow_gathering, flush
+    from agnostos_mjx.gather import RowBatcher, allow_gathering, flush, then
 
     gate, calls = threading.Event(), []
 
@@ -515,6 +515,18 @@ def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     assert calls == [["a", "b", "x", "y"], ["z"]]
     flush(late)  # a finished request: nothing to send
     assert calls == [["a", "b", "x", "y"], ["z"]]
+    # A request cancelled while held (Ctrl-C) is dropped; the worker serves the next ones.
+    calls.clear()
+    cancelled, kept = held.submit(["p"], key=0), then(held.submit(["q"], key=1), list)
+    assert cancelled.cancel()
+    flush(kept)
+    assert kept.result(10) == ["q!"] and calls == [["p", "q"]]
+    waited = then(held.submit(["r"], key=0), list)  # what a task yields, cancelled
+    assert waited.cancel()
+    flush(waited)  # its rows still run; nobody gets them
+    alive = held.submit(["s"], key=0)
+    flush(alive)
+    assert alive.result(10) == ["s!"]
     # Where gathering is not allowed (processes fed by a task queue), each request goes
     # alone at once, in calls of its own rows from the first place.
     calls.clear()
