@@ -241,8 +241,11 @@ class EvalConfig:
     overlap_tasks: int = option(
         3, "tasks evaluated at once in a process when the policy can wait (X-ICM, "
            "retrieval, served policies): while one task waits on its LLM requests or, on "
-           "native physics, on its key actions (run on a thread pool), the others go on "
-           "(1: one task at a time; results do not depend on it)", group=LLM,
+           "native physics, on its key actions (run on a thread pool), the others go on; "
+           "on a GPU the tasks at once share the demo selection's and the device "
+           "planner's calls (1: one task at a time; on the CPU results do not depend on "
+           "it, on a GPU they round as the shared calls do, the same in every run with "
+           "this value)", group=LLM,
         type=positive_int)
     selection: str = option(
         "auto", "in-context demo selection: random, text (instruction trigrams), dynamics "
