@@ -223,3 +223,41 @@ def test_build_memory_extend_replaces_rerecorded_tasks(memory, bank_dir, tmp_pat
         assert int((new.task == t).sum()) == expected, t
     others = ~np.isin(memory.task, sorted(bank_tasks))
     np.testing.assert_array_equal(new.text[: others.sum()], memory.text[others])
+
+
+@pytest.mark.slow  # two retrieval runs of 3 tasks with the selection's network on 2 cores
+def test_tasks_gathering_their_selection_rows_record_what_sharing_records(tmp_path, monkeypatch):
+    """The GPU's way (agnostos_mjx/gather.py) through the whole evaluation, forced on the
+    CPU: the rows of the tasks waiting at once go out together once all wait, and since a
+    CPU row's result does not depend on its place, the records are those of rows shared as
+    they come (the CPU's way)."""
+    import json
+
+    from agnostos_mjx import eval as ev
+    from agnostos_mjx.gather import RowBatcher
+    from agnostos_mjx.xicm import dynamics_selector
+
+    calls: list[int] = []
+    work = RowBatcher._work
+
+    def counted(self):
+        fn = self.fn
+        self.fn = lambda items: (calls.append(len(items)), fn(items))[1]
+        return work(self)
+
+    monkeypatch.setattr(RowBatcher, "_work", counted)
+    args = ["--tasks", "lamp_on,close_microwave,take_usb_out_of_computer", "--seeds", "0",
+            "--episodes", "2", "--batch", "2", "--quiet"]
+    assert ev.main([*args, "--out", str(tmp_path / "shared")]) == 0
+    monkeypatch.setattr(dynamics_selector, "rows_share_calls", lambda: False)
+    calls.clear()
+    assert ev.main([*args, "--out", str(tmp_path / "gathered")]) == 0
+    assert calls and max(calls) > 2  # some call held more than one task's 2 rows
+
+    def load(folder):
+        rows = [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines()]
+        return {(r["task"], r["episode"]): {k: v for k, v in r.items() if k != "wall_s"}
+                for r in rows}
+
+    assert len(load(tmp_path / "gathered")) == 6
+    assert load(tmp_path / "gathered") == load(tmp_path / "shared")
