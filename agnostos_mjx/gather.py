@@ -3,8 +3,9 @@
 A batcher runs `fn` over the rows of every request pending when its worker is free, or,
 with `gather`, holds the requests until the evaluation loop has nothing else to run
 (`flush`: `evaluation.scheduler.run_interleaved` calls it once every running task waits on
-a held request, `policies.base.run_blocking` at once) and then sends them in the order of
-their keys.  Gathering is for programs whose result for a row moves with the rows beside
+a held request) and then sends them in the order of their keys; a caller that waits on
+nothing else sends its own request alone at once (`send_alone`: `policies.base.run_blocking`,
+a selector's `select`).  Gathering is for programs whose result for a row moves with the rows beside
 it (on a GPU: the selection's sampler, the device planner; dynamics/batching.py and
 runtime/plan_rows.py have the measurements): which rows share a call then depends on the
 run's tasks and seeds, never on timing, and a task run alone gets the calls it got alone.
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import functools
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -44,8 +46,9 @@ def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
     """A future of `fn(future.result())` (or of its exception); a held `future`'s `flush`
     carries over."""
     out: concurrent.futures.Future = concurrent.futures.Future()
-    if hasattr(future, "flush"):
-        out.flush = future.flush  # type: ignore[attr-defined]
+    for release in ("flush", "send_alone"):
+        if hasattr(future, release):
+            setattr(out, release, getattr(future, release))
 
     def finish(done: concurrent.futures.Future) -> None:
         if not out.set_running_or_notify_cancel():  # cancelled (Ctrl-C): nobody waits
@@ -60,8 +63,18 @@ def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
 
 
 def flush(future: concurrent.futures.Future) -> None:
-    """Release the gathered requests behind `future` (a no-op for any other future)."""
+    """Release every request held with `future`, together (a no-op for any other future):
+    what the scheduler does once each running task waits on one."""
     release = getattr(future, "flush", None)
+    if release is not None and not future.done():
+        release()
+
+
+def send_alone(future: concurrent.futures.Future) -> None:
+    """Release `future`'s request alone, in calls of its own rows (a no-op for any other
+    future): for a caller that waits on nothing else (`run_blocking`, `select`), so that a
+    request another thread holds meanwhile never shares its calls."""
+    release = getattr(future, "send_alone", None)
     if release is not None and not future.done():
         release()
 
@@ -98,6 +111,8 @@ class RowBatcher:
                     raise ValueError(f"{self.name}: a gathering batcher needs a key per request")
                 self._held.append(request)
                 request.future.flush = self.flush  # type: ignore[attr-defined]
+                request.future.send_alone = functools.partial(  # type: ignore[attr-defined]
+                    self._send_alone, request)
             else:
                 self._queue([request])
         return request.future
@@ -108,6 +123,13 @@ class RowBatcher:
             held, self._held = sorted(self._held, key=lambda r: r.key), []
             if held:
                 self._queue(held)
+
+    def _send_alone(self, request: _Request) -> None:
+        with self._ready:
+            if request in self._held:
+                self._held.remove(request)
+                request.alone = True
+                self._queue([request])
 
     def _queue(self, requests: list[_Request]) -> None:
         """Hand `requests`' items to the workers (the caller holds the lock)."""

@@ -480,7 +480,7 @@ def test_map_chunks_runs_one_shape():
 def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     import threading
 
-    from agnostos_mjx.gather import RowBatcher, allow_gathering, flush, then
+    from agnostos_mjx.gather import RowBatcher, allow_gathering, flush, send_alone, then
 
     gate, calls = threading.Event(), []
 
@@ -515,6 +515,13 @@ def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     assert calls == [["a", "b", "x", "y"], ["z"]]
     flush(late)  # a finished request: nothing to send
     assert calls == [["a", "b", "x", "y"], ["z"]]
+    # A caller that waits on nothing else sends its request alone; the others stay held.
+    calls.clear()
+    mine, theirs = held.submit(["m", "n"], key=5), held.submit(["t"], key=0)
+    send_alone(mine)
+    assert mine.result(10) == ["m!", "n!"] and calls == [["m", "n"]] and not theirs.done()
+    flush(theirs)
+    assert theirs.result(10) == ["t!"] and calls == [["m", "n"], ["t"]]
     # A request cancelled while held (Ctrl-C) is dropped; the worker serves the next ones.
     calls.clear()
     cancelled, kept = held.submit(["p"], key=0), then(held.submit(["q"], key=1), list)

@@ -194,10 +194,10 @@ def test_planner_choice():
     np.testing.assert_allclose(np.asarray(device[0]), host[0], atol=1e-4)
     # Gathered (runtime/plan_rows.py): a task alone gets the call of its own rows, bit for
     # bit (tasks sharing calls: tests/test_eval.py, slow).
-    from agnostos_mjx.gather import flush
+    from agnostos_mjx.gather import send_alone
 
     alone = ep.plan_request(start, first)
-    flush(alone)
+    send_alone(alone)
     for a, b_ in zip(alone.result(), device, strict=True):
         np.testing.assert_array_equal(a, np.asarray(b_))
 

@@ -155,12 +155,12 @@ class Round:
 
 def run_blocking(steps: Generator[concurrent.futures.Future, Any, Any]) -> Any:
     """Drive a generator of futures to its return value, waiting on each future (a gathered
-    one, dynamics/batching.py, is released at once: nothing else runs here)."""
+    request is sent at once, alone: nothing else runs here)."""
     try:
         future = next(steps)
         while True:
-            if getattr(future, "flush", None) is not None and not future.done():
-                future.flush()
+            if getattr(future, "send_alone", None) is not None and not future.done():
+                future.send_alone()  # a gathered request (agnostos_mjx/gather.py), alone
             concurrent.futures.wait([future])
             future = steps.send(None)
     except StopIteration as stop:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from agnostos_mjx.dynamics.batching import rows_share_calls
-from agnostos_mjx.gather import RowBatcher, flush, then
+from agnostos_mjx.gather import RowBatcher, send_alone, then
 from agnostos_mjx.xicm.memory import DemoMemory
 from agnostos_mjx.xicm.query import Query, top_k
 
@@ -102,7 +102,7 @@ class DynamicsSelector:
 
     def select(self, queries: Sequence[Query], k: int) -> list[np.ndarray]:
         future = self.submit(queries, k)
-        flush(future)
+        send_alone(future)
         return future.result()
 
     def submit(self, queries: Sequence[Query], k: int) -> concurrent.futures.Future:
