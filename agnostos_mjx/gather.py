@@ -4,11 +4,12 @@ A batcher runs `fn` over the rows of every request pending when its worker is fr
 with `gather`, holds the requests until the evaluation loop has nothing else to run
 (`flush`: `evaluation.scheduler.run_interleaved` calls it once every running task waits on
 a held request) and then sends them in the order of their keys; a caller that waits on
-nothing else sends its own request alone at once (`send_alone`: `policies.base.run_blocking`,
-a selector's `select`).  Gathering is for programs whose result for a row moves with the rows beside
-it (on a GPU: the selection's sampler, the device planner; dynamics/batching.py and
-runtime/plan_rows.py have the measurements): which rows share a call then depends on the
-run's tasks and seeds, never on timing, and a task run alone gets the calls it got alone.
+nothing else sends its own request alone at once (`send_alone`:
+`policies.base.run_blocking`, a selector's `select`).  Gathering is for programs whose
+result for a row moves with the rows beside it (on a GPU: the selection's sampler, the
+device planner; dynamics/batching.py and runtime/plan_rows.py have the measurements):
+which rows share a call then depends on the run's tasks and seeds, never on timing, and a
+task run alone gets the calls it got alone.
 Processes that take tasks from a shared queue (`--local-processes`) run whichever tasks
 they get first, so there each request goes alone in calls of its own rows
 (`allow_gathering(False)`): a task's records never depend on which tasks ran beside it.
@@ -44,7 +45,7 @@ class _Request:
 def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]
          ) -> concurrent.futures.Future:
     """A future of `fn(future.result())` (or of its exception); a held `future`'s `flush`
-    carries over."""
+    and `send_alone` carry over."""
     out: concurrent.futures.Future = concurrent.futures.Future()
     for release in ("flush", "send_alone"):
         if hasattr(future, release):
