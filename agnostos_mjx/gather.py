@@ -20,9 +20,12 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import functools
+import hashlib
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
+
+import numpy as np
 
 _GATHERING = [True]  # this process's tasks are a fixed set (see the module docstring)
 
@@ -40,6 +43,15 @@ class _Request:
         self.items, self.key, self.alone = items, key, alone
         self.left = len(items)
         self.closed = False  # its future is (being) set; guarded by the batcher's lock
+
+
+def content_key(arrays: Sequence[Any]) -> str:
+    """A digest of arrays' bytes: a gathered request's key from what it holds, which the
+    run's tasks and seeds fix (unlike the order in which requests arrive)."""
+    digest = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        digest.update(np.ascontiguousarray(a).tobytes())
+    return digest.hexdigest()
 
 
 def then(future: concurrent.futures.Future, fn: Callable[[Any], Any]

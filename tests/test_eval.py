@@ -552,17 +552,19 @@ def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypat
     makes the same calls and records the same episodes.  A process fed by a task queue
     plans each task's worlds alone."""
     from agnostos_mjx import gather
+    from agnostos_mjx.runtime import plan_rows
     from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 
     monkeypatch.setattr(gather, "_GATHERING", [True])  # the queue's run turns it off
     calls: list[int] = []
-    plan_rows = GatheredPlanner._plan_rows
+    original = GatheredPlanner._plan_rows
 
     def counted(self, rows):
         calls.append(len(rows))
-        return plan_rows(self, rows)
+        return original(self, rows)
 
     monkeypatch.setattr(GatheredPlanner, "_plan_rows", counted)
+    monkeypatch.setattr(plan_rows, "_PLANNERS", {})  # a planner built with the counted method
     args = ["--policy", f"{__name__}:OracleThatWaits", "--seeds", "0", "--episodes", "2",
             "--batch", "2", "--backend", "native", "--planner", "device", "--quiet",
             "--tasks", "lamp_on,phone_on_base,push_buttons", "--overlap-tasks", "2"]

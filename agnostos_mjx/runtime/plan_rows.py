@@ -12,13 +12,12 @@ alone gets the one call of its own rows it got before.
 
 from __future__ import annotations
 
-import hashlib
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from agnostos_mjx import control
-from agnostos_mjx.gather import RowBatcher, then
+from agnostos_mjx.gather import RowBatcher, content_key, then
 
 if TYPE_CHECKING:
     import concurrent.futures
@@ -47,11 +46,8 @@ class GatheredPlanner:
                ) -> concurrent.futures.Future:
         """A future of plan_arm(q0, pos, quat) (path, duration, status) for these rows."""
         q0, pos, quat = (np.asarray(a, np.float64) for a in (q0, pos, quat))
-        digest = hashlib.blake2b(digest_size=16)
-        for a in (q0, pos, quat):
-            digest.update(np.ascontiguousarray(a).tobytes())
         rows = [(len(q0), q, p, r) for q, p, r in zip(q0, pos, quat)]
-        return then(self._batcher.submit(rows, key=digest.hexdigest()),
+        return then(self._batcher.submit(rows, key=content_key((q0, pos, quat))),
                     lambda out: tuple(np.stack(part) for part in zip(*out)))
 
     def _plan_rows(self, rows: list[tuple]) -> list[tuple]:

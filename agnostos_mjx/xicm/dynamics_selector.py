@@ -9,7 +9,6 @@ the memory holds the same features of every seen demo, computed once by
 from __future__ import annotations
 
 import concurrent.futures
-import hashlib
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from agnostos_mjx.dynamics.batching import rows_share_calls
-from agnostos_mjx.gather import RowBatcher, send_alone, then
+from agnostos_mjx.gather import RowBatcher, content_key, send_alone, then
 from agnostos_mjx.xicm.memory import DemoMemory
 from agnostos_mjx.xicm.query import Query, top_k
 
@@ -58,11 +57,8 @@ def bank_features(bank, checkpoint: str | Path | None = None) -> dict[str, np.nd
 def request_key(queries: Sequence[Query]) -> tuple:
     """What orders gathered requests: their content (instructions, seeds, frames), which
     the run's tasks and seeds fix, unlike the order in which tasks reach the selector."""
-    digest = hashlib.blake2b(digest_size=16)
-    for q in queries:
-        digest.update(np.ascontiguousarray(q.frame).tobytes())
     return (tuple(q.instruction for q in queries), tuple(q.seed for q in queries),
-            digest.hexdigest())
+            content_key([q.frame for q in queries]))
 
 
 class DynamicsSelector:
