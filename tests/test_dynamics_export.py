@@ -24,9 +24,11 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs, synthetic
 from agnostos_mjx.dynamics.diffusion import DynamicsModel
+from agnostos_mjx.dynamics import export_format
 from agnostos_mjx.dynamics.export_format import (
     META_FILE,
     PARAMS_FILE,
+    feature_modules,
     parameter_count,
     size_bound,
 )
@@ -75,6 +77,28 @@ def exported(tmp_path_factory, dyn_run):
     out = tmp_path_factory.mktemp("export") / "dynamics"
     export_cli.main(["--run", str(dyn_run), "--out", str(out)])
     return out
+
+
+def test_the_model_structure_is_traced_once_then_read_from_the_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
+    traced = feature_modules(AE_QUICK, TEXT_QUICK, UNET_QUICK)
+    (kept,) = (tmp_path / "model_structure").glob("*.pkl")
+
+    def no_trace(build):
+        raise AssertionError("traced the constructor again")
+
+    with monkeypatch.context() as m:
+        m.setattr(export_format, "abstract", no_trace)
+        read = feature_modules(AE_QUICK, TEXT_QUICK, UNET_QUICK)
+    for name in ("ae", "dynamics"):
+        (g1, s1), (g2, s2) = nnx.split(traced[name]), nnx.split(read[name])
+        assert g1 == g2
+        assert jax.tree.map(lambda x: (x.shape, x.dtype), s1) == jax.tree.map(
+            lambda x: (x.shape, x.dtype), s2)
+    kept.write_bytes(b"half a file")  # damaged: traced again and rewritten
+    again = feature_modules(AE_QUICK, TEXT_QUICK, UNET_QUICK)
+    assert nnx.split(again["dynamics"])[0] == nnx.split(traced["dynamics"])[0]
+    assert kept.read_bytes() != b"half a file"
 
 
 @pytest.mark.slow

@@ -210,6 +210,8 @@ def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
     _finish(_eval("--out", str(single)))
     assert _episodes(shared) == _episodes(single)
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
+    # The merge draws the run's plot; a process draws none of its part.
+    assert (shared / "results.png").exists() and not list(shared.glob("proc-*/results.png"))
     # Each task ran in one process, which claimed it in --out/queue.
     owners = {f.name: int(f.read_text()) for f in (shared / "queue").iterdir()}
     assert sorted(owners) == ["lamp_off", "lamp_on"]

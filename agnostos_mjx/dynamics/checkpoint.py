@@ -13,7 +13,6 @@ from typing import Any
 
 import jax
 import numpy as np
-import orbax.checkpoint as ocp
 from flax import nnx
 
 from agnostos_mjx.dynamics.config import diff
@@ -49,6 +48,14 @@ def unflatten(template: Any, arrays: dict[str, Any], prefix: str, where: Path) -
     return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(template), out)
 
 
+def _orbax() -> Any:
+    """orbax.checkpoint, imported on first use: reading an export (every evaluation) needs
+    only `unflatten`, and orbax takes a third of a second to import."""
+    import orbax.checkpoint as ocp
+
+    return ocp
+
+
 class Checkpoints:
     """The checkpoints of one run directory, keeping the newest `keep`."""
 
@@ -56,6 +63,7 @@ class Checkpoints:
         self.directory = Path(directory).absolute()
         if not create and not self.directory.is_dir():
             raise CheckpointError(f"no checkpoint directory at {self.directory}")
+        ocp = _orbax()
         self.manager = ocp.CheckpointManager(
             self.directory,
             options=ocp.CheckpointManagerOptions(
@@ -72,10 +80,11 @@ class Checkpoints:
         arrays = {}
         for name, tree in trees.items():
             arrays.update({k: np.asarray(v) for k, v in flatten(tree, name).items()})
+        args = _orbax().args
         self.manager.save(
             step,
-            args=ocp.args.Composite(
-                arrays=ocp.args.StandardSave(arrays), meta=ocp.args.JsonSave({**meta, "step": step})
+            args=args.Composite(
+                arrays=args.StandardSave(arrays), meta=args.JsonSave({**meta, "step": step})
             ),
             force=True,
         )
@@ -83,7 +92,8 @@ class Checkpoints:
 
     def meta(self, step: int | None = None) -> dict[str, Any]:
         step = self._step(step)
-        return self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
+        args = _orbax().args
+        return self.manager.restore(step, args=args.Composite(meta=args.JsonRestore())).meta
 
     def check(self, expect: dict[str, Any], step: int | None = None) -> dict[str, Any]:
         """The checkpoint's metadata; CheckpointError listing every field that differs from `expect`."""
@@ -106,8 +116,9 @@ class Checkpoints:
         any difference raises CheckpointError listing the fields."""
         step = self._step(step)
         meta = self.check(expect, step)
+        args = _orbax().args
         arrays = self.manager.restore(
-            step, args=ocp.args.Composite(arrays=ocp.args.StandardRestore())
+            step, args=args.Composite(arrays=args.StandardRestore())
         ).arrays
         where = self.directory / str(step)
         return {name: unflatten(t, arrays, name, where) for name, t in templates.items()}, meta

@@ -19,15 +19,19 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import logging
 import math
+import pickle
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import flax
 import jax
 import numpy as np
 from flax import nnx
 
+from agnostos_mjx.cli import atomic_write
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.checkpoint import CheckpointError, unflatten
 from agnostos_mjx.dynamics.config import (
@@ -40,12 +44,14 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.diffusion import DynamicsModel
 from agnostos_mjx.dynamics.layers import abstract
+from agnostos_mjx.settings import cache_root
 
 FORMAT = "agnostos_mjx.dynamics.export"
 VERSION = 1
 PARAMS_FILE, META_FILE = "params.npz", "export.json"
 FLOAT16_MAX = float(np.finfo(np.float16).max)
 _NPZ_OVERHEAD = 512  # bytes per array, generous: .npy header + two zip entry headers
+log = logging.getLogger(__name__)
 
 
 def is_export(path: str | Path) -> bool:
@@ -56,11 +62,36 @@ def is_export(path: str | Path) -> bool:
 def feature_modules(
     ae: AutoencoderConfig, text: TextConfig, unet: UNetConfig
 ) -> dict[str, nnx.Module]:
-    """Abstract (shape-only) modules of exactly what an export holds, by array prefix."""
-    return {
+    """Abstract (shape-only) modules of exactly what an export holds, by array prefix.
+
+    Tracing the constructors takes seconds in every evaluation process, so their
+    structure is kept on disk (`_structure_path`) and read back in a fraction of that."""
+    path = _structure_path(ae, text, unet)
+    try:
+        parts = pickle.loads(path.read_bytes())
+        return {name: nnx.merge(*parts[name]) for name in ("ae", "dynamics")}
+    except Exception:  # noqa: BLE001 - absent, half-written or from other code: rebuild
+        pass
+    modules = {
         "ae": abstract(lambda: Autoencoder(ae, decoder=False, rngs=nnx.Rngs(0))),
         "dynamics": abstract(lambda: DynamicsModel(text, unet, rngs=nnx.Rngs(0))),
     }
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, pickle.dumps({k: nnx.split(m) for k, m in modules.items()}))
+    except OSError as err:  # a read-only cache only costs the next process the trace
+        log.debug("could not keep the model structure in %s: %s", path, err)
+    return modules
+
+
+def _structure_path(ae: AutoencoderConfig, text: TextConfig, unet: UNetConfig) -> Path:
+    """Where the abstract modules of these configs are kept: keyed by the configs, the
+    versions of flax and jax, and the source of this package's dynamics modules."""
+    h = hashlib.sha256(repr((to_dict(ae), to_dict(text), to_dict(unet), flax.__version__,
+                             jax.__version__)).encode())
+    for source in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(source.read_bytes())
+    return cache_root() / "model_structure" / f"{h.hexdigest()[:20]}.pkl"
 
 
 @functools.cache

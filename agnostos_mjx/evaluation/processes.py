@@ -139,6 +139,7 @@ def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
 # killed (eval's InterruptGuard would otherwise end this process after its default 3 s,
 # before it has said where the results are).
 STOP_GRACE_S = 90.0
+EXIT_POLL_S = 0.1  # how soon the launcher sees its last process exit
 
 
 def interrupted_text(out: Path) -> str:
@@ -188,9 +189,12 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
                 stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
                 start_new_session=True))  # Ctrl-C reaches them once, forwarded below
         log.info("%d processes started; logs in %s/proc-I.log", n, out)
-        last = -1
+        last, next_report = -1, time.perf_counter() + poll_s
         while any(p.poll() is None for p in procs):
-            time.sleep(poll_s)
+            time.sleep(min(EXIT_POLL_S, poll_s))  # the merge starts as the last one exits
+            if time.perf_counter() < next_report:
+                continue
+            next_report += poll_s
             done = _episodes_done(out, n)
             if not quiet and done != last:
                 log.info("%d episodes done, %.0f s", done, time.perf_counter() - t0)

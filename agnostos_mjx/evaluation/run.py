@@ -182,8 +182,10 @@ def evaluate(cfg: EvalConfig) -> dict:
     def write_results(final: bool) -> dict:
         # policy.report(): requests, retries, failures, what was sent (LLM, policy server)
         extra = {**policy.report(), **({"failed_tasks": failed} if failed else {})}
+        # A process of a multi-process run draws no plot: the merge draws the run's.
         return write_outputs(out_dir, meta, selected(), mine(), cfg,
-                             time.perf_counter() - t0, final, extra)
+                             time.perf_counter() - t0, final, extra,
+                             plot=cfg.num_processes == 1)
 
     def on_error(index: int, error: Exception) -> None:
         name = todo[index].name

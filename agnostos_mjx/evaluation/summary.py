@@ -194,10 +194,11 @@ def format_csv(summary: dict) -> str:
 
 # ---- files -------------------------------------------------------------------------------
 def write_outputs(out_dir: Path, meta: dict, records: Sequence[dict], tasks: Sequence[str],
-                  cfg: EvalConfig, wall_s: float, final: bool, extra: dict | None = None
-                  ) -> dict:
-    """results.json/.csv/.md (and .png when `final`) of `records` over `tasks` (their
-    order); shared by a run and by `merge`.  Returns results.json's dict + markdown."""
+                  cfg: EvalConfig, wall_s: float, final: bool, extra: dict | None = None,
+                  plot: bool = True) -> dict:
+    """results.json/.csv/.md (and .png when `final` and `plot`) of `records` over `tasks`
+    (their order); shared by a run and by `merge`.  Returns results.json's dict +
+    markdown."""
     records = sorted(records, key=lambda r: (list(tasks).index(r["task"]), r["seed"],
                                              r["episode"]))
     summary = aggregate(records, tasks)
@@ -217,7 +218,7 @@ def write_outputs(out_dir: Path, meta: dict, records: Sequence[dict], tasks: Seq
         compare = published(cfg.compare)
     results["markdown"] = format_markdown(summary, title, compare, cfg.compare or "")
     atomic_write(out_dir / "results.md", results["markdown"])
-    if final:
+    if final and plot:
         from agnostos_mjx.report_plot import plot_summary
 
         plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")

@@ -60,6 +60,18 @@ class PhysicsState:
 STATE_FIELDS = ("qpos", "qvel", "act", "ctrl", "time")
 
 
+def keep_rows(live: jax.Array, new: jax.Array, old: jax.Array) -> jax.Array:
+    """Rows of `new` where `live` (per world), else rows of `old`."""
+    return jnp.where(live.reshape(-1, *[1] * (new.ndim - 1)), new, old)
+
+
+def freeze(live: jax.Array, new: Any, old: Any) -> Any:
+    """`new` (an mjx.Data) for live worlds; a world past its own end keeps its state (its
+    ctrl too: the last control it was stepped with)."""
+    return new.replace(**{f: keep_rows(live, getattr(new, f), getattr(old, f))
+                          for f in STATE_FIELDS})
+
+
 @dataclass(frozen=True)
 class StepData:
     """The per-world data a device phase carries between physics calls (B leading) where the

@@ -27,22 +27,17 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx import sharding
-from agnostos_mjx.physics.base import STATE_FIELDS, PhysicsState, StepData, check_steps
+from agnostos_mjx.physics.base import (
+    STATE_FIELDS,
+    PhysicsState,
+    StepData,
+    check_steps,
+    freeze,
+    keep_rows,
+)
 from agnostos_mjx.physics.quiet_mjx import mjx
 
 log = logging.getLogger(__name__)
-
-
-def keep_rows(live: jax.Array, new: jax.Array, old: jax.Array) -> jax.Array:
-    """Rows of `new` where `live` (per world), else rows of `old`."""
-    return jnp.where(live.reshape(-1, *[1] * (new.ndim - 1)), new, old)
-
-
-def freeze(live: jax.Array, new: mjx.Data, old: mjx.Data) -> mjx.Data:
-    """`new` for live worlds; a world past its own end keeps its state (its ctrl too:
-    the last control it was stepped with)."""
-    return new.replace(**{f: keep_rows(live, getattr(new, f), getattr(old, f))
-                          for f in STATE_FIELDS})
 
 
 @dataclass(frozen=True)

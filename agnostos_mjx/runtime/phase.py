@@ -18,18 +18,20 @@ counts only before any success), so the key action above them is one piece of co
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.physics.base import STATE_FIELDS, Backend, PhysicsState
-from agnostos_mjx.physics.mjx_backend import DevicePhysics, freeze, keep_rows
+from agnostos_mjx.physics.base import STATE_FIELDS, Backend, PhysicsState, freeze, keep_rows
 from agnostos_mjx.runtime.outcome import phase_end
 from agnostos_mjx.runtime.state import EnvState, StepResult
 from agnostos_mjx.world import posed_data
+
+if TYPE_CHECKING:  # native physics never imports MJX (and its scipy, trimesh)
+    from agnostos_mjx.physics.mjx_backend import DevicePhysics
 
 
 def scan_conditions(condition_step: Callable) -> Callable:
