@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from agnostos_mjx.dynamics import export_format
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.checkpoint import CheckpointError, Checkpoints
 from agnostos_mjx.dynamics.config import (
@@ -24,7 +25,6 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs, synthetic
 from agnostos_mjx.dynamics.diffusion import DynamicsModel
-from agnostos_mjx.dynamics import export_format
 from agnostos_mjx.dynamics.export_format import (
     META_FILE,
     PARAMS_FILE,
