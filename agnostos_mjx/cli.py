@@ -41,6 +41,19 @@ def atomic_write(path: Path, text: str | bytes) -> None:
     os.replace(tmp, path)
 
 
+def process_age_s() -> float | None:
+    """Seconds since this process started (interpreter start-up included), from Linux's
+    /proc at its 10 ms resolution; None where there is no /proc."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 0.0)
+
+
 def versions() -> dict[str, Any]:
     from importlib import metadata
 

@@ -17,7 +17,7 @@ import pytest
 
 from agnostos_mjx import eval as ev
 from agnostos_mjx.evaluation import protocol, records, run, scheduler, summary
-from agnostos_mjx.evaluation.timings import time_split_table
+from agnostos_mjx.evaluation.timings import process_table, time_split_table
 from agnostos_mjx.policies.oracle import OraclePolicy
 
 
@@ -86,8 +86,8 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
     """timings.jsonl: one line per task run, its stages and the rest adding up to its wall
     time, physics and policy both measured (what the GPU profile of issue 26 reads)."""
-    (line,) = (run_dir / "timings.jsonl").read_text().splitlines()
-    t = json.loads(line)
+    line, process_line = (run_dir / "timings.jsonl").read_text().splitlines()
+    t, process = json.loads(line), json.loads(process_line)
     assert (t["task"], t["backend"], t["episodes"]) == ("lamp_on", "native", 2)
     stages = [t[k] for k in ("build_s", "reset_s", "policy_s", "physics_s", "other_s")]
     assert all(v >= 0 for v in stages) and t["physics_s"] > 0  # the oracle may take < 0.5 ms
@@ -100,6 +100,10 @@ def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
     assert "| lamp_on | native | 2 |" in table and "| all |" in table
     live = f"| {t['rounds']} | {t['world_steps'] / 1e6:.3f} | "
     assert live in table.splitlines()[2], table
+    # The process's own line: its start-up before the first task, then its tasks' time.
+    assert (process["process"], process["tasks"]) == (0, 1)
+    assert 0 < process["startup_s"] and t["wall_s"] <= process["tasks_s"] + 0.01
+    assert process_table([run_dir]).splitlines()[2].startswith("| 0 | 1 | ")
 
 
 def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture) -> None:

@@ -18,7 +18,7 @@ from dataclasses import asdict, replace
 from datetime import datetime
 from pathlib import Path
 
-from agnostos_mjx.cli import check_writable_dir, progress_bar, versions
+from agnostos_mjx.cli import check_writable_dir, process_age_s, progress_bar, versions
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
 from agnostos_mjx.evaluation.dense import check_action_mode
 from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, select_tasks
@@ -222,10 +222,14 @@ def evaluate(cfg: EvalConfig) -> dict:
                 for t in todo]
         if queue is not None:
             jobs = [queue.claimed(t.name, job) for t, job in zip(todo, jobs)]
+        startup_s, t_tasks = process_age_s(), time.perf_counter()
         try:
             run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False),
                             on_error=None if cfg.fail_fast else on_error)
         finally:
             if pool is not None:
                 pool.shutdown(cancel_futures=True)
+    if mine():  # the process's own costs beside its tasks' (timings.process_table)
+        on_timing({"process": cfg.process_id, "startup_s": startup_s,
+                   "tasks_s": round(time.perf_counter() - t_tasks, 3), "tasks": len(mine())})
     return write_results(final=True)

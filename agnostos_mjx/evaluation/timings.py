@@ -7,7 +7,9 @@ building the runner, resetting batches, the policy and the physics, and the rest
 those their episodes needed (live: a world that ended waits for its batch's slowest world on
 the device backends, and a batch's padding worlds are not live).  This prints them as a
 markdown table with the shares of the summed task time, the profile that says whether
-physics and policy dominate a run.
+physics and policy dominate a run.  Each process also appends one line when its tasks are
+done: its start-up (from its start, interpreter included, to its first task) and the time
+its tasks took, printed as a second table.
 """
 
 from __future__ import annotations
@@ -23,15 +25,32 @@ MEASURED = ("build", "reset", "policy", "physics")  # timed by rollout.TimeSplit
 STAGES = (*MEASURED, "other")  # "other": the task's wall time less the measured stages
 
 
-def read_timings(runs: Iterable[Path]) -> list[dict]:
-    """The task lines of each run folder and of its per-process folders (proc-I)."""
+def read_timings(runs: Iterable[Path], kind: str = "task") -> list[dict]:
+    """The lines of `kind` ("task" or "process") of each run folder and of its per-process
+    folders (proc-I)."""
     rows: list[dict] = []
     for run in map(Path, runs):
         files = [run / TIMINGS_FILE, *sorted(run.glob(f"proc-*/{TIMINGS_FILE}"))]
         for f in files:
             if f.is_file():
                 rows += [json.loads(line) for line in f.read_text().splitlines() if line]
-    return rows
+    return [r for r in rows if kind in r]
+
+
+def process_table(runs: Iterable[Path]) -> str:
+    """Per process: start-up seconds (start to first task) and the seconds its tasks took;
+    empty for runs from before these lines were written."""
+    rows = read_timings(runs, "process")
+    if not rows:
+        return ""
+
+    def cell(value: float | None) -> str:
+        return "" if value is None else f"{value:.1f}"
+
+    lines = ["| process | tasks | start-up s | tasks s |", "|---|---|---|---|"]
+    lines += [f"| {r['process']} | {r['tasks']} | {cell(r['startup_s'])} | "
+              f"{cell(r['tasks_s'])} |" for r in rows]
+    return "\n".join(lines) + "\n"
 
 
 def time_split_table(runs: Iterable[Path]) -> str:
@@ -71,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         print(time_split_table(args.runs), end="")
+        if processes := process_table(args.runs):
+            print("\n" + processes, end="")
     except (ValueError, KeyError) as err:
         print(f"timings: {err}", file=sys.stderr)
         return 2
