@@ -85,6 +85,15 @@ SETTINGS: tuple[Setting, ...] = (LLM_URL, LLM_MODEL, LLM_API_KEY, POLICY_URL, GP
 CPU_OPTIMISATION_FLAG = "--xla_backend_optimization_level=1"
 
 
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity (taskset, a container's cpuset),
+    not every core of the machine as os.cpu_count() says."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # no affinity on this platform
+        return os.cpu_count() or 1
+
+
 def _home_cache() -> Path:
     return Path.home() / ".cache" / "agnostos_mjx"
 

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.evaluation.config import positive_int
-from agnostos_mjx.settings import cache_root, configure_jax, gpu_plugin_installed
+from agnostos_mjx.settings import cache_root, configure_jax, gpu_plugin_installed, usable_cores
 
 log = logging.getLogger("agnostos_mjx.warmup")
 
@@ -169,7 +169,7 @@ def _worker(name: str, args: argparse.Namespace) -> dict:
 def default_kernel_jobs() -> int:
     """Processes building Warp's kernels at once: half the machine's cores, at most 8 (on a
     16-core H200, 8 processes built the unseen scenes' modules in 21 s, 16 in 33 s)."""
-    return max(1, min((os.cpu_count() or 1) // 2, 8))
+    return max(1, min(usable_cores() // 2, 8))
 
 
 def kernels_marker(tasks: str, batch: int) -> Path:

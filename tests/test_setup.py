@@ -141,3 +141,18 @@ def test_console_scripts_resolve() -> None:
     assert {name: ep.value for name, ep in scripts.items()} == SCRIPTS
     for ep in scripts.values():
         assert callable(ep.load())
+
+
+def test_native_physics_threads_follow_the_cpu_affinity(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A process pinned to some cores (taskset, a container's cpuset) runs that many
+    physics threads, not one per core of the machine."""
+    import mujoco
+
+    from agnostos_mjx.physics.native import NativeBackend
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 2, 5})
+    assert settings.usable_cores() == 3
+    model = mujoco.MjModel.from_xml_string("<mujoco><worldbody/></mujoco>")
+    assert NativeBackend(model).nthread == 3
+    monkeypatch.delattr(os, "sched_getaffinity")
+    assert settings.usable_cores() == (os.cpu_count() or 1)

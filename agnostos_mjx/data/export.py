@@ -119,7 +119,7 @@ from agnostos_mjx.data.rlbench_format import (
     is_complete,
 )
 from agnostos_mjx.data.rotations import ROTATIONS
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.settings import configure_jax, usable_cores
 
 # The episode format's API, importable from here as before the split (README, reports):
 __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export",
@@ -305,7 +305,7 @@ def cpu_cores() -> int:
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+        return usable_cores()
 
 
 def parallel_tasks(cfg: ExportConfig, workers: int) -> int:

@@ -40,7 +40,6 @@ import itertools
 import json
 import logging
 import multiprocessing
-import os
 import sys
 import time
 import zlib
@@ -71,7 +70,7 @@ from agnostos_mjx.data.bank import (
     write_shard,
 )
 from agnostos_mjx.keyframes import discover_keyframes, merge_repeated_keyframes
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.settings import configure_jax, usable_cores
 from agnostos_mjx.textualise import encode_action
 
 log = logging.getLogger("agnostos_mjx.data")
@@ -409,7 +408,7 @@ def resolve_workers(cfg: GenerateConfig) -> int:
 
     backend = resolve_backend(cfg.backend)
     if cfg.workers == 0:
-        return (os.cpu_count() or 1) if backend == "native" else 1
+        return usable_cores() if backend == "native" else 1
     if cfg.workers > 1 and backend != "native":
         raise ValueError(f"--workers {cfg.workers} needs --backend native (one {backend} "
                          "process drives the whole accelerator)")
@@ -445,7 +444,7 @@ def generate(cfg: GenerateConfig) -> dict:
                 continue
             # Round-robin over tasks so that every task's chunks start early.
             chunks = [c for group in itertools.zip_longest(*per_task) for c in group if c]
-            threads = max(1, (os.cpu_count() or 1) // workers)
+            threads = max(1, usable_cores() // workers)
             with concurrent.futures.ProcessPoolExecutor(
                     workers, mp_context=multiprocessing.get_context("spawn"),
                     initializer=_worker_init, initargs=(threads,)) as pool:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import os
 import threading
 
 import mujoco
@@ -11,6 +10,7 @@ import numpy as np
 from mujoco import rollout
 
 from agnostos_mjx.physics.base import PhysicsState, check_steps
+from agnostos_mjx.settings import usable_cores
 
 _STATE_FIELDS = {
     mujoco.mjtState.mjSTATE_TIME: "time",
@@ -57,7 +57,7 @@ class NativeBackend:
 
     def __init__(self, model: mujoco.MjModel, nthread: int | None = None):
         self.model = model
-        self.nthread = nthread or os.cpu_count() or 1
+        self.nthread = nthread or usable_cores()
         self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
         self._models: list[mujoco.MjModel] = []
         self.nstate, self._state_slices = _layout(model, STATE_SPEC, _STATE_FIELDS)

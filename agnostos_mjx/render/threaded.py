@@ -17,7 +17,7 @@ import numpy as np
 
 from agnostos_mjx.render.common import CameraImages, camera_names, clip_planes, unknown_camera
 from agnostos_mjx.render.cpu import CpuRenderer
-from agnostos_mjx.settings import RENDER_THREADS
+from agnostos_mjx.settings import RENDER_THREADS, usable_cores
 
 RENDER_THREADS_ENV = RENDER_THREADS.name
 MAX_RENDER_THREADS = 8
@@ -32,7 +32,7 @@ def render_threads() -> int:
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # no sched_getaffinity (macOS)
-        cores = os.cpu_count() or 1
+        cores = usable_cores()
     return max(1, min(cores, MAX_RENDER_THREADS))
 
 
