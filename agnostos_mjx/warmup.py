@@ -34,6 +34,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -228,21 +229,34 @@ def ensure_shared_programs(tasks: str, batch: int, planner: str = "auto",
              "(python -m agnostos_mjx.warmup does it ahead of time)")
     t0 = time.perf_counter()
     code = _warmup_process(tasks, "native", batch, planner, selection=selection,
-                           what="compiling the shared programs")
+                           what="compiling the shared programs", env=one_gpu_env(os.environ))
     if code == 0:
         _write_marker(marker, {"wall_s": round(time.perf_counter() - t0, 2)})
     return code
 
 
+def one_gpu_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """`environ` showing its first GPU alone when it shows several, as --local-processes
+    shows each process its one GPU: JAX's persistent cache keys a program by the topology
+    of the devices JAX sees, so a program compiled where 2 GPUs were visible is not found
+    by a process that sees 1 (on a 2 x H200 host every process compiled the selection
+    again: a fresh main job took 246 s)."""
+    from agnostos_mjx import mps
+
+    gpus, _ = mps.visible_gpus(environ)
+    return {**environ, "CUDA_VISIBLE_DEVICES": gpus[0]} if len(gpus) > 1 else dict(environ)
+
+
 def _warmup_process(tasks: str, backend: str, batch: int, planner: str, selection: bool,
-                    what: str) -> int:
+                    what: str, env: Mapping[str, str] | None = None) -> int:
     """This command's kernel, planner and selection step (no task runs) in a process of its
-    own; its exit code, a failure logged (the run then does `what` as it goes)."""
+    own (with `env`, default this one's); its exit code, a failure logged (the run then
+    does `what` as it goes)."""
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", backend,
            "--batch", str(batch), "--planner", planner, "--task-runs", "none",
            *([] if selection else ["--no-selection"])]
-    code = subprocess.run(cmd).returncode
+    code = subprocess.run(cmd, env=None if env is None else dict(env)).returncode
     if code:
         log.warning("%s ahead failed (exit %d); the run does it as it goes", what, code)
     else:

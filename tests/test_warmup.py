@@ -193,6 +193,27 @@ def test_a_run_of_several_processes_compiles_the_shared_programs_once(tmp_path, 
     assert not warmup.shared_marker(16, True).exists()  # per batch
 
 
+def test_the_shared_programs_compile_where_one_gpu_is_visible(tmp_path, monkeypatch):
+    """JAX's cache keys a program by the devices JAX sees: the warm-up of a run on several
+    GPUs sees the first alone, as each process sees its own; on one GPU nothing changes."""
+    import subprocess
+    import types
+
+    from agnostos_mjx import mps
+
+    monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
+    envs = []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, env=None, **kw: (
+        envs.append(env), types.SimpleNamespace(returncode=0))[1])
+    monkeypatch.setattr(mps, "visible_gpus", lambda environ: (["2", "3"], "test"))
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    warmup.ensure_shared_programs("lamp_on", 75, "device")
+    assert envs[-1]["CUDA_VISIBLE_DEVICES"] == "2"
+    monkeypatch.setattr(mps, "visible_gpus", lambda environ: (["3"], "test"))
+    assert warmup.one_gpu_env({"CUDA_VISIBLE_DEVICES": "3", "A": "b"}) == {
+        "CUDA_VISIBLE_DEVICES": "3", "A": "b"}
+
+
 def test_the_parent_of_a_warp_run_does_not_start_jax():
     """The run's parent process checks the marker and starts the kernel step without
     starting JAX: on a GPU, JAX there would take most of the memory from the run's
