@@ -9,7 +9,15 @@ from pathlib import Path
 import pytest
 
 from agnostos_mjx.evaluation.config import UsageError
-from agnostos_mjx.evaluation.task_queue import TaskQueue, longest_first, prepare
+from agnostos_mjx.evaluation.task_queue import (
+    TaskQueue,
+    balanced_shares,
+    claim_order,
+    expected_s,
+    longest_first,
+    prepare,
+)
+from agnostos_mjx.tasks import list_tasks
 
 
 def test_longest_first_orders_by_expected_time_and_keeps_unknown_tasks_in_the_middle():
@@ -22,10 +30,32 @@ def test_longest_first_orders_by_expected_time_and_keeps_unknown_tasks_in_the_mi
     assert longest_first(names, "jax") == longest_first(names, "warp")
 
 
+def test_each_process_claims_its_balanced_share_first_then_the_rest_longest_first():
+    names = list_tasks("unseen_level1") + list_tasks("unseen_level2")
+    cost = expected_s(names)
+    shares = balanced_shares(names, "native", 8)
+    assert sorted(i for share in shares for i in share) == list(range(len(names)))
+    # The 8 longest tasks start in 8 processes, and the shares' expected times differ by
+    # less than the longest task (where the 3 longest could share one process before).
+    assert sorted(share[0] for share in shares) == sorted(longest_first(names)[:8])
+    loads = [sum(cost[i] for i in share) for share in shares]
+    assert max(loads) - min(loads) < max(cost)
+    # Every process starts its share (of 2 or 3 tasks) at once: no task to take from another.
+    assert [claim_order(names, "native", 8, p, overlap=3) for p in range(8)] == shares
+    # One task at a time: a process that runs out takes the others' later tasks, longest
+    # first, never a task its process starts first.
+    later = sorted((i for share in shares for i in share[1:]), key=longest_first(names).index)
+    for p, share in enumerate(shares):
+        order = claim_order(names, "native", 8, p, overlap=1)
+        assert order == share + [i for i in later if i not in share]
+    assert claim_order(names, "native", 1, 0) == longest_first(names)
+
+
 def test_a_task_goes_to_one_process_only(tmp_path: Path):
     a, b = TaskQueue(tmp_path, 0), TaskQueue(tmp_path, 1)
     assert a.claim("lamp_on") and not b.claim("lamp_on")
     assert b.claim("lamp_off") and not a.claim("lamp_off")
+    assert a.held(["lamp_off", "lamp_on", "open_drawer"]) == ["lamp_on"]
     assert a.claim("lamp_on")  # its own claim again: still its task
     assert (a.mine, b.mine) == (["lamp_on"], ["lamp_off"])
     assert (tmp_path / "lamp_on").read_text() == "0"

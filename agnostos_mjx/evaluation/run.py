@@ -32,7 +32,7 @@ from agnostos_mjx.evaluation.records import (
 from agnostos_mjx.evaluation.rollout import task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
-from agnostos_mjx.evaluation.task_queue import TaskQueue, longest_first
+from agnostos_mjx.evaluation.task_queue import TaskQueue, claim_order
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
 from agnostos_mjx.policies.base import Policy
 
@@ -132,9 +132,8 @@ def evaluate(cfg: EvalConfig) -> dict:
     # Tasks from a shared queue run beside whichever others this process got first: their
     # requests then go alone (agnostos_mjx/gather.py).
     gather.allow_gathering(cfg.task_queue is None)
-    if cfg.task_queue is not None:  # take tasks as this process gets free, longest first
+    if cfg.task_queue is not None:  # its balanced share first (claim_order, below)
         queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
-        tasks = [tasks[i] for i in longest_first([t.name for t in tasks], backend)]
         log.info("process %d of %d: tasks from the queue %s", cfg.process_id,
                  cfg.num_processes, cfg.task_queue)
     else:
@@ -202,10 +201,16 @@ def evaluate(cfg: EvalConfig) -> dict:
         append_records(episodes_path, records)
         all_records.extend(records)
 
-    todo = [t for t in tasks if plan[t.name]]
     # One policy copy per task running at once: copies share the heavy parts (LLM client,
     # memory, selector); reset() gives each its own per-episode state.
     overlap = cfg.overlap_tasks if policy.interleaves() else 1
+    if queue is not None:  # the tasks it holds episodes of, then its balanced share
+        names = [t.name for t in tasks]
+        order = [names.index(n) for n in queue.held(names)]
+        order += [i for i in claim_order(names, backend, cfg.num_processes, cfg.process_id,
+                                         overlap) if i not in order]
+        tasks = [tasks[i] for i in order]
+    todo = [t for t in tasks if plan[t.name]]
     with progress_bar(total, enabled=not cfg.quiet) as progress:
         done = {t.name: (0, 0.0) for t in todo}
 

@@ -1,11 +1,12 @@
-"""Tasks handed to ``--local-processes`` processes as they become free, longest first.
+"""Tasks handed to ``--local-processes`` processes: each its balanced share, longest first,
+then whatever another process has not started yet.
 
 A fixed split (process I runs tasks I, I+N, ...) leaves processes idle while others still
 work: in the main job on a 2 x H100 host, 16 processes had 1 or 2 of the 23 tasks each, and
 the slowest needed 81.6 s of task time against a mean of 56.5 s
-(docs/performance.md).  Here each process takes the next task no process has
-taken yet, in the order of `EXPECTED_S` (longest first: the short tasks fill the gaps at the
-end), so the run ends when the last task does.
+(docs/performance.md).  Here each process first takes its share of a split balanced by
+`EXPECTED_S` (`claim_order`), then the next task no process has taken yet, longest first
+(the short tasks fill the gaps at the end), so the run ends when the last task does.
 
 A claim is a file ``<queue>/<task>`` created with O_CREAT | O_EXCL (atomic on one machine's
 file system) holding the claiming process's index.  The launcher empties the queue before
@@ -65,12 +66,50 @@ EXPECTED_S = {
 }
 
 
-def longest_first(names: Sequence[str], backend: str = "native") -> list[int]:
-    """Indices of `names` by expected time on `backend` (MJX-jax counts as warp), longest
-    first; ties keep the given order."""
+def expected_s(names: Sequence[str], backend: str = "native") -> list[float]:
+    """`EXPECTED_S` of each name on `backend` (MJX-jax counts as warp); the backend's
+    median for a task not listed."""
     table = EXPECTED_S["native" if backend == "native" else "warp"]
     median = statistics.median(table.values())
-    return sorted(range(len(names)), key=lambda i: -table.get(names[i], median))
+    return [table.get(name, median) for name in names]
+
+
+def longest_first(names: Sequence[str], backend: str = "native") -> list[int]:
+    """Indices of `names` by expected time on `backend`, longest first; ties keep the given
+    order."""
+    cost = expected_s(names, backend)
+    return sorted(range(len(names)), key=lambda i: -cost[i])
+
+
+def balanced_shares(names: Sequence[str], backend: str, processes: int) -> list[list[int]]:
+    """Indices of `names` split over `processes`: longest first, each task to the process
+    with the least expected time so far (each share longest first)."""
+    cost = expected_s(names, backend)
+    totals = [0.0] * processes
+    shares: list[list[int]] = [[] for _ in range(processes)]
+    for i in longest_first(names, backend):
+        p = min(range(processes), key=lambda p: (totals[p], p))
+        totals[p] += cost[i]
+        shares[p].append(i)
+    return shares
+
+
+def claim_order(names: Sequence[str], backend: str, processes: int, process_id: int,
+                overlap: int = 1) -> list[int]:
+    """Indices of `names` in the order process `process_id` of `processes` (running
+    `overlap` tasks at once) tries to claim them: its `balanced_shares` share, then, longest
+    first, the tasks of other shares that their process would start only once one of its
+    first `overlap` has ended, for when this process runs out first.
+
+    Taking the next task as processes free up balances nothing when every process starts
+    `overlap` tasks at once (23 tasks, 8 processes x 3): whichever process started first
+    took the 3 longest, and its tasks' physics take turns on its cores.  A process's first
+    `overlap` tasks are its own alone, so a process with a short share cannot take them
+    before their process has started."""
+    shares = balanced_shares(names, backend, processes)
+    later = {i for share in shares for i in share[overlap:]}
+    mine = shares[process_id]
+    return mine + [i for i in longest_first(names, backend) if i in later and i not in mine]
 
 
 def prepare(queue: Path, out: Path, processes: int) -> dict[str, int]:
@@ -98,6 +137,11 @@ class TaskQueue:
                              "makes it)")
         self.directory, self.process_id = Path(directory), process_id
         self.mine: list[str] = []
+
+    def held(self, names: Sequence[str]) -> list[str]:
+        """Those of `names` claimed for this process already (a resumed run's tasks)."""
+        return [n for n in names if (self.directory / n).is_file()
+                and (self.directory / n).read_text().strip() == str(self.process_id)]
 
     def claim(self, task: str) -> bool:
         """Take `task` unless another process has; True when it is this process's."""
