@@ -75,7 +75,8 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     default_selection = cfg.policy in ("auto", "retrieval", "xicm") and cfg.selection == "auto"
     if cfg.backend == "warp" and cfg.num_processes == 1:
         setup_logging(cfg.quiet)
-        warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner, selection=default_selection)
+        warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner, selection=default_selection,
+                                   one_gpu=cfg.local_processes > 1)
     elif cfg.local_processes > 1:
         setup_logging(cfg.quiet)
         warmup.ensure_shared_programs(cfg.tasks, cfg.batch, cfg.planner,

@@ -71,7 +71,8 @@ GPU_MEM_FRACTION = Setting(
 RENDER_THREADS = Setting(
     "AGNOSTOS_RENDER_THREADS", "threads of CPU rendering (default: the usable cores, at most 8)")
 CACHE = Setting(
-    "AGNOSTOS_CACHE", "root of the warm-up's markers (default: ~/.cache/agnostos_mjx)")
+    "AGNOSTOS_CACHE",
+    "root of the warm-up's markers and the model's structure (default: ~/.cache/agnostos_mjx)")
 JAX_CACHE = Setting(
     "AGNOSTOS_JAX_CACHE",
     "JAX's persistent compile cache directory, or off (default: ~/.cache/agnostos_mjx/jax)")
@@ -99,7 +100,7 @@ def _home_cache() -> Path:
 
 
 def cache_root() -> Path:
-    """The root of agnostos-mjx's own caches (warm-up markers)."""
+    """The root of agnostos-mjx's own caches (warm-up markers, the model's structure)."""
     value = CACHE.get()
     return Path(value) if value else _home_cache()
 

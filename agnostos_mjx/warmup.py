@@ -271,20 +271,22 @@ def _write_marker(marker: Path, content: dict) -> None:
     os.replace(tmp, marker)
 
 
-def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False
-                        ) -> int | None:
+def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False,
+                        one_gpu: bool = False) -> int | None:
     """Before a warp run: this command's kernel step (Warp's kernels of `tasks` in parallel
     processes, and with `selection` the demo selection's networks meanwhile) in a process
-    of its own, unless this machine did it already (kernels_marker).  Returns its exit
-    code, None if skipped.  A failed build is logged and the run goes on (it then builds
-    what it needs as it goes)."""
+    of its own, unless this machine did it already (kernels_marker); with `one_gpu` (a run
+    of --local-processes) seeing one GPU as each process does (`one_gpu_env`).  Returns its
+    exit code, None if skipped.  A failed build is logged and the run goes on (it then
+    builds what it needs as it goes)."""
     if importlib.util.find_spec("warp") is None or kernels_marker(tasks, batch).exists():
         return None  # without warp-lang the run says what is missing
     log.info("warp: building Warp's kernels of the tasks' scenes in %d processes first, once "
              "per machine (python -m agnostos_mjx.warmup does it ahead of time)",
              default_kernel_jobs())
     return _warmup_process(tasks, "warp", batch, planner, selection,
-                           what="warp: building the kernels")
+                           what="warp: building the kernels",
+                           env=one_gpu_env(os.environ) if one_gpu else None)
 
 
 def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor | None = None
