@@ -40,7 +40,7 @@ def read_timings(runs: Iterable[Path], kind: str = "task") -> list[dict]:
 def process_table(runs: Iterable[Path]) -> str:
     """Per process: start-up seconds (start to first task) and the seconds its tasks took;
     empty for runs from before these lines were written."""
-    rows = read_timings(runs, "process")
+    rows = sorted(read_timings(runs, "process"), key=lambda r: r["process"])
     if not rows:
         return ""
 
