@@ -207,8 +207,8 @@ def shared_marker(batch: int, selection: bool) -> Path:
     folder; a wiped cache only makes the processes compile again as they go)."""
     from agnostos_mjx.settings import JAX_CACHE
 
-    # "one GPU": the warm-up sees one GPU since cc2297c; a marker from before it names
-    # programs that processes seeing one GPU did not find.
+    # "one GPU": the warm-up sees one GPU (one_gpu_env); a marker of a warm-up that saw
+    # several names programs the processes do not find.
     key = json.dumps([_installed("jax"), _installed("agnostos-mjx"), JAX_CACHE.get(), batch,
                       "planner", selection, "one GPU"])
     return cache_root() / "warm_shared" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
