@@ -13,6 +13,7 @@ from agnostos_mjx.data import export as ex
 from agnostos_mjx.data import rlbench_demo
 from agnostos_mjx.data import rlbench_format as fmt
 from agnostos_mjx.data.expert_frames import frame_every
+from agnostos_mjx.settings import usable_cores
 
 
 def test_encodings_round_trip() -> None:
@@ -368,7 +369,7 @@ def test_workers_same_files(tmp_path, capsys) -> None:
     assert not list((tmp_path / "two").glob(".manifest.json.tmp*"))
     # The estimate's time is divided by the tasks run at once.
     assert ex.estimate(cfg, workers=2)[1] == pytest.approx(
-        ex.estimate(cfg)[1] / min(2, ex.cpu_cores()))
+        ex.estimate(cfg)[1] / min(2, usable_cores()))
 
 
 

@@ -300,17 +300,9 @@ def _every_text(every: int | str | None) -> str:
     return ", RLBench's 20 Hz frames" if every == "rlbench" else f", frames every {every} steps"
 
 
-def cpu_cores() -> int:
-    """Cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return usable_cores()
-
-
 def parallel_tasks(cfg: ExportConfig, workers: int) -> int:
     """Tasks exported at once: min(workers, tasks, cores)."""
-    return max(1, min(workers, len(cfg.tasks), cpu_cores()))
+    return max(1, min(workers, len(cfg.tasks), usable_cores()))
 
 
 def estimate(cfg: ExportConfig, frames: float | None = None, workers: int = 1
@@ -401,7 +393,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
           f"{','.join(cfg.cameras)} at {cfg.size}px{_every_text(cfg.every)}"
           f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and "
           f"{seconds / 60:.0f} min with {at_once} task(s) at once ({workers} worker(s), "
-          f"{cpu_cores()} cores; rough: the time per task measured on 2 shared cores; "
+          f"{usable_cores()} cores; rough: the time per task measured on 2 shared cores; "
           f"complete episodes in {home} are skipped)", flush=True)
     t0 = time.perf_counter()
     manifest_path = home / "manifest.json"
@@ -470,7 +462,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
         import multiprocessing
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-        threads = max(1, cpu_cores() // at_once)
+        threads = max(1, usable_cores() // at_once)
         with _worker_env(threads):
             pool = ProcessPoolExecutor(at_once, multiprocessing.get_context("spawn"),
                                        initializer=_worker_init)

@@ -138,10 +138,14 @@ class TaskQueue:
         self.directory, self.process_id = Path(directory), process_id
         self.mine: list[str] = []
 
+    def _ours(self, task: str) -> bool:
+        """Whether `task`'s claim file names this process."""
+        path = self.directory / task
+        return path.is_file() and path.read_text().strip() == str(self.process_id)
+
     def held(self, names: Sequence[str]) -> list[str]:
         """Those of `names` claimed for this process already (a resumed run's tasks)."""
-        return [n for n in names if (self.directory / n).is_file()
-                and (self.directory / n).read_text().strip() == str(self.process_id)]
+        return [n for n in names if self._ours(n)]
 
     def claim(self, task: str) -> bool:
         """Take `task` unless another process has; True when it is this process's."""
@@ -151,7 +155,7 @@ class TaskQueue:
         except OSError as err:
             if err.errno != errno.EEXIST:
                 raise
-            ours = path.read_text().strip() == str(self.process_id)
+            ours = self._ours(task)
         else:
             with os.fdopen(fd, "w") as f:
                 f.write(str(self.process_id))

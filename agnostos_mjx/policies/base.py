@@ -57,6 +57,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agnostos_mjx.gather import send_alone
 from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
@@ -159,8 +160,7 @@ def run_blocking(steps: Generator[concurrent.futures.Future, Any, Any]) -> Any:
     try:
         future = next(steps)
         while True:
-            if getattr(future, "send_alone", None) is not None and not future.done():
-                future.send_alone()  # a gathered request (agnostos_mjx/gather.py), alone
+            send_alone(future)  # a gathered request (agnostos_mjx/gather.py), alone
             concurrent.futures.wait([future])
             future = steps.send(None)
     except StopIteration as stop:

@@ -5,7 +5,6 @@ CpuRenderer from `render_threads()` (``AGNOSTOS_RENDER_THREADS``)."""
 from __future__ import annotations
 
 import atexit
-import os
 import queue
 import threading
 from collections.abc import Sequence
@@ -29,11 +28,7 @@ def render_threads() -> int:
     threads = RENDER_THREADS.get_int()
     if threads is not None:
         return max(1, threads)
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # no sched_getaffinity (macOS)
-        cores = usable_cores()
-    return max(1, min(cores, MAX_RENDER_THREADS))
+    return max(1, min(usable_cores(), MAX_RENDER_THREADS))
 
 
 def _serve(tasks: queue.SimpleQueue, ready: Future, args: tuple) -> None:

@@ -158,7 +158,8 @@ def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
 
 def generate(cfg: DataConfig, workers: int = 1) -> dict:
     """Every chunk of `cfg`, `workers` at once (spawned processes, as the export's)."""
-    from agnostos_mjx.data.export import _worker_env, _worker_init, cpu_cores
+    from agnostos_mjx.data.export import _worker_env, _worker_init
+    from agnostos_mjx.settings import usable_cores
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     manifest_path = cfg.out / "manifest.json"
@@ -178,7 +179,7 @@ def generate(cfg: DataConfig, workers: int = 1) -> dict:
             print(f"vla_data: {stats['task']} demos {stats['start']}+: {stats['samples']} "
                   f"samples in {stats['seconds']:.1f} s [{len(done)}/{len(jobs)}]", flush=True)
 
-    workers = max(1, min(int(workers), len(jobs), cpu_cores()))
+    workers = max(1, min(int(workers), len(jobs), usable_cores()))
     if workers == 1:
         for job in jobs:
             report(generate_chunk(cfg, *job))
@@ -186,7 +187,7 @@ def generate(cfg: DataConfig, workers: int = 1) -> dict:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        threads = max(1, cpu_cores() // workers)
+        threads = max(1, usable_cores() // workers)
         # Long tasks first, so that the pool does not end waiting on one of them.
         order = sorted(jobs, key=lambda j: j[0] not in ("place_cups", "stack_blocks",
                                                         "put_item_in_drawer", "stack_cups"))
