@@ -4,10 +4,25 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
 log = logging.getLogger("agnostos_mjx.eval")
+
+
+def pyplot() -> ModuleType | None:
+    """matplotlib's pyplot on the Agg backend, None without matplotlib.  Its import takes
+    ~1 s: the launcher of a multi-process run calls this while its processes run, so that
+    the merge at the end does not wait for it."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
 
 
 def plot_summary(summary: dict, path: Path, title: str = "",
@@ -16,12 +31,8 @@ def plot_summary(summary: dict, path: Path, title: str = "",
     seeds, the whisker the Wilson 95 % interval of the pooled episodes (wider, and honest
     about 75 episodes, than the std over 3 seeds).  Returns False (with a log line) when
     matplotlib is missing."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         log.info("matplotlib not installed; skipping %s (pip install agnostos-mjx[plot])", path)
         return False
     items = [(n, t) for n, t in summary["tasks"].items()]

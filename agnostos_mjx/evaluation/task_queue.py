@@ -17,6 +17,7 @@ episodes of, so that the task stays with the process whose folder holds them.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import statistics
 from collections.abc import Generator, Sequence
@@ -28,13 +29,14 @@ from agnostos_mjx.evaluation.records import EPISODES_FILE, load_records
 
 T = TypeVar("T")
 
-# Seconds for 75 episodes of each task on a 2 x H100 host (32 cores), by backend, without
-# the ~10 s (warp) or ~5 s (native) that the first task of a process adds for compiling;
-# only their order matters, and a task not listed counts as the median of its backend.
-# warp: the unseen tasks of the warm main job (timings.jsonl in
-# eval/reports/main_job_h100_x2/main_warm); native: the unseen ones of the main job
-# (main_native_host) and the seen ones with the reference VLA
-# (eval/reports/reference_vla/gpu_h100_full/eval_seen).
+# Expected seconds of each task's 75 episodes, by backend: shares are balanced by their sums
+# (and CPU weights follow them, `share_nice`); a task not listed counts as its backend's median.
+# warp: the unseen tasks of the warm main job on a 2 x H100 host, without the ~10 s that a
+# process's first task adds for compiling (timings.jsonl in eval/reports/main_job_h100_x2).
+# native, unseen: the main job's CPU seconds, `python tools/task_cost.py RUN` on a warm H200
+# run (its world-steps times the task's step under its expert on one core of a 2-core CPU,
+# plus 12 s for 25 planning rounds; eval/reports/main_job_h200_native); native, seen: the
+# reference VLA's evaluation on a 2 x H100 host (eval/reports/reference_vla), alike in scale.
 EXPECTED_S = {
     "warp": {
         "put_toilet_roll_on_stand": 47, "put_knife_on_chopping_board": 44,
@@ -48,20 +50,23 @@ EXPECTED_S = {
         "close_fridge": 3,
     },
     "native": {
+        "straighten_rope": 123, "water_plants": 48, "take_lid_off_saucepan": 43,
+        "put_toilet_roll_on_stand": 39, "put_rubbish_in_bin": 28, "unplug_charger": 28,
+        "take_plate_off_colored_dish_rack": 27, "basketball_in_hoop": 26,
+        "put_books_on_bookshelf": 26, "scoop_with_spatula": 25,
+        "put_umbrella_in_umbrella_stand": 24, "phone_on_base": 21,
+        "put_knife_on_chopping_board": 21, "open_grill": 20, "turn_oven_on": 20,
+        "take_usb_out_of_computer": 19, "beat_the_buzz": 17, "close_laptop_lid": 17,
+        "close_microwave": 16, "toilet_seat_down": 16, "lamp_off": 14, "lamp_on": 14,
+        "close_fridge": 1,
+        # seen
         "place_cups": 75, "put_item_in_drawer": 65, "meat_off_grill": 64,
         "sweep_to_dustpan_of_size": 59, "stack_blocks": 57, "light_bulb_in": 54,
         "stack_cups": 52, "turn_tap": 52, "close_jar": 51, "slide_block_to_color_target": 48,
         "put_groceries_in_cupboard": 47, "reach_and_drag": 44,
         "place_shape_in_shape_sorter": 44, "put_money_in_safe": 43,
-        "place_wine_at_rack_location": 40, "push_buttons": 37, "straighten_rope": 35,
-        "put_umbrella_in_umbrella_stand": 33, "insert_onto_square_peg": 33,
-        "put_knife_on_chopping_board": 30, "put_rubbish_in_bin": 29,
-        "put_toilet_roll_on_stand": 29, "put_books_on_bookshelf": 28, "turn_oven_on": 28,
-        "toilet_seat_down": 28, "take_plate_off_colored_dish_rack": 28, "beat_the_buzz": 28,
-        "open_grill": 26, "water_plants": 26, "take_lid_off_saucepan": 25,
-        "take_usb_out_of_computer": 25, "basketball_in_hoop": 24, "lamp_off": 24,
-        "phone_on_base": 23, "lamp_on": 23, "scoop_with_spatula": 22, "close_microwave": 22,
-        "close_laptop_lid": 21, "unplug_charger": 21, "open_drawer": 19, "close_fridge": 2,
+        "place_wine_at_rack_location": 40, "push_buttons": 37,
+        "insert_onto_square_peg": 33, "open_drawer": 19,
     },
 }
 
@@ -110,6 +115,24 @@ def claim_order(names: Sequence[str], backend: str, processes: int, process_id: 
     later = {i for share in shares for i in share[overlap:]}
     mine = shares[process_id]
     return mine + [i for i in longest_first(names, backend) if i in later and i not in mine]
+
+
+NICE_STEP = 1.25  # Linux's scheduler weighs each nice level ~1.25x less than the one below
+
+
+def share_nice(names: Sequence[str], backend: str, processes: int, process_id: int,
+               most: int = 5) -> int:
+    """The nice value for process `process_id`, so that processes sharing a machine's cores
+    get CPU time in proportion to their `balanced_shares`' expected time: 0 for the largest
+    share, one level more per 1.25x less (at most `most`).  With equal weights, the process
+    of the main job's costliest task (straighten_rope, 1.6x the mean share of 8 processes)
+    got the same CPU time as the others, and ended the run last."""
+    cost = expected_s(names, backend)
+    totals = [sum(cost[i] for i in share) for share in balanced_shares(names, backend, processes)]
+    mine = totals[process_id]
+    if mine <= 0:
+        return most
+    return min(most, round(math.log(max(totals) / mine, NICE_STEP)))
 
 
 def prepare(queue: Path, out: Path, processes: int) -> dict[str, int]:
