@@ -4,7 +4,6 @@ and survive a resume with the process that holds the task's episodes."""
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import pytest
@@ -17,7 +16,6 @@ from agnostos_mjx.evaluation.task_queue import (
     expected_s,
     longest_first,
     prepare,
-    share_nice,
 )
 from agnostos_mjx.tasks import list_tasks
 
@@ -55,23 +53,6 @@ def test_each_process_claims_its_balanced_share_first_then_the_rest_longest_firs
         order = claim_order(names, "native", 8, p, overlap=1)
         assert order == share + [i for i in later if i not in share]
     assert claim_order(names, "native", 1, 0) == longest_first(names)
-
-
-def test_cpu_weights_follow_the_shares_expected_time():
-    names = list_tasks("unseen_level1") + list_tasks("unseen_level2")
-    cost = expected_s(names)
-    shares = balanced_shares(names, "native", 8)
-    loads = [sum(cost[i] for i in share) for share in shares]
-    nice = [share_nice(names, "native", 8, p) for p in range(8)]
-    # The costliest task (straighten_rope) runs alone, at full weight; each other process's
-    # weight (1.25x less per nice level) is the nearest level to its share's ratio to it.
-    assert shares[0] == [names.index("straighten_rope")] and nice[0] == 0
-    assert all(n >= 1 for n in nice[1:])
-    for load, n in zip(loads, nice):
-        assert abs(math.log(max(loads) / load, 1.25) - n) <= 0.5
-    # Equal shares keep equal weights; a process without a share takes the lowest.
-    assert {share_nice(["lamp_on", "lamp_off"], "native", 2, p) for p in (0, 1)} == {0}
-    assert share_nice(["lamp_on"], "native", 2, 1) == 5
 
 
 def test_a_task_goes_to_one_process_only(tmp_path: Path):

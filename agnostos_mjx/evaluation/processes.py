@@ -140,11 +140,6 @@ def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
 # before it has said where the results are).
 STOP_GRACE_S = 90.0
 EXIT_POLL_S = 0.1  # how soon the launcher sees its last process exit
-# How a thread waits for the GPU (XLA reads it as it starts CUDA).  CUDA's default spins on
-# a core while it waits; the processes' waits on their shared GPU (the planner's and the
-# selection's calls) then took CPU time from the tasks' physics: 586 against 541 CPU-seconds
-# of a warm main job (8 processes, one H200).  The launcher's own setting is kept.
-CUDA_WAIT = "TF_CUDA_PLATFORM_GPU_DEVICE_SCHEDULE"
 
 
 def interrupted_text(out: Path) -> str:
@@ -165,8 +160,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     out.mkdir(parents=True, exist_ok=True)
     package_root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ,
-           "PYTHONPATH": os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")])),
-           CUDA_WAIT: os.environ.get(CUDA_WAIT, "blocking_sync")}
+           "PYTHONPATH": os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))}
     command = list(command or [sys.executable, "-m", "agnostos_mjx.eval"])
     daemons = mps.Daemons(env)
     procs: list[subprocess.Popen] = []

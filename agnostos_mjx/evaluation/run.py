@@ -11,7 +11,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import os
 import re
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -33,7 +32,7 @@ from agnostos_mjx.evaluation.records import (
 from agnostos_mjx.evaluation.rollout import task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
-from agnostos_mjx.evaluation.task_queue import TaskQueue, claim_order, share_nice
+from agnostos_mjx.evaluation.task_queue import TaskQueue, claim_order
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
 from agnostos_mjx.policies.base import Policy
 
@@ -211,9 +210,6 @@ def evaluate(cfg: EvalConfig) -> dict:
         order += [i for i in claim_order(names, backend, cfg.num_processes, cfg.process_id,
                                          overlap) if i not in order]
         tasks = [tasks[i] for i in order]
-        nice = share_nice(names, backend, cfg.num_processes, cfg.process_id)
-        if nice and hasattr(os, "nice"):
-            os.nice(nice)  # the threads started from here on (the tasks') inherit it
     todo = [t for t in tasks if plan[t.name]]
     with progress_bar(total, enabled=not cfg.quiet) as progress:
         done = {t.name: (0, 0.0) for t in todo}

@@ -17,7 +17,6 @@ episodes of, so that the task stays with the process whose folder holds them.
 from __future__ import annotations
 
 import errno
-import math
 import os
 import statistics
 from collections.abc import Generator, Sequence
@@ -29,8 +28,8 @@ from agnostos_mjx.evaluation.records import EPISODES_FILE, load_records
 
 T = TypeVar("T")
 
-# Expected seconds of each task's 75 episodes, by backend: shares are balanced by their sums
-# (and CPU weights follow them, `share_nice`); a task not listed counts as its backend's median.
+# Expected seconds of each task's 75 episodes, by backend: shares are balanced by their sums;
+# a task not listed counts as its backend's median.
 # warp: the unseen tasks of the warm main job on a 2 x H100 host, without the ~10 s that a
 # process's first task adds for compiling (timings.jsonl in eval/reports/main_job_h100_x2).
 # native, unseen: the main job's CPU seconds, `python tools/task_cost.py RUN` on a warm H200
@@ -115,24 +114,6 @@ def claim_order(names: Sequence[str], backend: str, processes: int, process_id: 
     later = {i for share in shares for i in share[overlap:]}
     mine = shares[process_id]
     return mine + [i for i in longest_first(names, backend) if i in later and i not in mine]
-
-
-NICE_STEP = 1.25  # Linux's scheduler weighs each nice level ~1.25x less than the one below
-
-
-def share_nice(names: Sequence[str], backend: str, processes: int, process_id: int,
-               most: int = 5) -> int:
-    """The nice value for process `process_id`, so that processes sharing a machine's cores
-    get CPU time in proportion to their `balanced_shares`' expected time: 0 for the largest
-    share, one level more per 1.25x less (at most `most`).  With equal weights, the process
-    of the main job's costliest task (straighten_rope, 1.6x the mean share of 8 processes)
-    got the same CPU time as the others, and ended the run last."""
-    cost = expected_s(names, backend)
-    totals = [sum(cost[i] for i in share) for share in balanced_shares(names, backend, processes)]
-    mine = totals[process_id]
-    if mine <= 0:
-        return most
-    return min(most, round(math.log(max(totals) / mine, NICE_STEP)))
 
 
 def prepare(queue: Path, out: Path, processes: int) -> dict[str, int]:
