@@ -189,7 +189,9 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
                 stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
                 start_new_session=True))  # Ctrl-C reaches them once, forwarded below
         log.info("%d processes started; logs in %s/proc-I.log", n, out)
-        report_plot.pyplot()  # imported while they run: the merge draws the plot
+        # Imported while they run, for the merge's plot; on a thread of its own, so that no
+        # handler in matplotlib's import can swallow a Ctrl-C meant for the loop below.
+        threading.Thread(target=report_plot.pyplot, name="import-pyplot", daemon=True).start()
         last, next_report = -1, time.perf_counter() + poll_s
         while any(p.poll() is None for p in procs):
             time.sleep(min(EXIT_POLL_S, poll_s))  # the merge starts as the last one exits
