@@ -16,6 +16,8 @@ from agnostos_mjx.evaluation.task_queue import (
     expected_s,
     longest_first,
     prepare,
+    split_by_seed,
+    unit_task,
 )
 from agnostos_mjx.tasks import list_tasks
 
@@ -55,6 +57,29 @@ def test_each_process_claims_its_balanced_share_first_then_the_rest_longest_firs
     assert claim_order(names, "native", 1, 0) == longest_first(names)
 
 
+def test_a_task_longer_than_a_mean_share_splits_by_seed():
+    names = list_tasks("unseen_level1") + list_tasks("unseen_level2")
+    # 8 processes: straighten_rope (123 of ~632 expected s) alone exceeds a mean share.
+    units = split_by_seed(names, "native", 8, [0, 1, 2])
+    assert [u for u in units if "@" in u] == [f"straighten_rope@{s}" for s in (0, 1, 2)]
+    assert len(units) == len(names) + 2
+    assert unit_task("straighten_rope@2") == ("straighten_rope", 2)
+    assert unit_task("lamp_on") == ("lamp_on", None)
+    # Its units share its expected time; the others keep theirs.
+    cost = dict(zip(units, expected_s(units)))
+    assert cost["straighten_rope@0"] * 3 == expected_s(["straighten_rope"])[0]
+    assert cost["lamp_on"] == expected_s(["lamp_on"])[0]
+    assert sum(cost.values()) == pytest.approx(sum(expected_s(names)))
+    # 16 processes split more; one process or one seed splits nothing.
+    assert sum("@" in u for u in split_by_seed(names, "native", 16, [0, 1, 2])) > 3
+    assert split_by_seed(names, "native", 1, [0, 1, 2]) == names
+    assert split_by_seed(names, "native", 8, [0]) == names
+    # The balanced shares then start the rope's seeds in three processes.
+    shares = balanced_shares(units, "native", 8)
+    firsts = [units[share[0]] for share in shares]
+    assert {f"straighten_rope@{s}" for s in (0, 1, 2)} <= set(firsts)
+
+
 def test_a_task_goes_to_one_process_only(tmp_path: Path):
     a, b = TaskQueue(tmp_path, 0), TaskQueue(tmp_path, 1)
     assert a.claim("lamp_on") and not b.claim("lamp_on")
@@ -92,9 +117,16 @@ def test_prepare_empties_the_queue_and_keeps_resumed_tasks_with_their_process(tm
         (out / f"proc-{i}").mkdir(parents=True)
         (out / f"proc-{i}" / "episodes.jsonl").write_text(
             json.dumps({"task": task, "seed": 0, "episode": 0}) + "\n")
-    assert prepare(queue, out, processes=2) == {"lamp_off": 0, "lamp_on": 1}
-    assert sorted(f.name for f in queue.iterdir()) == ["lamp_off", "lamp_on"]
-    assert not TaskQueue(queue, 0).claim("lamp_on") and TaskQueue(queue, 1).claim("lamp_on")
+    # A seed of lamp_on ran in process 0 as a unit of its own (split_by_seed).
+    with (out / "proc-0" / "episodes.jsonl").open("a") as f:
+        f.write(json.dumps({"task": "lamp_on", "seed": 2, "episode": 0}) + "\n")
+    assert prepare(queue, out, processes=2) == {
+        "lamp_off": 0, "lamp_off@0": 0, "lamp_on": 0, "lamp_on@2": 0, "lamp_on@0": 1}
+    assert sorted(f.name for f in queue.iterdir()) == [
+        "lamp_off", "lamp_off@0", "lamp_on", "lamp_on@0", "lamp_on@2"]
+    assert not TaskQueue(queue, 0).claim("lamp_on@0") and TaskQueue(queue, 1).claim("lamp_on@0")
+    assert TaskQueue(queue, 0).held(["lamp_on", "lamp_on@0", "lamp_on@2"]) == [
+        "lamp_on", "lamp_on@2"]
     # proc-2 is not part of this launch: its task is free again
     assert TaskQueue(queue, 0).claim("open_drawer")
 

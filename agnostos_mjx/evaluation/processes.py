@@ -178,7 +178,8 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         queue = out / QUEUE_DIR
         owners = task_queue.prepare(queue, out, n)  # resumed tasks stay with their process
         if owners:
-            log.info("%d tasks stay with the processes that have episodes of them", len(owners))
+            log.info("%d tasks stay with the processes that have episodes of them",
+                     sum(task_queue.SEED_UNIT not in unit for unit in owners))
         child += ["--task-queue", str(queue)]
         if memory_fraction is None and GPU_MEM_FRACTION.get() is None:
             child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]

@@ -32,7 +32,12 @@ from agnostos_mjx.evaluation.records import (
 from agnostos_mjx.evaluation.rollout import task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
-from agnostos_mjx.evaluation.task_queue import TaskQueue, claim_order
+from agnostos_mjx.evaluation.task_queue import (
+    TaskQueue,
+    claim_order,
+    split_by_seed,
+    unit_task,
+)
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
 from agnostos_mjx.policies.base import Policy
 
@@ -169,7 +174,9 @@ def evaluate(cfg: EvalConfig) -> dict:
             "tasks": all_tasks}
 
     def mine() -> list[str]:  # the tasks this process runs (with a queue: has claimed)
-        return list(queue.mine) if queue is not None else [t.name for t in tasks]
+        if queue is None:
+            return [t.name for t in tasks]
+        return list(dict.fromkeys(unit_task(unit)[0] for unit in queue.mine))
 
     def selected() -> list[dict]:
         names, seeds = set(mine()), set(cfg.seeds)
@@ -187,7 +194,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                              plot=cfg.num_processes == 1)
 
     def on_error(index: int, error: Exception) -> None:
-        name = todo[index].name
+        name = todo[index][1].name
         failed[name] = f"{type(error).__name__}: {error}"
         log.error("%s failed, the other tasks go on (its episodes not recorded run again "
                   "with --resume): %s", name, failed[name], exc_info=error)
@@ -204,15 +211,19 @@ def evaluate(cfg: EvalConfig) -> dict:
     # One policy copy per task running at once: copies share the heavy parts (LLM client,
     # memory, selector); reset() gives each its own per-episode state.
     overlap = cfg.overlap_tasks if policy.interleaves() else 1
-    if queue is not None:  # the tasks it holds episodes of, then its balanced share
-        names = [t.name for t in tasks]
-        order = [names.index(n) for n in queue.held(names)]
-        order += [i for i in claim_order(names, backend, cfg.num_processes, cfg.process_id,
+    units = [t.name for t in tasks]  # with a queue, a long task's seeds may go apart
+    if queue is not None:  # the units it holds episodes of, then its balanced share
+        units = split_by_seed(units, backend, cfg.num_processes, cfg.seeds)
+        order = [units.index(u) for u in queue.held(units)]
+        order += [i for i in claim_order(units, backend, cfg.num_processes, cfg.process_id,
                                          overlap) if i not in order]
-        tasks = [tasks[i] for i in order]
-    todo = [t for t in tasks if plan[t.name]]
+        units = [units[i] for i in order]
+    by_name = {t.name: t for t in tasks}
+    todo = [(unit, by_name[task], pending) for unit in units
+            for task, seed in [unit_task(unit)]
+            if (pending := [p for p in plan[task] if seed in (None, p[0])])]
     with progress_bar(total, enabled=not cfg.quiet) as progress:
-        done = {t.name: (0, 0.0) for t in todo}
+        done = {unit: (0, 0.0) for unit, _, _ in todo}
 
         def tick(name: str, n: int, partial: float = 0.0, detail: str | None = None) -> None:
             done[name] = (n, partial)
@@ -222,11 +233,11 @@ def evaluate(cfg: EvalConfig) -> dict:
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
         # The native physics of tasks running at once overlaps on threads (task_steps).
         pool = ThreadPoolExecutor(overlap, thread_name_prefix="physics") if overlap > 1 else None
-        jobs = [task_steps(t, policy.fork() if overlap > 1 else policy, plan[t.name], run_cfg,
-                           on_records, functools.partial(tick, t.name), on_timing, pool)
-                for t in todo]
+        jobs = [task_steps(t, policy.fork() if overlap > 1 else policy, pending, run_cfg,
+                           on_records, functools.partial(tick, unit), on_timing, pool)
+                for unit, t, pending in todo]
         if queue is not None:
-            jobs = [queue.claimed(t.name, job) for t, job in zip(todo, jobs)]
+            jobs = [queue.claimed(unit, job) for (unit, _, _), job in zip(todo, jobs)]
         startup_s, t_tasks = process_age_s(), time.perf_counter()
         try:
             run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False),

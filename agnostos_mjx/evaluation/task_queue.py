@@ -19,6 +19,7 @@ from __future__ import annotations
 import errno
 import os
 import statistics
+from collections import Counter
 from collections.abc import Generator, Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -70,12 +71,39 @@ EXPECTED_S = {
 }
 
 
+SEED_UNIT = "@"  # a unit of one seed of a task: "straighten_rope@1"
+
+
+def unit_task(unit: str) -> tuple[str, int | None]:
+    """(task, seed) of a queue unit; seed None for a whole task."""
+    task, sep, seed = unit.partition(SEED_UNIT)
+    return task, int(seed) if sep else None
+
+
 def expected_s(names: Sequence[str], backend: str = "native") -> list[float]:
     """`EXPECTED_S` of each name on `backend` (MJX-jax counts as warp); the backend's
-    median for a task not listed."""
+    median for a task not listed.  A task split into units of one seed (`split_by_seed`)
+    is shared equally by its units in `names`."""
     table = EXPECTED_S["native" if backend == "native" else "warp"]
     median = statistics.median(table.values())
-    return [table.get(name, median) for name in names]
+    tasks = [unit_task(name)[0] for name in names]
+    units = Counter(tasks)
+    return [table.get(task, median) / units[task] for task in tasks]
+
+
+def split_by_seed(names: Sequence[str], backend: str, processes: int,
+                  seeds: Sequence[int]) -> list[str]:
+    """The queue's units of work: each task whole, or one unit per seed ("task@seed") for a
+    task expected to take more than a process's mean share.  Such a task ended the run in its
+    process alone: straighten_rope is ~20% of the main job's CPU work, and on 16 processes
+    its process ran its tasks for 29.6 s, the others for 22-28 s.  A world's episode does
+    not depend on the others in its batch, so the records do not change."""
+    if processes < 2 or len(seeds) < 2:
+        return list(names)
+    cost = expected_s(names, backend)
+    share = sum(cost) / processes
+    return [unit for name, c in zip(names, cost)
+            for unit in ([f"{name}{SEED_UNIT}{s}" for s in seeds] if c > share else [name])]
 
 
 def longest_first(names: Sequence[str], backend: str = "native") -> list[int]:
@@ -118,8 +146,8 @@ def claim_order(names: Sequence[str], backend: str, processes: int, process_id: 
 
 def prepare(queue: Path, out: Path, processes: int) -> dict[str, int]:
     """Empty `queue` and claim, for each process I < `processes`, the tasks it already has
-    episodes of in ``out/proc-I`` (a task found in several keeps the lowest I).  Returns
-    those claims."""
+    episodes of in ``out/proc-I``, whole and by seed (`split_by_seed`'s units; a unit found
+    in several keeps the lowest I).  Returns those claims."""
     queue.mkdir(parents=True, exist_ok=True)
     for f in queue.iterdir():
         f.unlink()
@@ -127,6 +155,7 @@ def prepare(queue: Path, out: Path, processes: int) -> dict[str, int]:
     for i in range(processes):
         for r in load_records(out / f"proc-{i}" / EPISODES_FILE):
             owners.setdefault(r["task"], i)
+            owners.setdefault(f"{r['task']}{SEED_UNIT}{r['seed']}", i)
     for task, i in owners.items():
         (queue / task).write_text(str(i))
     return owners
