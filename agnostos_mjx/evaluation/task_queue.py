@@ -6,9 +6,11 @@ work: in the main job on a 2 x H100 host, 16 processes had 1 or 2 of the 23 task
 the slowest needed 81.6 s of task time against a mean of 56.5 s
 (docs/performance.md).  Here each process first takes its share of a split balanced by
 `EXPECTED_S` (`claim_order`), then the next task no process has taken yet, longest first
-(the short tasks fill the gaps at the end), so the run ends when the last task does.
+(the short tasks fill the gaps at the end), so the run ends when the last task does.  A
+task longer than a process's mean share goes out by seed (`split_by_seed`), as units
+``task@seed``.
 
-A claim is a file ``<queue>/<task>`` created with O_CREAT | O_EXCL (atomic on one machine's
+A claim is a file ``<queue>/<unit>`` created with O_CREAT | O_EXCL (atomic on one machine's
 file system) holding the claiming process's index.  The launcher empties the queue before
 the processes start and, for ``--resume``, writes the claims of tasks a process already has
 episodes of, so that the task stays with the process whose folder holds them.
