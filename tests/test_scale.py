@@ -229,12 +229,12 @@ def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_a_long_tasks_seeds_go_to_several_processes(tmp_path: Path) -> None:
-    """lamp_on is expected to take 14x close_fridge, more than the mean share of 2
+    """lamp_on is expected to take 14x close_fridge, more than two mean shares of 3
     processes: its seeds become units of their own (task_queue.split_by_seed), claimed by
-    both processes, and the merged records are those of one process running it whole."""
+    two processes, and the merged records are those of one process running it whole."""
     args = ("--tasks", "lamp_on,close_fridge", "--seeds", "0,1", "--batch", "4")
     shared, single = tmp_path / "shared", tmp_path / "single"
-    _finish(_eval("--out", str(shared), "--local-processes", "2", *args))
+    _finish(_eval("--out", str(shared), "--local-processes", "3", *args))
     _finish(_eval("--out", str(single), *args))
     strip = lambda records: [{k: v for k, v in r.items() if k != "batch_size"}  # noqa: E731
                              for r in records]
@@ -242,7 +242,7 @@ def test_a_long_tasks_seeds_go_to_several_processes(tmp_path: Path) -> None:
     owners = {f.name: int(f.read_text()) for f in (shared / "queue").iterdir()}
     assert sorted(owners) == ["close_fridge", "lamp_on@0", "lamp_on@1"]
     assert owners["lamp_on@0"] != owners["lamp_on@1"]
-    for i in range(2):
+    for i in range(3):
         ran = {(r["task"], r["seed"], r["batch_size"]) for r in
                _episodes_or_none(shared / f"proc-{i}")}
         assert {(t, s) for t, s, _ in ran} == {
@@ -251,9 +251,9 @@ def test_a_long_tasks_seeds_go_to_several_processes(tmp_path: Path) -> None:
         assert all(b == 2 for t, _, b in ran if t == "lamp_on")  # one seed's 2 episodes
     assert {r["batch_size"] for r in _episodes(single) if r["task"] == "lamp_on"} == {4}
     # --resume with a third episode: each seed stays with the process holding its episodes.
-    _finish(_eval("--out", str(shared), "--local-processes", "2", "--resume", *args,
+    _finish(_eval("--out", str(shared), "--local-processes", "3", "--resume", *args,
                   "--episodes", "3"))
-    for i in range(2):
+    for i in range(3):
         seeds = {r["seed"] for r in _episodes_or_none(shared / f"proc-{i}")
                  if r["task"] == "lamp_on"}
         assert seeds == {s for s in (0, 1) if owners[f"lamp_on@{s}"] == i}

@@ -7,7 +7,7 @@ the slowest needed 81.6 s of task time against a mean of 56.5 s
 (docs/performance.md).  Here each process first takes its share of a split balanced by
 `EXPECTED_S` (`claim_order`), then the next task no process has taken yet, longest first
 (the short tasks fill the gaps at the end), so the run ends when the last task does.  A
-task longer than a process's mean share goes out by seed (`split_by_seed`), as units
+task longer than two mean shares goes out by seed (`split_by_seed`), as units
 ``task@seed``.
 
 A claim is a file ``<queue>/<unit>`` created with O_CREAT | O_EXCL (atomic on one machine's
@@ -93,19 +93,25 @@ def expected_s(names: Sequence[str], backend: str = "native") -> list[float]:
     return [table.get(task, median) / units[task] for task in tasks]
 
 
+# straighten_rope's process got ~1.8x the CPU time of the others (2.9 against 1.6 cores on
+# one H200, its physics running while their threads waited on their policies): at 1.6 mean
+# shares of 8 processes it ended before them, at 3.1 of 16 it ended the run.
+ALONE_SHARES = 2.0
+
+
 def split_by_seed(names: Sequence[str], backend: str, processes: int,
                   seeds: Sequence[int]) -> list[str]:
     """The queue's units of work: each task whole, or one unit per seed ("task@seed") for a
-    task expected to take more than a process's mean share.  Such a task ended the run in its
-    process alone: straighten_rope is ~20% of the main job's CPU work, and on 16 processes
-    its process ran its tasks for 29.6 s, the others for 22-28 s.  A world's episode does
-    not depend on the others in its batch, so the records do not change."""
+    task expected to take more than `ALONE_SHARES` mean shares of a process, which would end
+    the run in its process alone (straighten_rope, ~20% of the main job's CPU work, on 16
+    processes: its process ran 29.6 s, the others 22-28 s).  A world's episode does not
+    depend on the others in its batch, so the records do not change but for `batch_size`."""
     if processes < 2 or len(seeds) < 2:
         return list(names)
     cost = expected_s(names, backend)
-    share = sum(cost) / processes
+    limit = ALONE_SHARES * sum(cost) / processes
     return [unit for name, c in zip(names, cost)
-            for unit in ([f"{name}{SEED_UNIT}{s}" for s in seeds] if c > share else [name])]
+            for unit in ([f"{name}{SEED_UNIT}{s}" for s in seeds] if c > limit else [name])]
 
 
 def longest_first(names: Sequence[str], backend: str = "native") -> list[int]:
