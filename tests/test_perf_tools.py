@@ -1,0 +1,69 @@
+"""The measuring tools the performance reports cite (tools/task_cost.py, thread_cpu.py,
+rollout_threads.py) give what their docstrings say."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+
+
+def _tool(name: str):
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_task_cost_prices_each_task_of_a_run(tmp_path: Path, monkeypatch, capsys) -> None:
+    """World-steps x the step's cost, plus ROUND_S (0.48 s) per round, from every process's
+    timings."""
+    task_cost = _tool("task_cost")
+    for i, (task, steps, rounds) in enumerate([("lamp_on", 100_000, 25), ("lamp_off", 0, 1)]):
+        (tmp_path / f"proc-{i}").mkdir()
+        (tmp_path / f"proc-{i}" / "timings.jsonl").write_text(
+            json.dumps({"task": task, "world_steps": steps, "rounds": rounds}) + "\n"
+            + json.dumps({"process": i, "startup_s": 4.0}) + "\n")
+    monkeypatch.setattr(task_cost, "step_us", lambda name, batch: 50.0)
+    out = tmp_path / "cost.json"
+    monkeypatch.setattr(sys, "argv", ["task_cost.py", str(tmp_path), "--json", str(out)])
+    task_cost.main()
+    assert json.loads(out.read_text()) == {"lamp_on": 17.0, "lamp_off": 0.5}  # rounded to 0.1 s
+    assert "| lamp_on | 100000 | 50.0 | 17.0 |" in capsys.readouterr().out
+
+
+def test_thread_cpu_counts_each_threads_time(tmp_path: Path) -> None:
+    busy = "import time\nt = time.process_time()\nwhile time.process_time() - t < 1.5: pass"
+    out = tmp_path / "threads.json"
+    done = subprocess.run([sys.executable, str(TOOLS / "thread_cpu.py"), str(out), "--",
+                           sys.executable, "-c", busy], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    threads = [cpu for per_pid in json.loads(out.read_text()).values()
+               for _, cpu in per_pid.values()]
+    assert max(threads) >= 0.9  # the busy main thread (its last 0.5 s sample)
+    assert "CPU-s" in done.stdout
+
+
+@pytest.mark.slow
+def test_rollout_threads_reports_each_configuration() -> None:
+    done = subprocess.run([sys.executable, str(TOOLS / "rollout_threads.py"), "lamp_on", "0.3",
+                           "1x1", "2x1"], capture_output=True, text=True, timeout=300,
+                          cwd=TOOLS.parent)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert [line.split(":")[0] for line in lines] == [
+        "lamp_on 1 processes x 1 threads", "lamp_on 2 processes x 1 threads"]
+    assert all(float(line.split(": ")[1].split()[0]) > 0 for line in lines)
+
+
+@pytest.mark.slow
+def test_task_cost_times_the_physics_step_under_the_expert() -> None:
+    us = _tool("task_cost").step_us("lamp_on", 2)
+    assert 1.0 < us < 1000.0  # one world's step on one thread (~20 us on a 2-core CPU)
