@@ -25,7 +25,9 @@ def test_task_cost_prices_each_task_of_a_run(tmp_path: Path, monkeypatch, capsys
     """World-steps x the step's cost, plus ROUND_S (0.48 s) per round, from every process's
     timings."""
     task_cost = _tool("task_cost")
-    for i, (task, steps, rounds) in enumerate([("lamp_on", 100_000, 25), ("lamp_off", 0, 1)]):
+    # lamp_on's seeds ran in processes 0 and 2 (task_queue.split_by_seed).
+    for i, (task, steps, rounds) in enumerate([("lamp_on", 60_000, 25), ("lamp_off", 0, 1),
+                                               ("lamp_on", 40_000, 25)]):
         (tmp_path / f"proc-{i}").mkdir()
         (tmp_path / f"proc-{i}" / "timings.jsonl").write_text(
             json.dumps({"task": task, "world_steps": steps, "rounds": rounds}) + "\n"

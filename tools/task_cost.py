@@ -1,6 +1,6 @@
 """Each task's expected CPU seconds in a run, the source of `task_queue.EXPECTED_S`.
 
-    python tools/task_cost.py RUN [--tasks unseen] [--batch 6] [--json F]
+    python tools/task_cost.py RUN [--batch 6] [--json F]
 
 RUN is a run folder with timings.jsonl (or proc-*/timings.jsonl). For each of its tasks this
 times native MuJoCo's step on one thread while the task's scripted expert runs `--batch`
@@ -21,15 +21,20 @@ ROUND_S = 12 / 25
 
 
 def run_timings(run: Path) -> dict[str, dict]:
-    """The last timings.jsonl line of each task in `run` (one process or several)."""
+    """Each task's world-steps and rounds in `run` (one process or several): the last
+    timings.jsonl line of the task in each file, the world-steps summed over the files (a
+    task split by seed ran in several processes, each unit through all its rounds)."""
     files = [run / "timings.jsonl", *sorted(run.glob("proc-*/timings.jsonl"))]
     out: dict[str, dict] = {}
     for f in files:
-        if f.exists():
-            for line in f.read_text().splitlines():
-                row = json.loads(line)
-                if "task" in row:
-                    out[row["task"]] = row
+        if not f.exists():
+            continue
+        last = {row["task"]: row for row in map(json.loads, f.read_text().splitlines())
+                if "task" in row}
+        for task, row in last.items():
+            seen = out.setdefault(task, {"world_steps": 0, "rounds": 0})
+            seen["world_steps"] += row["world_steps"]
+            seen["rounds"] = max(seen["rounds"], row["rounds"])
     if not out:
         sys.exit(f"error: {run}: no timings.jsonl with task lines")
     return out
