@@ -48,6 +48,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from agnostos_mjx import mps, report_plot
+from agnostos_mjx.cli import process_age_s
 from agnostos_mjx.evaluation import task_queue
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.records import EPISODES_FILE
@@ -122,7 +123,10 @@ def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
         log.warning("--mps off: %s", mps.time_slice_warning(sharing, len(busy)))
     else:
         try:
+            t0 = time.perf_counter()
             daemons.start(out, gpus, busy)
+            log.info("CUDA MPS serves %d GPU(s), checked in %.1f s", len(busy),
+                     time.perf_counter() - t0)
         except mps.MpsError as e:
             daemons.close()
             if mode == "on":
@@ -189,7 +193,8 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
                 [*command, *child, "--quiet", "--num-processes", str(n), "--process-id", str(i)],
                 stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
                 start_new_session=True))  # Ctrl-C reaches them once, forwarded below
-        log.info("%d processes started; logs in %s/proc-I.log", n, out)
+        log.info("%d processes started %.1f s after the launcher; logs in %s/proc-I.log", n,
+                 process_age_s() or 0.0, out)
         # Imported while they run, for the merge's plot; on a thread of its own, so that no
         # handler in matplotlib's import can swallow a Ctrl-C meant for the loop below.
         threading.Thread(target=report_plot.pyplot, name="import-pyplot", daemon=True).start()

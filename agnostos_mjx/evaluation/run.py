@@ -126,7 +126,9 @@ def evaluate(cfg: EvalConfig) -> dict:
     from agnostos_mjx import gather, sharding
     from agnostos_mjx.physics import resolve_backend
 
+    startup = {"imports_s": process_age_s()}  # where a process's start-up goes (timings)
     tasks = select_tasks(cfg)
+    startup["task_modules_s"] = process_age_s()
     all_tasks = [t.name for t in tasks]
     _check_video(cfg)
     out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
@@ -148,6 +150,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                      ", ".join(t.name for t in tasks) or "no task")
     _check_compare(cfg)
     spec, note, policy = load_policy(cfg)
+    startup["policy_s"] = process_age_s()
     check_action_mode(cfg, policy)
     policy_class = f"{type(policy).__module__}.{type(policy).__qualname__}"
     log.info("policy %s (%s)", policy.name, policy_class)
@@ -247,5 +250,6 @@ def evaluate(cfg: EvalConfig) -> dict:
                 pool.shutdown(cancel_futures=True)
     if mine():  # the process's own costs beside its tasks' (timings.process_table)
         on_timing({"process": cfg.process_id, "startup_s": startup_s,
-                   "tasks_s": round(time.perf_counter() - t_tasks, 3), "tasks": len(mine())})
+                   "tasks_s": round(time.perf_counter() - t_tasks, 3), "tasks": len(mine()),
+                   "startup": startup})
     return write_results(final=True)

@@ -37,9 +37,14 @@ def read_timings(runs: Iterable[Path], kind: str = "task") -> list[dict]:
     return [r for r in rows if kind in r]
 
 
+STARTUP_PARTS = (("imports_s", "imports"), ("task_modules_s", "task modules"),
+                 ("policy_s", "policy load"))
+
+
 def process_table(runs: Iterable[Path]) -> str:
-    """Per process: start-up seconds (start to first task) and the seconds its tasks took;
-    empty for runs from before these lines were written."""
+    """Per process: start-up seconds (start to first task), split into its parts where the
+    run recorded them (the seconds up to the end of the imports, then each part's own), and
+    the seconds its tasks took; empty for runs from before these lines were written."""
     rows = sorted(read_timings(runs, "process"), key=lambda r: r["process"])
     if not rows:
         return ""
@@ -47,9 +52,18 @@ def process_table(runs: Iterable[Path]) -> str:
     def cell(value: float | None) -> str:
         return "" if value is None else f"{value:.1f}"
 
-    lines = ["| process | tasks | start-up s | tasks s |", "|---|---|---|---|"]
-    lines += [f"| {r['process']} | {r['tasks']} | {cell(r['startup_s'])} | "
-              f"{cell(r['tasks_s'])} |" for r in rows]
+    def parts(r: dict) -> list[str]:  # each part's own seconds, from the process's ages
+        ages = [r.get("startup", {}).get(key) for key, _ in STARTUP_PARTS]
+        ages.append(r["startup_s"])
+        if None in ages:
+            return [""] * len(ages)
+        return [cell(ages[0])] + [cell(b - a) for a, b in zip(ages, ages[1:])]
+
+    head = ["process", "tasks", "start-up s", *(f"{name} s" for _, name in STARTUP_PARTS),
+            "rest s", "tasks s"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join([str(r["process"]), str(r["tasks"]), cell(r["startup_s"]),
+                                 *parts(r), cell(r["tasks_s"])]) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
