@@ -24,11 +24,13 @@ import numpy as np
 
 from agnostos_mjx.math3d import (
     array_module,
+    halton,
     mat_to_quat,
     quat_angle,
     quat_error,
     quat_to_mat,
     slerp,
+    solve_spd,
 )
 from agnostos_mjx.world import ARM_JOINTS, FINGER_OPEN, HOME_QPOS
 
@@ -161,16 +163,15 @@ def _fori(xp, n: int, body, init, converged=None):
 
 
 def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, restart: bool = False):
-    """One damped-least-squares step from q (..., 7); returns (next q, position
-    error, rotation error), the errors measured at q (before the step).
+    """One damped-least-squares step from q (..., 7); returns (next q, position error,
+    rotation error), the errors measured at q (before the step).
 
-    The plain step (warm start, Cartesian paths) keeps a constant weak pull to
-    mid-range: its fixed point is the posture the experts were tuned with, the
-    tip ~1 mm off the target.  A `restart` step, from a seed far from the
-    target, fades the pull with the error (so it converges exactly) and takes
-    joints resting on a limit that the step would push further out of the solve
-    (their columns zeroed, solved again), so the other joints make up the motion
-    instead of the clipped step stalling there."""
+    The plain step (warm start, Cartesian paths) keeps a constant weak pull to mid-range:
+    its fixed point is the posture the experts were tuned with, the tip ~1 mm off the
+    target.  A `restart` step, from a seed far from the target, fades the pull with the
+    error (so it converges exactly) and takes joints resting on a limit that the step would
+    push further out of the solve (their columns zeroed, solved again), so the other joints
+    make up the motion instead of the clipped step stalling there."""
     xp = array_module(q, target_pos, target_quat)
     lower, upper = xp.asarray(kin.lower), xp.asarray(kin.upper)
     weight = xp.asarray([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
@@ -188,7 +189,7 @@ def _dls_step(kin: PandaKinematics, q, target_pos, target_quat, restart: bool = 
         jt = xp.swapaxes(j, -1, -2)
         lhs = jt @ j + (lam2 + mu2)[..., None, None] * xp.eye(7)
         rhs = (jt @ err[..., None])[..., 0] + pull_rhs
-        return xp.linalg.solve(lhs, rhs[..., None])[..., 0]
+        return solve_spd(lhs, rhs)
 
     dq = solve(jac)
     if restart:
@@ -217,23 +218,8 @@ def _ik_from(kin: PandaKinematics, q0, target_pos, target_quat, iters: int,
     return q, xp.linalg.norm(target_pos - pos, axis=-1), quat_angle(target_quat, quat)
 
 
-def _halton(n: int, dims: int) -> np.ndarray:
-    """The first n points (skipping 0) of the Halton sequence in [0, 1)^dims."""
-    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29][:dims]
-    out = np.zeros((n, dims))
-    for d, base in enumerate(primes):
-        for i in range(n):
-            k, f, x = i + 1, 1.0, 0.0
-            while k:
-                f /= base
-                x += f * (k % base)
-                k //= base
-            out[i, d] = x
-    return out
-
-
 SPREAD_SEEDS = 24  # fixed restarts spread over the joint ranges (Halton points)
-_SPREAD_UNIT = _halton(SPREAD_SEEDS, 7)
+_SPREAD_UNIT = halton(SPREAD_SEEDS, 7)
 
 
 def _spread_seeds(kin: PandaKinematics) -> np.ndarray:
@@ -262,12 +248,12 @@ STEP_TOL = 1e-4  # rad: a solution within tolerance whose step is smaller has co
 
 def _descend_np(kin: PandaKinematics, q0: np.ndarray, target: np.ndarray, target_pos: np.ndarray,
                 target_quat: np.ndarray, n_targets: int, iters: int, restart: bool):
-    """Damped least squares on rows q0 (R, 7) aimed at target_pos/quat[target].
-    A row stops once it has converged (within tolerance and no longer moving)
-    or, out of tolerance, once it stalls (a local minimum, or an unreachable
-    target); with `restart` all rows of a target stop at its first converged
-    row.  Easy batches thus cost a few steps and hopeless restarts little.
-    Returns (q, pos error, rot error) per row, the errors at the returned q."""
+    """Damped least squares on rows q0 (R, 7) aimed at target_pos/quat[target]. A row stops
+    once it has converged (within tolerance and no longer moving) or, out of tolerance, once
+    it stalls (a local minimum, or an unreachable target); with `restart` all rows of a
+    target stop at its first converged row. Easy batches thus cost a few steps and hopeless
+    restarts little. Returns (q, pos error, rot error) per row, the errors at the returned
+    q."""
     q, pe, re = q0.copy(), np.full(len(q0), np.inf), np.full(len(q0), np.inf)
     rows = np.arange(len(q0))
     solved = np.zeros(n_targets, bool)
@@ -296,8 +282,8 @@ def _descend_np(kin: PandaKinematics, q0: np.ndarray, target: np.ndarray, target
 
 
 def _nearest_ok(q_init, qs, pe, re, n_seeds: int):
-    """Per target, the row (of n_seeds rows per target, seed-major) within
-    tolerance nearest the warm start, else the one with the smallest error."""
+    """Per target, the row (of n_seeds rows per target, seed-major) within tolerance nearest
+    the warm start, else the one with the smallest error."""
     n = len(q_init)
     cost = np.where(_ok(pe, re), np.linalg.norm(qs - np.tile(q_init, (n_seeds, 1)), axis=-1),
                     1e3 + pe + re)
@@ -307,10 +293,10 @@ def _nearest_ok(q_init, qs, pe, re, n_seeds: int):
 
 def _solve_ik_np(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int,
                  spread: bool):
-    """Numpy IK in two stages: the warm start, home and the wrist flips (the
-    plain step, as the Cartesian paths use; the solution nearest the warm
-    start), then, for the targets these missed, restarts from the spread seeds,
-    batched; a restart's solution is kept only where the first stage failed."""
+    """Numpy IK in two stages: the warm start, home and the wrist flips (the plain step, as the
+    Cartesian paths use; the solution nearest the warm start), then, for the targets these
+    missed, restarts from the spread seeds, batched; a restart's solution is kept only where
+    the first stage failed."""
     shape = q_init.shape[:-1]
     q_init = q_init.reshape(-1, 7)
     target_pos, target_quat = target_pos.reshape(-1, 3), target_quat.reshape(-1, 4)
@@ -332,12 +318,11 @@ def _solve_ik_np(kin: PandaKinematics, q_init, target_pos, target_quat, iters: i
 
 def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int = 100,
              spread: bool = True):
-    """Batched IK (..., 7) with restarts from the warm start, home, two
-    wrist-flipped homes and (with `spread`) SPREAD_SEEDS configurations spread
-    over the joint ranges.  Returns (q, ok, pos_err, rot_err) of the solution
-    nearest the warm start among those within tolerance.  Numpy stops each
-    target at its first converged restart; JAX (inside jit) runs every restart
-    for `iters` steps.  `spread=False` asks whether a target is reachable near
+    """Batched IK (..., 7) with restarts from the warm start, home, two wrist-flipped homes and
+    (with `spread`) SPREAD_SEEDS configurations spread over the joint ranges. Returns (q,
+    ok, pos_err, rot_err) of the solution nearest the warm start among those within
+    tolerance. Numpy stops each target at its first converged restart; JAX (inside jit) runs
+    every restart for `iters` steps. `spread=False` asks whether a target is reachable near
     the warm start's branch (how a scripted expert moves)."""
     xp = array_module(q_init, target_pos, target_quat)
     if xp is np:
@@ -359,6 +344,10 @@ def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int =
 
 
 _ROBOT_PROGRAMS: dict[tuple, Callable] = {}
+# On a GPU the IK's loops run as CUDA graphs (conditional nodes included): no host round
+# trip per step, and the thread waiting for a plan no longer spins (H200: 1 CPU-ms, not 48).
+GPU_GRAPH_OPTIONS = {
+    "xla_gpu_enable_command_buffer": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"}
 
 
 def jit_for_robot(fn: Callable, kin: PandaKinematics) -> Callable:
@@ -366,7 +355,8 @@ def jit_for_robot(fn: Callable, kin: PandaKinematics) -> Callable:
     (a cache keyed by the kinematic constants), so the IK programs of a run compile once."""
     key = (fn, kin.fingerprint)
     if key not in _ROBOT_PROGRAMS:
-        _ROBOT_PROGRAMS[key] = jax.jit(functools.partial(fn, kin))
+        options = GPU_GRAPH_OPTIONS if jax.default_backend() == "gpu" else None
+        _ROBOT_PROGRAMS[key] = jax.jit(functools.partial(fn, kin), compiler_options=options)
     return _ROBOT_PROGRAMS[key]
 
 
@@ -388,10 +378,10 @@ MAX_SEGMENT_JUMP = 0.5  # rad: a larger joint jump between segments is a branch 
 
 
 def _cartesian_np(kin: PandaKinematics, q0, p0, r0, target_pos, target_quat, todo):
-    """The Cartesian chain in numpy on an active set: a world leaves a segment's loop
-    once it has converged (errors within a tenth of the tolerance) and leaves the chain
-    once a segment fails (its move then follows the joint path), so easy worlds cost a
-    few steps and no world waits for the hardest one.  Returns (path (B, S+1, 7), ok)."""
+    """The Cartesian chain in numpy on an active set: a world leaves a segment's loop once it
+    has converged (errors within a tenth of the tolerance) and leaves the chain once a
+    segment fails (its move then follows the joint path), so easy worlds cost a few steps
+    and no world waits for the hardest one. Returns (path (B, S+1, 7), ok)."""
     path = np.repeat(q0[:, None], CART_SEGMENTS + 1, axis=1)
     ok = np.asarray(todo, bool).copy()
     rows = np.flatnonzero(ok)

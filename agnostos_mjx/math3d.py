@@ -269,3 +269,42 @@ def mat_to_rot6d(m: Array) -> Array:
     xp = array_module(m)
     m = xp.asarray(m)
     return xp.concatenate([m[..., :, 0], m[..., :, 1]], axis=-1)
+
+
+def solve_spd(a: Array, b: Array) -> Array:
+    """x with a x = b for small symmetric positive definite a (..., n, n), b (..., n).
+    numpy: its LU solve.  jax: a Cholesky factorisation unrolled into elementwise
+    arithmetic, which XLA fuses into a few kernels with no solver-library call, so the
+    IK loops around it can run on a GPU as one CUDA graph (control.jit_for_robot)."""
+    xp = array_module(a, b)
+    if xp is np:
+        return np.linalg.solve(a, b[..., None])[..., 0]
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]  # the factor's entries, each (...,)
+    for j in range(n):
+        diag = a[..., j, j] - sum(low[j][k] * low[j][k] for k in range(j))
+        low[j][j] = jnp.sqrt(diag)
+        for i in range(j + 1, n):
+            low[i][j] = (a[..., i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+    y: list = []
+    for i in range(n):  # low y = b
+        y.append((b[..., i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i])
+    x: list = [None] * n
+    for i in reversed(range(n)):  # low^T x = y
+        x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
+    return jnp.stack(x, -1)
+
+
+def halton(n: int, dims: int) -> np.ndarray:
+    """The first n points (skipping 0) of the Halton sequence in [0, 1)^dims."""
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29][:dims]
+    out = np.zeros((n, dims))
+    for d, base in enumerate(primes):
+        for i in range(n):
+            k, f, x = i + 1, 1.0, 0.0
+            while k:
+                f /= base
+                x += f * (k % base)
+                k //= base
+            out[i, d] = x
+    return out

@@ -205,3 +205,41 @@ def test_planner_choice():
 def _expert_steps(ep: Episodes, env) -> list[KeyActions]:
     expert = ep.expert_actions(env)
     return [jax.tree.map(lambda x, k=k: x[:, k], expert) for k in range(expert.pos.shape[1])]
+
+
+def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Episodes.plan_rows: a task's seeds that run apart (task_queue.split_by_seed) plan in
+    calls of the run's --batch rows, padded, and get the plans they get in one batch of all
+    seeds: a world's float32 plan moves with its program's shape (on a GPU), not with the
+    rows beside it.  The reset's reachability check is padded alike."""
+    from agnostos_mjx.gather import send_alone
+    from agnostos_mjx.runtime.plan_rows import GatheredPlanner
+
+    whole = 6
+    ep = Episodes(get_task("lamp_on"), "native", planner="device", plan_rows=whole)
+    start = ep.reset(_keys(whole), np.zeros(whole, np.int32))
+    first = _expert_steps(ep, start)[0]
+    q0 = np.asarray(start.data[:, ep.spec.arm_q], np.float64)
+    pos = np.asarray(first.pos, np.float64) + np.linspace(-0.02, 0.02, whole)[:, None]
+    quat = np.asarray(first.quat, np.float64)
+    planner = GatheredPlanner.for_robot(ep.kin)
+    shapes: list[int] = []
+    program = planner.plan
+    monkeypatch.setattr(planner, "plan", lambda q, *a: shapes.append(len(q)) or program(q, *a))
+    requests = [planner.submit(q0, pos, quat), planner.submit(q0[2:4], pos[2:4], quat[2:4], whole)]
+    for r in requests:
+        send_alone(r)
+    for a, b in zip(requests[0].result(), requests[1].result(), strict=True):
+        assert len(b) == 2
+        np.testing.assert_array_equal(a[2:4], b)
+    assert shapes == [whole, whole]
+    # The reset's check of two worlds runs at the run's rows too, with the same verdicts.
+    apart = Episodes(get_task("lamp_on"), "native", planner="device", plan_rows=whole)
+    reset_apart = apart.reset(_keys(whole)[2:4], np.zeros(2, np.int32))
+    checked: list[int] = []
+    reachable = apart._reachable
+    monkeypatch.setattr(apart, "_reachable", lambda q, *a: checked.append(len(q)) or reachable(q, *a))
+    np.testing.assert_array_equal(np.asarray(ep.expert_reachable(start))[2:4],
+                                  apart.expert_reachable(reset_apart))
+    assert checked == [whole]

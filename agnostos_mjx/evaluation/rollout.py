@@ -72,7 +72,7 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
     t0 = time.perf_counter()
     split = TimeSplit()
     with split.measure("build"):
-        runner = Episodes(task, cfg.backend, planner=cfg.planner)
+        runner = Episodes(task, cfg.backend, planner=cfg.planner, plan_rows=cfg.batch)
     videos = EpisodeVideos.for_task(cfg, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)

@@ -68,8 +68,12 @@ class Episodes:
     record_qpos: bool = False
 
     def __init__(self, task: Task, backend: str = "auto", threads: int | None = None,
-                 planner: str = "auto"):
+                 planner: str = "auto", plan_rows: int | None = None):
+        """`plan_rows`: the rows the device planner's programs run at, fewer worlds padded
+        (an evaluation's --batch): a world's float32 plan moves with its program's shape,
+        so the worlds of a task plan alike whether its seeds run in one batch or apart."""
         self.task = task
+        self.plan_rows = plan_rows
         self.scene: SceneModel = build_scene(task)
         self.backend_name = resolve_backend(backend)
         self.backend = make_backend(self.backend_name, self.scene.model, threads)
@@ -245,8 +249,9 @@ class Episodes:
         pad = ((0, 0), (0, -actions.pos.shape[1] % REACH_STEPS))
         quat = np.pad(np.asarray(actions.quat), (*pad, (0, 0)))
         quat[:, actions.pos.shape[1]:, 0] = 1.0
+        rows = max(self._jit_rows or len(q), self.plan_rows or 0)
         return self._padded(self._reachable, q, np.pad(np.asarray(actions.pos), (*pad, (0, 0))),
-                            quat, np.pad(np.asarray(actions.valid), pad))
+                            quat, np.pad(np.asarray(actions.valid), pad), rows=rows)
 
     def expert_actions(self, state: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""
@@ -254,12 +259,12 @@ class Episodes:
         return self._padded(self._jit_settled, initial.data, initial.attached,
                             state.variation)[1]
 
-    def _padded(self, fn, *args):
-        """fn(*args) for a batch of any size, run at the reset's batch size (rows
-        repeated, results cut back), so re-checking a few rejected scenes reuses the
+    def _padded(self, fn, *args, rows: int | None = None):
+        """fn(*args) for a batch of any size, run at the reset's batch size or `rows`
+        (rows repeated, results cut back), so re-checking a few rejected scenes reuses the
         programs compiled for the whole batch instead of compiling one per size."""
         n = len(jax.tree.leaves(args)[0])
-        size = self._jit_rows or n
+        size = rows or self._jit_rows or n
         if n >= size:
             return jax.tree.map(np.asarray, fn(*args))
         idx = np.resize(np.arange(n), size)
@@ -291,7 +296,8 @@ class Episodes:
         if self.on_mjx or self.planner != "device":
             return None
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        return GatheredPlanner.for_robot(self.kin).submit(q0, actions.pos, actions.quat)
+        return GatheredPlanner.for_robot(self.kin).submit(q0, actions.pos, actions.quat,
+                                                          self.plan_rows)
 
     def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run
                      ) -> tuple[EnvState, tuple[StepResult, ...]]:

@@ -42,11 +42,13 @@ class GatheredPlanner:
             _PLANNERS[kin.fingerprint] = cls(kin)
         return _PLANNERS[kin.fingerprint]
 
-    def submit(self, q0: np.ndarray, pos: np.ndarray, quat: np.ndarray
-               ) -> concurrent.futures.Future:
-        """A future of plan_arm(q0, pos, quat) (path, duration, status) for these rows."""
+    def submit(self, q0: np.ndarray, pos: np.ndarray, quat: np.ndarray,
+               min_rows: int | None = None) -> concurrent.futures.Future:
+        """A future of plan_arm(q0, pos, quat) (path, duration, status) for these rows,
+        planned in a call of at least `min_rows` rows (Episodes.plan_rows)."""
         q0, pos, quat = (np.asarray(a, np.float64) for a in (q0, pos, quat))
-        rows = [(len(q0), q, p, r) for q, p, r in zip(q0, pos, quat)]
+        size = max(len(q0), min_rows or 0)
+        rows = [(size, q, p, r) for q, p, r in zip(q0, pos, quat)]
         return then(self._batcher.submit(rows, key=content_key((q0, pos, quat))),
                     lambda out: tuple(np.stack(part) for part in zip(*out)))
 
