@@ -103,13 +103,13 @@ def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
     # The process's own line: its start-up before the first task, then its tasks' time.
     assert (process["process"], process["tasks"]) == (0, 1)
     assert 0 < process["startup_s"] and t["wall_s"] <= process["tasks_s"] + 0.01
-    # Its start-up in parts: the process's age after its imports, its task modules and its
-    # policy's load, in that order; the table gives each part's own seconds.
-    ages = [process["startup"][k] for k in ("imports_s", "task_modules_s", "policy_s")]
-    assert 0 < ages[0] <= ages[1] <= ages[2] <= process["startup_s"]
+    # Its start-up in parts: the process's age after its imports and after its policy's
+    # load; the table gives each part's own seconds.
+    ages = [process["startup"][k] for k in ("imports_s", "policy_s")]
+    assert 0 < ages[0] <= ages[1] <= process["startup_s"]
     row = process_table([run_dir]).splitlines()[2]
     assert row.startswith("| 0 | 1 | ") and f"| {ages[0]:.1f} |" in row
-    assert len(row.split("|")) == 10  # process, tasks, start-up, 3 parts, rest, tasks s
+    assert len(row.split("|")) == 9  # process, tasks, start-up, 2 parts, rest, tasks s
 
 
 def test_end_to_end_writes_results(run_dir: Path, capsys: pytest.CaptureFixture) -> None:

@@ -136,3 +136,39 @@ def test_prepare_empties_the_queue_and_keeps_resumed_tasks_with_their_process(tm
 def test_a_missing_queue_folder_is_a_usage_error(tmp_path: Path):
     with pytest.raises(UsageError, match="no such folder"):
         TaskQueue(tmp_path / "missing", 0)
+
+
+def test_a_process_imports_only_the_tasks_it_runs(tmp_path: Path):
+    """Task modules are imported when their job starts (run._steps_of): a process of a task
+    queue that claims one task of the main job's 23 imports that one (each module's `jnp`
+    constants run op by op on a GPU at import).  The names are checked without importing:
+    a wrong one is still a usage error before anything runs."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+from agnostos_mjx.evaluation.config import parse_config
+from agnostos_mjx.evaluation.protocol import select_tasks
+from agnostos_mjx.evaluation.run import _steps_of
+names = select_tasks(parse_config(["--tasks", "unseen"]))
+job = _steps_of("lamp_on", None, [], None, None)
+loaded = sorted(m for m in sys.modules if m.startswith("agnostos_mjx.tasks.")
+                and m.rsplit(".", 1)[1] in names)
+print(len(names), loaded)
+try:
+    next(job)
+except Exception:
+    pass
+print(sorted(m for m in sys.modules if m.startswith("agnostos_mjx.tasks.")
+             and m.rsplit(".", 1)[1] in names))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert out[0] == "23 []", out
+    assert out[1] == "['agnostos_mjx.tasks.lamp_on']", out
+    with pytest.raises(UsageError, match="unknown task 'lamp_onn'"):
+        from agnostos_mjx.evaluation.config import parse_config
+        from agnostos_mjx.evaluation.protocol import select_tasks
+
+        select_tasks(parse_config(["--tasks", "lamp_on,lamp_onn"]))

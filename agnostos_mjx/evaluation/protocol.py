@@ -10,14 +10,10 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Container, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError
-
-if TYPE_CHECKING:
-    from agnostos_mjx.tasks.base import Task
 
 VARIATION_STREAM = 1  # fold_in index of an episode key that draws its variation
 # Aggregate groups as in X-ICM's gather_score.py; "All" is the unseen tasks
@@ -71,26 +67,27 @@ def policy_seed(seed: int, episode: int) -> int:
     return int(seed) * 100_003 + int(episode)
 
 
-def select_tasks(cfg: EvalConfig) -> list[Task]:
-    """The tasks --tasks names, checked against --variations (all of them: a multi-process
-    run reports the same usage errors in every process)."""
-    from agnostos_mjx.tasks import parse_tasks
+def select_tasks(cfg: EvalConfig) -> list[str]:
+    """The names of the tasks --tasks names, checked against --variations (all of them: a
+    multi-process run reports the same usage errors in every process).  Their modules are
+    imported only where --variations needs their variation counts."""
+    from agnostos_mjx.tasks import get_task, parse_task_names
 
     try:
-        tasks = parse_tasks(cfg.tasks)
+        names = parse_task_names(cfg.tasks)
     except KeyError as e:
         raise UsageError(e.args[0] if e.args else str(e)) from None
-    if not tasks:
+    if not names:
         raise UsageError(f"--tasks {cfg.tasks!r} selects no registered task")
     if cfg.variations.isdigit():
-        for t in tasks:
+        for t in map(get_task, names):
             if int(cfg.variations) >= t.num_variations:
                 raise UsageError(f"--variations {cfg.variations}: {t.name} has variations "
                                  f"0..{t.num_variations - 1}")
-    return tasks
+    return names
 
 
-def process_share(tasks: Sequence[Task], cfg: EvalConfig) -> list[Task]:
+def process_share(tasks: Sequence[str], cfg: EvalConfig) -> list[str]:
     """The tasks this process runs: every N-th from its index (all when one process)."""
     return list(tasks[cfg.process_id::cfg.num_processes])
 

@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, replace
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 from agnostos_mjx.cli import check_writable_dir, process_age_s, progress_bar, versions
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
@@ -29,7 +30,7 @@ from agnostos_mjx.evaluation.records import (
     record_key,
     repair_records,
 )
-from agnostos_mjx.evaluation.rollout import task_steps
+from agnostos_mjx.evaluation.rollout import Steps, task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
 from agnostos_mjx.evaluation.task_queue import (
@@ -121,15 +122,23 @@ def load_policy(cfg: EvalConfig) -> tuple[str, str, Policy]:
 
 
 # ---- the run -----------------------------------------------------------------------------
+def _steps_of(name: str, *args: Any) -> Steps:
+    """`task_steps` of the task called `name`, its module imported when the job starts: a
+    process of a task queue imports only the tasks it claims (each task module's `jnp`
+    constants run op by op on a GPU)."""
+    from agnostos_mjx.tasks import get_task
+
+    return (yield from task_steps(get_task(name), *args))
+
+
 def evaluate(cfg: EvalConfig) -> dict:
     """Run the evaluation described by `cfg`, write the outputs, return results.json's dict."""
     from agnostos_mjx import gather, sharding
     from agnostos_mjx.physics import resolve_backend
 
     startup = {"imports_s": process_age_s()}  # where a process's start-up goes (timings)
-    tasks = select_tasks(cfg)
-    startup["task_modules_s"] = process_age_s()
-    all_tasks = [t.name for t in tasks]
+    tasks = select_tasks(cfg)  # names: a task's module is imported when it starts
+    all_tasks = list(tasks)
     _check_video(cfg)
     out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
     episodes_path = out_dir / EPISODES_FILE
@@ -147,7 +156,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         tasks = process_share(tasks, cfg)
         if cfg.num_processes > 1:
             log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
-                     ", ".join(t.name for t in tasks) or "no task")
+                     ", ".join(tasks) or "no task")
     _check_compare(cfg)
     spec, note, policy = load_policy(cfg)
     startup["policy_s"] = process_age_s()
@@ -162,11 +171,11 @@ def evaluate(cfg: EvalConfig) -> dict:
             log.warning("%s holds episodes of policy %s; continuing with %s", out_dir,
                         ", ".join(sorted(earlier)), policy.name)
     recorded = {record_key(r) for r in all_records}
-    plan = {t.name: pending_episodes(t.name, cfg, recorded) for t in tasks}
+    plan = {name: pending_episodes(name, cfg, recorded) for name in tasks}
     total = sum(map(len, plan.values()))
     skipped = len(tasks) * len(cfg.seeds) * cfg.episodes - total
     log.info("%d tasks (%s), seeds %s, %d episodes each: %d to run%s", len(tasks),
-             ", ".join(t.name for t in tasks), ",".join(map(str, cfg.seeds)), cfg.episodes,
+             ", ".join(tasks), ",".join(map(str, cfg.seeds)), cfg.episodes,
              total, f", {skipped} already recorded" if skipped else "")
 
     started = datetime.now().isoformat(timespec="seconds")
@@ -178,7 +187,7 @@ def evaluate(cfg: EvalConfig) -> dict:
 
     def mine() -> list[str]:  # the tasks this process runs (with a queue: has claimed)
         if queue is None:
-            return [t.name for t in tasks]
+            return list(tasks)
         return list(dict.fromkeys(unit_task(unit)[0] for unit in queue.mine))
 
     def selected() -> list[dict]:
@@ -197,7 +206,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                              plot=cfg.num_processes == 1)
 
     def on_error(index: int, error: Exception) -> None:
-        name = todo[index][1].name
+        name = todo[index][1]
         failed[name] = f"{type(error).__name__}: {error}"
         log.error("%s failed, the other tasks go on (its episodes not recorded run again "
                   "with --resume): %s", name, failed[name], exc_info=error)
@@ -214,15 +223,14 @@ def evaluate(cfg: EvalConfig) -> dict:
     # One policy copy per task running at once: copies share the heavy parts (LLM client,
     # memory, selector); reset() gives each its own per-episode state.
     overlap = cfg.overlap_tasks if policy.interleaves() else 1
-    units = [t.name for t in tasks]  # with a queue, a long task's seeds may go apart
+    units = list(tasks)  # with a queue, a long task's seeds may go apart
     if queue is not None:  # the units it holds episodes of, then its balanced share
         units = split_by_seed(units, backend, cfg.num_processes, cfg.seeds)
         order = [units.index(u) for u in queue.held(units)]
         order += [i for i in claim_order(units, backend, cfg.num_processes, cfg.process_id,
                                          overlap) if i not in order]
         units = [units[i] for i in order]
-    by_name = {t.name: t for t in tasks}
-    todo = [(unit, by_name[task], pending) for unit in units
+    todo = [(unit, task, pending) for unit in units
             for task, seed in [unit_task(unit)]
             if (pending := [p for p in plan[task] if seed in (None, p[0])])]
     with progress_bar(total, enabled=not cfg.quiet) as progress:
@@ -236,9 +244,9 @@ def evaluate(cfg: EvalConfig) -> dict:
         run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
         # The native physics of tasks running at once overlaps on threads (task_steps).
         pool = ThreadPoolExecutor(overlap, thread_name_prefix="physics") if overlap > 1 else None
-        jobs = [task_steps(t, policy.fork() if overlap > 1 else policy, pending, run_cfg,
-                           on_records, functools.partial(tick, unit), on_timing, pool)
-                for unit, t, pending in todo]
+        jobs = [_steps_of(name, policy.fork() if overlap > 1 else policy, pending, run_cfg,
+                          on_records, functools.partial(tick, unit), on_timing, pool)
+                for unit, name, pending in todo]
         if queue is not None:
             jobs = [queue.claimed(unit, job) for (unit, _, _), job in zip(todo, jobs)]
         startup_s, t_tasks = process_age_s(), time.perf_counter()

@@ -37,8 +37,7 @@ def read_timings(runs: Iterable[Path], kind: str = "task") -> list[dict]:
     return [r for r in rows if kind in r]
 
 
-STARTUP_PARTS = (("imports_s", "imports"), ("task_modules_s", "task modules"),
-                 ("policy_s", "policy load"))
+STARTUP_PARTS = (("imports_s", "imports"), ("policy_s", "policy load"))
 
 
 def process_table(runs: Iterable[Path]) -> str:

@@ -41,9 +41,9 @@ def is_implemented(name: str) -> bool:
     return importlib.util.find_spec(f"agnostos_mjx.tasks.{name}") is not None
 
 
-@functools.cache
-def get_task(name: str) -> Task:
-    """The task called `name`; an unknown name lists the valid ones."""
+def task_split(name: str) -> Split:
+    """The split of the task called `name`, without importing its module; KeyError for an
+    unknown name (listing the valid ones) or one not implemented."""
     split = next((s for s, names in BENCHMARK.items() if name in names), None)
     if split is None:
         valid = ", ".join(sorted(n for names in BENCHMARK.values() for n in names))
@@ -51,6 +51,13 @@ def get_task(name: str) -> Task:
     if not is_implemented(name):
         raise KeyError(f"task {name!r} ({split.value}) is part of the benchmark but not "
                        f"implemented yet; implemented: {', '.join(list_tasks())}")
+    return split
+
+
+@functools.cache
+def get_task(name: str) -> Task:
+    """The task called `name`; an unknown name lists the valid ones."""
+    split = task_split(name)
     task = importlib.import_module(f"agnostos_mjx.tasks.{name}").TASK
     if task.name != name or task.split != split:
         raise RuntimeError(f"module agnostos_mjx.tasks.{name} declares {task!r}")
@@ -65,6 +72,12 @@ def list_tasks(split: Split | str | None = None) -> list[str]:
 
 def parse_tasks(spec: str) -> list[Task]:
     """'a,b' or a split name ('seen', 'unseen', 'unseen_level1', ...) or 'all'."""
+    return [get_task(n) for n in parse_task_names(spec)]
+
+
+def parse_task_names(spec: str) -> list[str]:
+    """The names `parse_tasks` gives, checked as it checks them, without importing a task
+    module (a process of a task queue imports only the tasks it runs)."""
     names: list[str] = []
     for part in (p.strip() for p in spec.split(",") if p.strip()):
         if part == "all":
@@ -75,8 +88,11 @@ def parse_tasks(spec: str) -> list[Task]:
             names += list_tasks(part)
         else:
             names.append(part)
-    return [get_task(n) for n in dict.fromkeys(names)]
+    names = list(dict.fromkeys(names))
+    for name in names:
+        task_split(name)
+    return names
 
 
 __all__ = ["BENCHMARK", "Split", "Task", "get_task", "is_implemented", "list_tasks",
-           "parse_tasks"]
+           "parse_task_names", "parse_tasks", "task_split"]
