@@ -49,7 +49,6 @@ from agnostos_mjx.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup
 from agnostos_mjx.evaluation import processes
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
 from agnostos_mjx.evaluation.records import interrupted_message
-from agnostos_mjx.evaluation.run import evaluate, resolve_out
 from agnostos_mjx.evaluation.summary import (
     failed_task_summary,
     merge_main,
@@ -65,7 +64,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     errors, 3 when most requests to a server failed or most episodes ended as policy_error,
     130 when interrupted).  `guard` (the
     command line's) bounds Ctrl-C's delay."""
-    settings.configure_jax()
+    settings.configure_jax()  # before JAX is imported: its environment, no import
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse_config(argv)
     if cfg.merge:
@@ -86,7 +85,9 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         if guard is not None and cfg.out:  # the resume hint even if stopping takes long
             guard.message = processes.interrupted_text(Path(cfg.out))
             guard.grace_s = processes.STOP_GRACE_S
-        return processes.main(cfg, argv)
+        return processes.main(cfg, argv)  # the launcher imports no JAX: its processes do
+    from agnostos_mjx.evaluation.run import evaluate, resolve_out
+
     try:
         spec, _, note = resolve_policy(cfg)
     except Exception as e:  # e.g. an LLM URL without a model

@@ -127,16 +127,24 @@ def lower_cpu_optimisation() -> None:
 
 def enable_compilation_cache() -> str | None:
     """Turn on JAX's persistent compilation cache in $AGNOSTOS_JAX_CACHE (default
-    ~/.cache/agnostos_mjx/jax); None when it is `off`, else the directory."""
-    import jax
-
+    ~/.cache/agnostos_mjx/jax); None when it is `off`, else the directory.  Before JAX is
+    imported it sets JAX's own environment variables, which JAX reads at import (so the
+    launcher of --local-processes never imports JAX); after, JAX's config."""
     path = JAX_CACHE.get() or str(_home_cache() / "jax")
     if path == "off":
+        os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)  # e.g. a parent's, inherited
         return None
     os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    options = {"jax_compilation_cache_dir": path,
+               "jax_persistent_cache_min_compile_time_secs": 0.5,
+               "jax_persistent_cache_min_entry_size_bytes": 0}
+    if "jax" not in sys.modules:
+        os.environ.update({name.upper(): str(value) for name, value in options.items()})
+        return path
+    import jax
+
+    for name, value in options.items():
+        jax.config.update(name, value)
     return path
 
 

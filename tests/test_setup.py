@@ -39,8 +39,10 @@ SCRIPTS = {"agnostos-eval": "agnostos_mjx.eval:cli",
 
 
 def _child(code: str, tmp_path: Path) -> dict:
-    """Run `code` in a fresh Python without XLA_FLAGS; its last stdout line as JSON."""
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AGNOSTOS_XLA_TUNE")}
+    """Run `code` in a fresh Python without XLA_FLAGS or the cache's JAX variables (which
+    this process's configure_jax set: conftest.py); its last stdout line as JSON."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("XLA_FLAGS", "AGNOSTOS_XLA_TUNE") and not k.startswith("JAX_")}
     env.update(AGNOSTOS_JAX_CACHE=str(tmp_path / "jax"), PYTHONPATH=str(REPO))
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=300)
@@ -78,6 +80,33 @@ def test_every_command_sets_up_jax_before_anything_else(tmp_path: Path) -> None:
     """, tmp_path)
     expected = [None if GPU_PLUGIN else LEVEL, str(tmp_path / "jax")]
     assert out == {module: expected for module in COMMANDS}
+
+
+def test_configure_jax_before_jax_imports_no_jax(tmp_path: Path) -> None:
+    """Called before JAX is imported (every command's main), configure_jax imports no JAX:
+    the cache goes through JAX's environment variables, read when JAX is imported, so the
+    launcher of --local-processes, which runs no JAX, starts its processes sooner."""
+    out = _child("""
+        import json, sys
+        from agnostos_mjx import settings
+        settings.configure_jax()
+        imported = "jax" in sys.modules
+        import jax
+        print(json.dumps({"imported": imported,
+                          "cache": jax.config.jax_compilation_cache_dir,
+                          "min_s": jax.config.jax_persistent_cache_min_compile_time_secs}))
+    """, tmp_path)
+    assert out == {"imported": False, "cache": str(tmp_path / "jax"), "min_s": 0.5}
+    # AGNOSTOS_JAX_CACHE=off drops a cache directory inherited from a parent's set-up.
+    off = _child("""
+        import json, os
+        os.environ.update(AGNOSTOS_JAX_CACHE="off", JAX_COMPILATION_CACHE_DIR="/elsewhere")
+        from agnostos_mjx import settings
+        settings.configure_jax()
+        import jax
+        print(json.dumps({"cache": jax.config.jax_compilation_cache_dir}))
+    """, tmp_path)
+    assert off == {"cache": None}
 
 
 @pytest.fixture

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
-import mujoco
+if TYPE_CHECKING:  # light at import: the launcher of --local-processes reads BACKENDS only
+    import mujoco
 
-from agnostos_mjx.physics.base import Backend, PhysicsState
+    from agnostos_mjx.physics.base import Backend
 
 BACKENDS = ("auto", "native", "jax", "warp")
 # `auto` picks MJX-warp only from this many worlds per batch.  Warp's episodes/s grow with
@@ -55,5 +57,4 @@ def make_backend(name: str, model: mujoco.MjModel, threads: int | None = None) -
     return MjxBackend(model, impl=name)
 
 
-__all__ = ["Backend", "PhysicsState", "BACKENDS", "WARP_MIN_BATCH", "make_backend",
-           "resolve_backend"]
+__all__ = ["BACKENDS", "WARP_MIN_BATCH", "make_backend", "resolve_backend", "warp_available"]

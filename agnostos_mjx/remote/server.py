@@ -64,7 +64,7 @@ def runner_for(task_name: str):
 
 def mirror_env(runner, state: dict):
     """A one-world EnvState from a request's ``sim_state`` (see adapter.sim_state)."""
-    from agnostos_mjx.physics import PhysicsState
+    from agnostos_mjx.physics.base import PhysicsState
     from agnostos_mjx.runtime.state import EnvState
 
     m, layout = runner.scene.model, runner.scene.layout

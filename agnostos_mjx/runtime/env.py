@@ -18,7 +18,8 @@ from agnostos_mjx import control, sharding
 from agnostos_mjx.control import PandaKinematics
 from agnostos_mjx.math3d import quat_conj, quat_rotate
 from agnostos_mjx.observables import Observation
-from agnostos_mjx.physics import PhysicsState, make_backend, resolve_backend
+from agnostos_mjx.physics import make_backend, resolve_backend
+from agnostos_mjx.physics.base import PhysicsState
 from agnostos_mjx.runtime.dense import DenseControl, dense_action
 from agnostos_mjx.runtime.key_action import StepSpec, key_action
 from agnostos_mjx.runtime.observe import Observer
