@@ -250,9 +250,8 @@ class Episodes:
         pad = ((0, 0), (0, -actions.pos.shape[1] % REACH_STEPS))
         quat = np.pad(np.asarray(actions.quat), (*pad, (0, 0)))
         quat[:, actions.pos.shape[1]:, 0] = 1.0
-        rows = max(self._jit_rows or len(q), self.plan_rows or 0)
         return self._padded(self._reachable, q, np.pad(np.asarray(actions.pos), (*pad, (0, 0))),
-                            quat, np.pad(np.asarray(actions.valid), pad), rows=rows)
+                            quat, np.pad(np.asarray(actions.valid), pad), rows=self.plan_rows)
 
     def expert_actions(self, state: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""
@@ -261,11 +260,11 @@ class Episodes:
                             state.variation)[1]
 
     def _padded(self, fn, *args, rows: int | None = None):
-        """fn(*args) for a batch of any size, run at the reset's batch size or `rows`
+        """fn(*args) for a batch of any size, run at the reset's batch size, at least `rows`
         (rows repeated, results cut back), so re-checking a few rejected scenes reuses the
         programs compiled for the whole batch instead of compiling one per size."""
         n = len(jax.tree.leaves(args)[0])
-        size = rows or self._jit_rows or n
+        size = max(self._jit_rows or n, rows or 0)
         if n >= size:
             return jax.tree.map(np.asarray, fn(*args))
         idx = np.resize(np.arange(n), size)
