@@ -96,8 +96,11 @@ def test_time_split_accounts_for_the_task(run_dir: Path) -> None:
     assert t["live_steps"] == sum(r["sim_steps"] for r in records) > 0
     assert t["world_steps"] == sum(r["world_steps"] for r in records) >= t["live_steps"]
     assert t["rounds"] >= max(r["key_actions"] for r in records)
+    assert 0 < t["start_s"] < process["startup_s"] + process["tasks_s"]
     table = time_split_table([run_dir])
-    assert "| lamp_on | native | 2 |" in table and "| all |" in table
+    start, end = t["start_s"], t["start_s"] + t["wall_s"]
+    assert f"| lamp_on | native | 2 | {t['wall_s']:.1f} | {start:.1f}-{end:.1f} |" in table
+    assert f"| all | native | 2 | {t['wall_s']:.1f} | {start:.1f}-{end:.1f} |" in table
     live = f"| {t['rounds']} | {t['world_steps'] / 1e6:.3f} | "
     assert live in table.splitlines()[2], table
     # The process's own line: its start-up before the first task, then its tasks' time.

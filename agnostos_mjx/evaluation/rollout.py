@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agnostos_mjx.cli import Progress
+from agnostos_mjx.cli import Progress, process_age_s
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
@@ -69,7 +69,7 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.video import EpisodeVideos
 
-    t0 = time.perf_counter()
+    t0, started = time.perf_counter(), process_age_s()
     split = TimeSplit()
     with split.measure("build"):
         runner = Episodes(task, cfg.backend, planner=cfg.planner, plan_rows=cfg.batch)
@@ -93,6 +93,8 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
                  time.perf_counter() - t_batch, rate)
     summary = split.summary(task.name, runner.backend_name, len(pending),
                             time.perf_counter() - t0)
+    if started is not None:  # the process's age at the task's start: a run's timeline
+        summary["start_s"] = round(started, 2)
     log.info("%s: %.1f s: %s", task.name, summary["wall_s"], ", ".join(
         f"{k} {summary[k + '_s']:.1f} s" for k in (*TimeSplit.STAGES, "other")))
     if on_timing is not None:

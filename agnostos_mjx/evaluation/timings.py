@@ -9,7 +9,8 @@ the device backends, and a batch's padding worlds are not live).  This prints th
 markdown table with the shares of the summed task time, the profile that says whether
 physics and policy dominate a run.  Each process also appends one line when its tasks are
 done: its start-up (from its start, interpreter included, to its first task) and the time
-its tasks took, printed as a second table.
+its tasks took, printed as a second table.  A task's "process s" is the span of its
+process's age it ran in (start-up included), so the rows read as the run's timeline.
 """
 
 from __future__ import annotations
@@ -72,24 +73,30 @@ def time_split_table(runs: Iterable[Path]) -> str:
     if not rows:
         raise ValueError("no timings.jsonl in these run folders (written by evaluations "
                          "since 2026-11-25)")
-    head = ["task", "backend", "episodes", "wall s", *(f"{s} s" for s in STAGES), "rounds",
-            "world-steps (M)", "live"]
+    head = ["task", "backend", "episodes", "wall s", "process s", *(f"{s} s" for s in STAGES),
+            "rounds", "world-steps (M)", "live"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def line(name: str, backend: str, episodes: int, r: dict) -> str:
         wall = r["wall_s"]
+        span = ""
+        if "start_s" in r:  # absent in runs before 2026-11-28
+            span = f"{r['start_s']:.1f}-{r.get('end_s', r['start_s'] + wall):.1f}"
         cells = [f"{r[s + '_s']:.1f} ({100 * r[s + '_s'] / wall:.0f}%)" if wall else "0"
                  for s in STAGES]
         executed = r.get("world_steps", 0)  # absent in runs before 2026-11-27
         steps = [str(r.get("rounds", "")), f"{executed / 1e6:.3f}" if executed else "",
                  f"{100 * r.get('live_steps', 0) / executed:.0f}%" if executed else ""]
-        return (f"| {name} | {backend} | {episodes} | {wall:.1f} | "
+        return (f"| {name} | {backend} | {episodes} | {wall:.1f} | {span} | "
                 + " | ".join(cells + steps) + " |")
 
     for r in rows:
         lines.append(line(r["task"], r["backend"], r["episodes"], r))
     counts = ("wall_s", *(s + "_s" for s in STAGES), "rounds", "world_steps", "live_steps")
     total = {k: sum(r.get(k, 0) for r in rows) for k in counts}
+    if all("start_s" in r for r in rows):  # the span of the processes' ages
+        total.update(start_s=min(r["start_s"] for r in rows),
+                     end_s=max(r["start_s"] + r["wall_s"] for r in rows))
     backends = ",".join(sorted({r["backend"] for r in rows}))
     lines.append(line("all", backends, sum(r["episodes"] for r in rows), total))
     return "\n".join(lines) + "\n"
