@@ -243,3 +243,30 @@ def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
     np.testing.assert_array_equal(np.asarray(ep.expert_reachable(start))[2:4],
                                   apart.expert_reachable(reset_apart))
     assert checked == [whole]
+
+
+def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
+    """Native physics runs on the CPU, so a host key action's jitted helpers (the condition
+    scan, grasps) run there too, with the CPU as JAX's default device: on a GPU host they
+    would otherwise queue behind every other program on the GPU.  The device planner, asked
+    before the key action, keeps the default device."""
+    from agnostos_mjx.runtime import env as env_module
+    from agnostos_mjx.runtime.phase import host_device
+
+    assert host_device() is None  # this CPU-only machine: the CPU is JAX's default already
+    cpu = jax.local_devices(backend="cpu")[0]
+    monkeypatch.setattr(env_module, "host_device", lambda: cpu)  # as on a GPU host
+    b = 2
+    ep = Episodes(get_task("lamp_on"), "native", planner="device")
+    env = ep.reset(_keys(b), np.zeros(b, np.int32))
+    seen: dict[str, list] = {"conditions": [], "planner": []}
+    conditions, plan = ep._jit_conditions, ep._plan
+
+    def spy(name, fn):
+        return lambda *a: seen[name].append(jax.config.jax_default_device) or fn(*a)
+
+    monkeypatch.setattr(ep, "_jit_conditions", spy("conditions", conditions))
+    monkeypatch.setattr(ep, "_plan", spy("planner", plan))
+    env, _ = ep.step(env, _expert_steps(ep, env)[0])
+    assert seen["planner"] == [None]
+    assert seen["conditions"] and set(seen["conditions"]) == {cpu}

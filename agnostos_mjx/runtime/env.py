@@ -26,6 +26,7 @@ from agnostos_mjx.runtime.observe import Observer
 from agnostos_mjx.runtime.phase import (
     DevicePhases,
     HostPhases,
+    host_device,
     scan_conditions,
     steps_per_iteration,
 )
@@ -301,15 +302,16 @@ class Episodes:
 
     def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run
                      ) -> tuple[EnvState, tuple[StepResult, ...]]:
-        """`run(phases, state, actions, plan)` on the host (HostPhases, numpy), the plan
-        `plan_fn(q, pos, quat)` from the current joints."""
+        """`run(phases, state, actions, plan)` on the host (HostPhases, numpy; its jitted
+        helpers on the CPU), the plan `plan_fn(q, pos, quat)` from the current joints."""
         phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
                             self.record_qpos)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
         plan = tuple(map(np.asarray, plan_fn(
             q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype))))
         actions = jax.tree.map(np.asarray, actions)
-        return run(phases, state, actions, plan)
+        with jax.default_device(host_device()):
+            return run(phases, state, actions, plan)
 
     def step_on_device(self, state: EnvState, actions: KeyActions, physics=None,
                        unroll: int | None = None) -> EnvState:

@@ -57,6 +57,15 @@ def scan_conditions(condition_step: Callable) -> Callable:
 CONDITION_ROWS = 128
 
 
+def host_device() -> jax.Device | None:
+    """The CPU, where a host key action runs its small jitted helpers (the condition scan,
+    grasps) next to its physics: on a GPU host each call would otherwise wait behind the
+    other programs queued there (py-spy, one H200, 8 processes: the physics threads waited
+    on condition scans longer than on their rollouts).  None where the CPU is JAX's default
+    already (a device set explicitly would key new entries in jit's caches)."""
+    return None if jax.default_backend() == "cpu" else jax.local_devices(backend="cpu")[0]
+
+
 class HostPhases:
     """Phases through a backend's `run`, on the host (numpy)."""
 
