@@ -136,7 +136,7 @@ def enable_compilation_cache() -> str | None:
         return None
     os.makedirs(path, exist_ok=True)
     options = {"jax_compilation_cache_dir": path,
-               "jax_persistent_cache_min_compile_time_secs": 0.5,
+               "jax_persistent_cache_min_compile_time_secs": 0,
                "jax_persistent_cache_min_entry_size_bytes": 0}
     if "jax" not in sys.modules:
         os.environ.update({name.upper(): str(value) for name, value in options.items()})
