@@ -55,6 +55,7 @@ from agnostos_mjx.evaluation.summary import (
     policy_error_summary,
     request_summaries,
 )
+from agnostos_mjx.tasks.catalog import parse_task_names
 
 log = logging.getLogger("agnostos_mjx.eval")
 
@@ -70,6 +71,11 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     if cfg.merge:
         setup_logging(cfg.quiet)
         return merge_main(cfg.out)
+    try:  # before any warm-up or process starts (the names' check imports no JAX)
+        parse_task_names(cfg.tasks)
+    except KeyError as e:
+        print(f"error: {e.args[0]}", file=sys.stderr)
+        return 2
     # What every process of a run would compile alike, once per machine and before them.
     default_selection = cfg.policy in ("auto", "retrieval", "xicm") and cfg.selection == "auto"
     if cfg.backend == "warp" and cfg.num_processes == 1:

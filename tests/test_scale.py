@@ -260,16 +260,37 @@ def test_a_long_tasks_seeds_go_to_several_processes(tmp_path: Path) -> None:
     assert len(_episodes(shared)) == 12
 
 
+def test_local_processes_refuse_an_unknown_task_before_starting(tmp_path: Path, monkeypatch,
+                                                                capsys) -> None:
+    """A wrong task name is a usage error at once: no warm-up, no process, no output folder
+    (the launcher checks the names without importing JAX)."""
+    from agnostos_mjx import eval as ev
+    from agnostos_mjx import warmup
+    from agnostos_mjx.evaluation import processes
+
+    def started(*_, **__):
+        raise AssertionError("started before checking the task names")
+
+    monkeypatch.setattr(warmup, "ensure_shared_programs", started)
+    monkeypatch.setattr(processes, "run", started)
+    out = tmp_path / "run"
+    assert ev.main(["--tasks", "lamp_on,nope", "--local-processes", "2", "--out", str(out)]) == 2
+    assert "unknown task 'nope'; valid task names: " in capsys.readouterr().err
+    assert not out.exists()
+
+
 @pytest.mark.slow
 def test_local_processes_report_a_failure_once(tmp_path: Path) -> None:
-    """A usage error fails every process alike: exit 1, the error shown once."""
+    """A usage error only the processes find fails every process alike: exit 1, the error
+    shown once."""
     proc = subprocess.run(
-        [sys.executable, "-m", "agnostos_mjx.eval", "--policy", "oracle", "--tasks", "nope",
-         "--quiet", "--local-processes", "2", "--out", str(tmp_path / "run")],
+        [sys.executable, "-m", "agnostos_mjx.eval", "--policy", "oracle", "--tasks", "lamp_on",
+         "--variations", "99", "--quiet", "--local-processes", "2", "--out",
+         str(tmp_path / "run")],
         cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True,
         timeout=300)
     assert proc.returncode == 1
-    assert proc.stderr.count("unknown task 'nope'") == 1, proc.stderr
+    assert proc.stderr.count("--variations 99: lamp_on has variations") == 1, proc.stderr
     assert "process 1 exited with 2 (the same)" in proc.stderr
 
 

@@ -55,11 +55,15 @@ def test_import_has_no_side_effects(tmp_path: Path) -> None:
         import json, os, sys
         import agnostos_mjx
         bare = "jax" in sys.modules
-        import agnostos_mjx.eval, agnostos_mjx.data.generate, jax
-        print(json.dumps({"bare_imports_jax": bare, "flags": os.environ.get("XLA_FLAGS"),
+        import agnostos_mjx.eval  # the launcher of --local-processes: it checks task names
+        launcher = "jax" in sys.modules
+        import agnostos_mjx.data.generate, jax
+        print(json.dumps({"bare_imports_jax": bare, "eval_imports_jax": launcher,
+                          "flags": os.environ.get("XLA_FLAGS"),
                           "cache": jax.config.jax_compilation_cache_dir}))
     """, tmp_path)
-    assert out == {"bare_imports_jax": False, "flags": None, "cache": None}
+    assert out == {"bare_imports_jax": False, "eval_imports_jax": False, "flags": None,
+                   "cache": None}
 
 
 def test_every_command_sets_up_jax_before_anything_else(tmp_path: Path) -> None:

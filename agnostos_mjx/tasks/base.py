@@ -8,7 +8,6 @@ runtime (agnostos_mjx/runtime/) knows nothing task-specific.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -18,6 +17,7 @@ import jax.numpy as jnp
 from agnostos_mjx.conditions import Condition, never
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.observables import Observation
+from agnostos_mjx.tasks.catalog import Split
 from agnostos_mjx.visual_state import StateColor
 
 TABLE_Z = 0.752
@@ -27,12 +27,6 @@ TABLE_Z = 0.752
 WORKSPACE_CENTER = (0.25, 0.0)
 WORKSPACE_HALF = (0.30, 0.35)
 MAX_KEY_ACTIONS = 25
-
-
-class Split(str, enum.Enum):
-    SEEN = "seen"
-    LEVEL1 = "unseen_level1"
-    LEVEL2 = "unseen_level2"
 
 
 @jax.tree_util.register_dataclass
