@@ -53,6 +53,15 @@ def test_thread_cpu_counts_each_threads_time(tmp_path: Path) -> None:
     assert "CPU-s" in done.stdout
 
 
+def test_backend_start_probe_says_how_fast_python_runs_beside_it() -> None:
+    done = subprocess.run([sys.executable, str(TOOLS / "backend_start_probe.py")],
+                          capture_output=True, text=True, timeout=120, cwd=TOOLS.parent)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["backend"] == "cpu" and out["import_jax_s"] > 0 and out["backend_start_s"] > 0
+    assert 0 < out["main_thread_speed_share"] <= 1.5  # a share of its speed alone
+
+
 @pytest.mark.slow
 def test_rollout_threads_reports_each_configuration() -> None:
     done = subprocess.run([sys.executable, str(TOOLS / "rollout_threads.py"), "lamp_on", "0.3",
