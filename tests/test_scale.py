@@ -207,7 +207,9 @@ def test_local_processes_run_and_merge_like_one(tmp_path: Path) -> None:
     shared, single = tmp_path / "shared", tmp_path / "single"
     _finish(_eval("--out", str(shared), "--local-processes", "2"))
     assert (shared / "proc-0.log").exists() and (shared / "proc-1.log").exists()
+    assert all((shared / f"proc-{i}" / "finished").exists() for i in range(2))
     _finish(_eval("--out", str(single)))
+    assert not (single / "finished").exists()  # a process of a queue only
     assert _episodes(shared) == _episodes(single)
     assert (shared / "results.md").read_text() == (single / "results.md").read_text()
     # The merge draws the run's plot; a process draws none of its part.
@@ -277,6 +279,41 @@ def test_local_processes_refuse_an_unknown_task_before_starting(tmp_path: Path, 
     assert ev.main(["--tasks", "lamp_on,nope", "--local-processes", "2", "--out", str(out)]) == 2
     assert "unknown task 'nope'; valid task names: " in capsys.readouterr().err
     assert not out.exists()
+
+
+FINISHING_CHILD = """
+import sys, time
+from pathlib import Path
+out = Path(sys.argv[sys.argv.index("--out") + 1])
+i = sys.argv[sys.argv.index("--process-id") + 1]
+merged = out / "merged"
+early = merged.exists()  # merged before this process wrote anything: a stale marker counted
+(out / f"proc-{i}").mkdir(exist_ok=True)
+(out / f"proc-{i}" / "finished").write_text("")
+deadline = time.time() + 20  # its teardown, as long as the launcher takes to merge
+while not merged.exists() and time.time() < deadline:
+    time.sleep(0.02)
+(out / f"saw-{i}").write_text(f"{early} {merged.exists()}")
+"""
+
+
+def test_the_launcher_merges_while_its_processes_end(tmp_path: Path, monkeypatch) -> None:
+    """Once every process has written its final results (its `finished` marker), the
+    launcher merges while they end, not after; a marker left by an earlier run of the folder
+    is not taken for one."""
+    from agnostos_mjx.evaluation import processes
+
+    monkeypatch.setattr(processes, "merge_main",
+                        lambda out: (Path(out) / "merged").write_text("") or 0)
+    child, out = tmp_path / "child.py", tmp_path / "run"
+    child.write_text(FINISHING_CHILD)
+    for i in range(2):  # an earlier run's markers
+        (out / f"proc-{i}").mkdir(parents=True)
+        (out / f"proc-{i}" / "finished").write_text("")
+    argv = ["--policy", "oracle", "--local-processes", "2", "--out", str(out)]
+    assert processes.run(argv, 2, out, True, None, poll_s=0.02, mps_mode="off",
+                         command=[sys.executable, str(child)]) == 0
+    assert [(out / f"saw-{i}").read_text() for i in range(2)] == ["False True"] * 2
 
 
 @pytest.mark.slow

@@ -151,6 +151,11 @@ def interrupted_text(out: Path) -> str:
             "with --resume to continue")
 
 
+def _finished(out: Path, i: int, proc: subprocess.Popen) -> bool:
+    """Process `i` has ended, or has written its final results and is ending."""
+    return proc.poll() is not None or (out / f"proc-{i}" / task_queue.FINISHED_FILE).exists()
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
@@ -185,6 +190,8 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
             log.info("%d tasks stay with the processes that have episodes of them",
                      sum(task_queue.SEED_UNIT not in unit for unit in owners))
         child += ["--task-queue", str(queue)]
+        for stale in out.glob(f"proc-*/{task_queue.FINISHED_FILE}"):  # a resumed run's
+            stale.unlink()
         if memory_fraction is None and GPU_MEM_FRACTION.get() is None:
             child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
         for i in range(n):
@@ -199,8 +206,8 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         # handler in matplotlib's import can swallow a Ctrl-C meant for the loop below.
         threading.Thread(target=report_plot.pyplot, name="import-pyplot", daemon=True).start()
         last, next_report = -1, time.perf_counter() + poll_s
-        while any(p.poll() is None for p in procs):
-            time.sleep(min(EXIT_POLL_S, poll_s))  # the merge starts as the last one exits
+        while not all(_finished(out, i, p) for i, p in enumerate(procs)):
+            time.sleep(min(EXIT_POLL_S, poll_s))  # the merge starts as the last one finishes
             if time.perf_counter() < next_report:
                 continue
             next_report += poll_s
@@ -208,6 +215,14 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
             if not quiet and done != last:
                 log.info("%d episodes done, %.0f s", done, time.perf_counter() - t0)
                 last = done
+        # Every process has written its final results: merge while they end (their
+        # interpreters' teardown), unless one ended without them.
+        merged = None
+        if all((out / f"proc-{i}" / task_queue.FINISHED_FILE).exists() for i in range(n)):
+            log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
+            merged = merge_main(str(out))
+        for p in procs:
+            p.wait()
     except KeyboardInterrupt:
         for p in procs:
             if p.poll() is None:
@@ -240,5 +255,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     # A process whose task failed (results.json's failed_tasks) still finished the others.
     if failed and not all((out / f"proc-{i}" / "results.json").exists() for i, _ in failed):
         return 1
-    log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
-    return max(merge_main(str(out)), 1 if failed else 0)
+    if merged is None:
+        log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
+        merged = merge_main(str(out))
+    return max(merged, 1 if failed else 0)

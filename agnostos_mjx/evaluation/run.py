@@ -19,7 +19,13 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx.cli import check_writable_dir, process_age_s, progress_bar, versions
+from agnostos_mjx.cli import (
+    atomic_write,
+    check_writable_dir,
+    process_age_s,
+    progress_bar,
+    versions,
+)
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
 from agnostos_mjx.evaluation.dense import check_action_mode
 from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, select_tasks
@@ -34,6 +40,7 @@ from agnostos_mjx.evaluation.rollout import Steps, task_steps
 from agnostos_mjx.evaluation.scheduler import run_interleaved
 from agnostos_mjx.evaluation.summary import write_outputs
 from agnostos_mjx.evaluation.task_queue import (
+    FINISHED_FILE,
     TaskQueue,
     claim_order,
     split_by_seed,
@@ -260,4 +267,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         on_timing({"process": cfg.process_id, "startup_s": startup_s,
                    "tasks_s": round(time.perf_counter() - t_tasks, 3), "tasks": len(mine()),
                    "startup": startup})
-    return write_results(final=True)
+    results = write_results(final=True)
+    if queue is not None:
+        atomic_write(out_dir / FINISHED_FILE, "")
+    return results

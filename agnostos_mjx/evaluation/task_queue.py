@@ -74,6 +74,9 @@ EXPECTED_S = {
 
 
 SEED_UNIT = "@"  # a unit of one seed of a task: "straighten_rope@1"
+# Written by a process of a queue once its results are final: the launcher merges then,
+# while the processes end (an interpreter's teardown takes 0.5 s and more).
+FINISHED_FILE = "finished"
 
 
 def unit_task(unit: str) -> tuple[str, int | None]:
