@@ -185,7 +185,8 @@ def test_eval_caps_gpu_memory_for_a_local_server(monkeypatch, tmp_path: Path) ->
 
     calls = []
     monkeypatch.setattr(gpu, "apply_memory_limit", lambda f, urls: calls.append((f, urls)))
-    argv = ["--tasks", "no_such_task", "--out", str(tmp_path / "x"), "--quiet"]
+    # A usage error found after the cap (a variation lamp_on lacks) ends each run early.
+    argv = ["--tasks", "lamp_on", "--variations", "99", "--out", str(tmp_path / "x"), "--quiet"]
     assert ev.main(["--policy", "remote", "--policy-url", "ws://localhost:1", *argv]) == 2
     assert ev.main(["--policy", "oracle", "--gpu-mem-fraction", "0.2", *argv]) == 2
     assert calls == [(None, ["ws://localhost:1"]), (0.2, [None])]
