@@ -270,3 +270,14 @@ def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
     env, _ = ep.step(env, _expert_steps(ep, env)[0])
     assert seen["planner"] == [None]
     assert seen["conditions"] and set(seen["conditions"]) == {cpu}
+    # On a GPU host the CPU, unless JAX may not use it (JAX_PLATFORMS=cuda): then none.
+    from agnostos_mjx.runtime import phase
+
+    monkeypatch.setattr(phase.jax, "default_backend", lambda: "gpu")
+    assert phase.host_device() == cpu
+
+    def no_cpu(backend=None):
+        raise RuntimeError("Unknown backend cpu")
+
+    monkeypatch.setattr(phase.jax, "local_devices", no_cpu)
+    assert phase.host_device() is None

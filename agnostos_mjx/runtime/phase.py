@@ -62,8 +62,14 @@ def host_device() -> jax.Device | None:
     grasps) next to its physics: on a GPU host each call would otherwise wait behind the
     other programs queued there (py-spy, one H200, 8 processes: the physics threads waited
     on condition scans longer than on their rollouts).  None where the CPU is JAX's default
-    already (a device set explicitly would key new entries in jit's caches)."""
-    return None if jax.default_backend() == "cpu" else jax.local_devices(backend="cpu")[0]
+    already (a device set explicitly would key new entries in jit's caches) or JAX may not
+    use it (JAX_PLATFORMS without cpu)."""
+    if jax.default_backend() == "cpu":
+        return None
+    try:
+        return jax.local_devices(backend="cpu")[0]
+    except RuntimeError:  # "Unknown backend cpu"
+        return None
 
 
 class HostPhases:
