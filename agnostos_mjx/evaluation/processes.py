@@ -156,6 +156,11 @@ def _finished(out: Path, i: int, proc: subprocess.Popen) -> bool:
     return proc.poll() is not None or (out / f"proc-{i}" / task_queue.FINISHED_FILE).exists()
 
 
+def _merge(out: Path, n: int, t0: float) -> int:
+    log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
+    return merge_main(str(out))
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
@@ -219,8 +224,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         # interpreters' teardown), unless one ended without them.
         merged = None
         if all((out / f"proc-{i}" / task_queue.FINISHED_FILE).exists() for i in range(n)):
-            log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
-            merged = merge_main(str(out))
+            merged = _merge(out, n, t0)
         for p in procs:
             p.wait()
     except KeyboardInterrupt:
@@ -255,7 +259,4 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     # A process whose task failed (results.json's failed_tasks) still finished the others.
     if failed and not all((out / f"proc-{i}" / "results.json").exists() for i, _ in failed):
         return 1
-    if merged is None:
-        log.info("%d processes finished in %.0f s; merging", n, time.perf_counter() - t0)
-        merged = merge_main(str(out))
-    return max(merged, 1 if failed else 0)
+    return max(_merge(out, n, t0) if merged is None else merged, 1 if failed else 0)
