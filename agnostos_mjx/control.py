@@ -22,6 +22,7 @@ import jax
 import mujoco
 import numpy as np
 
+from agnostos_mjx.cuda_graphs import graph_jit
 from agnostos_mjx.math3d import (
     array_module,
     halton,
@@ -344,19 +345,15 @@ def solve_ik(kin: PandaKinematics, q_init, target_pos, target_quat, iters: int =
 
 
 _ROBOT_PROGRAMS: dict[tuple, Callable] = {}
-# On a GPU the IK's loops run as CUDA graphs (conditional nodes included): no host round
-# trip per step, and the thread waiting for a plan no longer spins (H200: 1 CPU-ms, not 48).
-GPU_GRAPH_OPTIONS = {
-    "xla_gpu_enable_command_buffer": "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL"}
 
 
 def jit_for_robot(fn: Callable, kin: PandaKinematics) -> Callable:
     """`jax.jit(partial(fn, kin))`, shared by every task with the same robot in this process
-    (a cache keyed by the kinematic constants), so the IK programs of a run compile once."""
+    (a cache keyed by the kinematic constants), so the IK programs of a run compile once; on
+    a GPU the IK's loops run as CUDA graphs (cuda_graphs.graph_jit)."""
     key = (fn, kin.fingerprint)
     if key not in _ROBOT_PROGRAMS:
-        options = GPU_GRAPH_OPTIONS if jax.default_backend() == "gpu" else None
-        _ROBOT_PROGRAMS[key] = jax.jit(functools.partial(fn, kin), compiler_options=options)
+        _ROBOT_PROGRAMS[key] = graph_jit(functools.partial(fn, kin))
     return _ROBOT_PROGRAMS[key]
 
 

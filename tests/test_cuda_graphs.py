@@ -1,0 +1,47 @@
+"""graph_jit: the GPU's programs with loops compile as CUDA graphs, other backends as before."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from agnostos_mjx import control, cuda_graphs
+from agnostos_mjx.cuda_graphs import GPU_GRAPH_OPTIONS, graph_jit
+from agnostos_mjx.dynamics import features
+
+
+def _doubling(x: jax.Array, n: int) -> jax.Array:
+    return jax.lax.fori_loop(0, n, lambda i, a: a * 2.0, x)
+
+
+def test_graph_jit_asks_for_cuda_graphs_only_where_the_backend_is_a_gpu(monkeypatch):
+    want = np.asarray(jax.jit(_doubling, static_argnums=1)(jnp.ones(3), 4))
+    options = []
+    real_jit = jax.jit
+
+    def spy(fn, **kwargs):
+        options.append(kwargs.get("compiler_options"))
+        return real_jit(fn, **kwargs)
+
+    monkeypatch.setattr(cuda_graphs.jax, "jit", spy)
+    fn = graph_jit(_doubling, static_argnums=1)
+    np.testing.assert_array_equal(fn(jnp.ones(3), 4), want)
+    np.testing.assert_array_equal(fn(jnp.ones(3), 4), want)  # compiled once per backend
+    assert options == [None] and set(fn.programs) == {"cpu"}
+
+    monkeypatch.setattr(cuda_graphs.jax, "default_backend", lambda: "gpu")
+    np.testing.assert_array_equal(fn(jnp.ones(3), 4), want)  # the CPU ignores GPU options
+    assert options == [None, GPU_GRAPH_OPTIONS] and set(fn.programs) == {"cpu", "gpu"}
+
+
+def test_the_planner_and_the_selection_run_their_loops_as_cuda_graphs():
+    """The IK's loops and the sampler's DDIM loop: without graphs a GPU host's threads spin
+    on every iteration's predicate."""
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    kin = Episodes(get_task("lamp_on"), "native").kin
+    for fn in (control.plan_arm, control.reachable):
+        assert hasattr(control.jit_for_robot(fn, kin), "programs")
+    assert hasattr(features._query_similarity, "programs")
