@@ -8,7 +8,6 @@ import numpy as np
 
 from agnostos_mjx import control, cuda_graphs
 from agnostos_mjx.cuda_graphs import GPU_GRAPH_OPTIONS, graph_jit
-from agnostos_mjx.dynamics import features
 
 
 def _doubling(x: jax.Array, n: int) -> jax.Array:
@@ -35,13 +34,12 @@ def test_graph_jit_asks_for_cuda_graphs_only_where_the_backend_is_a_gpu(monkeypa
     assert options == [None, GPU_GRAPH_OPTIONS] and set(fn.programs) == {"cpu", "gpu"}
 
 
-def test_the_planner_and_the_selection_run_their_loops_as_cuda_graphs():
-    """The IK's loops and the sampler's DDIM loop: without graphs a GPU host's threads spin
-    on every iteration's predicate."""
+def test_the_planner_runs_its_loops_as_cuda_graphs():
+    """Without graphs a GPU host's thread waiting for a plan spins on every iteration's
+    predicate."""
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 
     kin = Episodes(get_task("lamp_on"), "native").kin
     for fn in (control.plan_arm, control.reachable):
         assert hasattr(control.jit_for_robot(fn, kin), "programs")
-    assert hasattr(features._query_similarity, "programs")

@@ -23,7 +23,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.cuda_graphs import graph_jit
 from agnostos_mjx.dynamics.batching import map_chunks
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.pipeline import Pipeline, first_and_predicted_latents
@@ -118,9 +117,7 @@ def query_similarity(pipeline: Pipeline, frames: np.ndarray, instructions: list[
                       frames, ids, mask, lang, size=pipeline.chunk_size)
 
 
-# On a GPU the sampler's DDIM loop runs as one CUDA graph: no host round trip per step and no
-# thread spinning while the GPU works.
-@functools.partial(graph_jit, static_argnums=0)
+@functools.partial(jax.jit, static_argnums=0)
 def _query_similarity(static: tuple, ae_state: Any, state: Any, bank: tuple[jax.Array, ...],
                       frames: jax.Array, ids: jax.Array, mask: jax.Array, lang: jax.Array
                       ) -> jax.Array:
