@@ -41,7 +41,6 @@ from __future__ import annotations
 import functools
 import logging
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -93,6 +92,8 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
             guard.message = processes.interrupted_text(Path(cfg.out))
             guard.grace_s = processes.STOP_GRACE_S
         return processes.main(cfg, argv)  # the launcher imports no JAX: its processes do
+    from agnostos_mjx.evaluation.run import evaluate, resolve_out
+
     try:
         spec, _, note = resolve_policy(cfg)
     except Exception as e:  # e.g. an LLM URL without a model
@@ -105,8 +106,6 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from agnostos_mjx.evaluation.run import evaluate, resolve_out  # beside the backend's start
-
     out_dir = None
     try:
         out_dir = resolve_out(cfg, spec)
@@ -137,8 +136,8 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
 
 
 def start_devices(cfg: EvalConfig, spec: str) -> None:
-    """Cap JAX's GPU memory (before JAX starts its backend), join the JAX cluster of
-    --coordinator (before anything touches a device), then start the backend."""
+    """Cap JAX's GPU memory (before JAX starts its backend) and join the JAX cluster of
+    --coordinator (before anything touches a device)."""
     from agnostos_mjx.gpu import apply_memory_limit
 
     served = cfg.policy_url or settings.POLICY_URL.get()
@@ -151,22 +150,6 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
         import jax
 
         jax.distributed.initialize(cfg.coordinator, cfg.num_processes, cfg.process_id)
-    start_backend()
-
-
-def start_backend() -> None:
-    """Start JAX's backend in a thread while this one goes on importing: on a GPU host the
-    start (1.3 s on an H200) mostly releases the GIL (`tools/backend_start_probe.py`: the
-    main thread ran at 67% of its speed meanwhile)."""
-    import jax
-
-    def start() -> None:
-        try:
-            jax.devices()
-        except Exception:  # the main thread meets the error where it needs a device
-            pass
-
-    threading.Thread(target=start, name="jax-backend-start", daemon=True).start()
 
 
 def cli() -> int:

@@ -622,22 +622,3 @@ def test_a_failing_task_does_not_stop_the_others(tmp_path: Path, monkeypatch,
     assert results["failed_tasks"] == {"lamp_off": "RuntimeError: scene failed to build"}
     assert [r["task"] for r in results["episodes"]] == ["lamp_on", "lamp_on"]
     assert "task lamp_off failed: RuntimeError: scene failed to build" in capsys.readouterr().err
-
-
-def test_eval_starts_the_backend_before_importing_the_evaluator(tmp_path: Path) -> None:
-    """JAX's backend starts in a thread before the evaluator's modules are imported, so the
-    start (~1.3 s on a GPU host, mostly outside the GIL) runs beside those imports."""
-    script = (
-        "import sys\n"
-        "from agnostos_mjx import eval as ev\n"
-        "seen, start = [], ev.start_backend\n"
-        "def spy():\n"
-        "    seen.append('agnostos_mjx.evaluation.run' in sys.modules)\n"
-        "    start()\n"
-        "ev.start_backend = spy\n"
-        "print('exit', ev.main(sys.argv[1:]), 'evaluator imported first', seen)\n")
-    # A usage error the evaluator finds (a variation lamp_on lacks) ends the run early.
-    proc = subprocess.run([sys.executable, "-c", script, "--policy", "oracle", "--tasks",
-                           "lamp_on", "--variations", "99", "--out", str(tmp_path / "x"),
-                           "--quiet"], capture_output=True, text=True, timeout=300)
-    assert "exit 2 evaluator imported first [False]" in proc.stdout, proc.stdout + proc.stderr
