@@ -151,9 +151,14 @@ def interrupted_text(out: Path) -> str:
             "with --resume to continue")
 
 
+def _wrote_results(out: Path, i: int) -> bool:
+    """Process `i` has written its final results (it may still be ending)."""
+    return (out / f"proc-{i}" / task_queue.FINISHED_FILE).exists()
+
+
 def _finished(out: Path, i: int, proc: subprocess.Popen) -> bool:
     """Process `i` has ended, or has written its final results and is ending."""
-    return proc.poll() is not None or (out / f"proc-{i}" / task_queue.FINISHED_FILE).exists()
+    return proc.poll() is not None or _wrote_results(out, i)
 
 
 def _merge(out: Path, n: int, t0: float) -> int:
@@ -223,7 +228,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         # Every process has written its final results: merge while they end (their
         # interpreters' teardown), unless one ended without them.
         merged = None
-        if all((out / f"proc-{i}" / task_queue.FINISHED_FILE).exists() for i in range(n)):
+        if all(_wrote_results(out, i) for i in range(n)):
             merged = _merge(out, n, t0)
         for p in procs:
             p.wait()
