@@ -101,3 +101,21 @@ def test_warmup_command_builds_kernels_in_processes(capsys) -> None:
                               kernel_jobs=2)
     result = warmup.build_kernels_in_parallel(args)
     assert result.get("parts") == 2 and result["modules"] > 0, result
+
+
+def test_warp_model_leaves_dense_jacobians_to_auto_only_above_warps_limit() -> None:
+    """MuJoCo Warp refuses a dense Jacobian above 60 dofs: the rope's and the groceries'
+    scenes get MuJoCo's auto (sparse there), every other scene stays the very same model."""
+    import mujoco
+
+    from agnostos_mjx.physics.base import WARP_DENSE_MAX_NV, for_warp
+    from agnostos_mjx.tasks import get_task
+    from agnostos_mjx.world import build_scene
+
+    rope = build_scene(get_task("straighten_rope")).model
+    assert rope.nv > WARP_DENSE_MAX_NV and rope.opt.jacobian == mujoco.mjtJacobian.mjJAC_DENSE
+    warp_rope = for_warp(rope)
+    assert warp_rope.opt.jacobian == mujoco.mjtJacobian.mjJAC_AUTO
+    assert rope.opt.jacobian == mujoco.mjtJacobian.mjJAC_DENSE  # the CPU's model untouched
+    lamp = build_scene(get_task("lamp_on")).model
+    assert lamp.nv <= WARP_DENSE_MAX_NV and for_warp(lamp) is lamp

@@ -14,6 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+# MuJoCo Warp's dense constraint Jacobian stops at this many degrees of freedom.
+WARP_DENSE_MAX_NV = 60
+
 
 @jax.tree_util.register_dataclass
 @dataclass
@@ -132,3 +135,20 @@ def check_steps(steps: np.ndarray | None, batch: int, horizon: int) -> np.ndarra
     if steps.shape != (batch,) or np.any((steps < 0) | (steps > horizon)):
         raise ValueError(f"steps must be {batch} counts in 0..{horizon}, got {steps}")
     return steps
+
+
+def for_warp(model: Any) -> Any:
+    """`model` as MuJoCo Warp accepts it: a copy with the Jacobian left to MuJoCo's `auto`
+    (sparse above 60 dofs) where the scene asks for a dense one that Warp refuses (the rope,
+    the groceries).  The same model where nothing needs changing, so smaller scenes step
+    exactly as before; the CPU's dense choice (scenes/world.xml) is untouched."""
+    import copy
+
+    import mujoco
+
+    dense = model.opt.jacobian == mujoco.mjtJacobian.mjJAC_DENSE
+    if not dense or model.nv <= WARP_DENSE_MAX_NV:
+        return model
+    warp_model = copy.copy(model)
+    warp_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_AUTO
+    return warp_model

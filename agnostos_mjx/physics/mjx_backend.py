@@ -32,6 +32,7 @@ from agnostos_mjx.physics.base import (
     PhysicsState,
     StepData,
     check_steps,
+    for_warp,
     freeze,
     keep_rows,
 )
@@ -85,7 +86,8 @@ class MjxBackend:
                  graph_mode: str = "WARP"):
         self.name = f"mjx-{impl}"
         self.impl = impl
-        self.model = model
+        self.model = for_warp(model) if impl == "warp" else model
+        model = self.model
         options = {}
         if impl == "warp":
             # The graph mode of MJX's own FFI calls (`mjx.step`, `mjx.kinematics`), which

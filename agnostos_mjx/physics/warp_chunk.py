@@ -30,7 +30,7 @@ import warp as wp
 from mujoco.mjx.third_party import mujoco_warp as mjw
 from mujoco.mjx.third_party.mujoco_warp._src.types import vec12
 
-from agnostos_mjx.physics.base import StepData
+from agnostos_mjx.physics.base import StepData, for_warp
 
 
 def supported(model: mujoco.MjModel) -> str | None:
@@ -65,6 +65,7 @@ def _put_scalar_row(k: int, src: wp.array(dtype=float), rows: wp.array2d(dtype=f
 def workspace(model: mujoco.MjModel, batch: int, naconmax: int, njmax: int) -> tuple[Any, Any]:
     """MuJoCo Warp's (Model, Data) for `batch` worlds of `model`, sized as the run sizes them
     (the kernels Warp builds depend on these sizes, so warp_build dry-runs the same)."""
+    model = for_warp(model)
     mw = mjw.put_model(model, batch_sizes={"eq_data": batch} if model.neq else None)
     dw = mjw.put_data(model, mujoco.MjData(model), nworld=batch, naconmax=naconmax, njmax=njmax)
     return mw, dw

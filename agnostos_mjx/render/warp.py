@@ -83,8 +83,10 @@ class WarpRenderer:
         import jax  # lazy: keeps this module importable without warp/CUDA
         import jax.numpy as jnp
 
+        from agnostos_mjx.physics.base import for_warp
         from agnostos_mjx.physics.quiet_mjx import mjx
 
+        model = for_warp(model)
         self.width, self.height, self.nworld = int(width), int(height), int(nworld)
         self.camera_names = tuple(cameras) if cameras is not None else camera_names(model)
         for cam in self.camera_names:
