@@ -81,6 +81,10 @@ class ObservationSpec:
             raise ValueError(f"unknown modalities {sorted(unknown)}; choose from {MODALITIES}")
         if not self.cameras or len(set(self.cameras)) != len(self.cameras):
             raise ValueError(f"cameras must be distinct and non-empty, got {self.cameras}")
+        unknown = [c for c in self.cameras if c not in CAMERAS]
+        if unknown:  # else the render fails later, in every task
+            raise ValueError(f"unknown cameras {', '.join(map(repr, unknown))}; the scene's "
+                             f"cameras are {', '.join(CAMERAS)}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.height < 1 or self.width < 1:

@@ -206,6 +206,10 @@ def test_spec_validation() -> None:
         ob.ObservationSpec(modalities=("rgb", "normals"))
     with pytest.raises(ValueError, match="distinct"):
         ob.ObservationSpec(cameras=("front", "front"))
+    # a name the scene has no camera for is refused at load, with the valid names
+    with pytest.raises(ValueError, match="unknown cameras 'top'; the scene's cameras are "
+                                         "front, left_shoulder, right_shoulder, overhead, wrist"):
+        ob.ObservationSpec(cameras=("front", "top"))
     assert ob.ObservationSpec(modalities=("point_cloud",)).needs_depth
 
 
