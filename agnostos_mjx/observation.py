@@ -42,13 +42,14 @@ from typing import TYPE_CHECKING, Any
 import mujoco
 import numpy as np
 
+from agnostos_mjx.physics import RENDERERS
+
 if TYPE_CHECKING:
     from agnostos_mjx.render import CameraImages
     from agnostos_mjx.world import SceneModel
 
 CAMERAS = ("front", "left_shoulder", "right_shoulder", "overhead", "wrist")
 MODALITIES = ("rgb", "depth", "point_cloud", "segmentation")
-RENDERERS = ("auto", "cpu", "warp")
 # RLBench's clipping planes per camera (spec section 2): depth saturates at `far` there.
 RLBENCH_NEAR_FAR: dict[str, tuple[float, float]] = {
     "front": (0.01, 4.5), "left_shoulder": (0.01, 3.2), "right_shoulder": (0.01, 3.2),
@@ -62,8 +63,8 @@ _TO_RLBENCH = np.diag([-1.0, 1.0, -1.0])
 class ObservationSpec:
     """What a policy wants to see; only this is rendered.
 
-    ``renderer``: auto (MJX-Warp next to the MJX-Warp physics backend, else CPU), cpu or
-    warp.  ``numpy``: host arrays; False keeps Warp's images on the device (JAX arrays).
+    ``renderer``: auto (the run's ``--renderer``, else MJX-Warp wherever there is a GPU
+    with warp-lang, else CPU), cpu or warp.  ``numpy``: host arrays; False keeps Warp's images on the device (JAX arrays).
     """
 
     cameras: tuple[str, ...] = ("front",)

@@ -20,7 +20,7 @@ from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
 from agnostos_mjx.mps import MODES as MPS_MODES
-from agnostos_mjx.physics import BACKENDS
+from agnostos_mjx.physics import BACKENDS, RENDERERS
 
 VARIATION_MODES = ("protocol", "all", "zero")
 # Option groups of --help (None: the main options).
@@ -138,6 +138,12 @@ class EvalConfig:
                 "jitted program shared by all tasks, on the GPU when there is one (auto there); "
                 "host = numpy float64 (auto on a CPU-only machine, bit for bit the recorded "
                 "CPU results)", choices=("auto", "host", "device"))
+    renderer: str = option(
+        "auto", "where a policy's camera observations render: warp = MJX-Warp's batch ray "
+                "tracer on the GPU, beside any physics backend (auto wherever JAX has a CUDA "
+                "GPU and warp-lang is installed); cpu = MuJoCo's OpenGL renderer on CPU "
+                "threads (auto elsewhere); overrides the policy's ObservationSpec.renderer; "
+                "the route taken is in results.json", choices=RENDERERS)
     variations: str = option(
         "protocol", "protocol: unseen tasks use variation 0, seen tasks sample one per "
                     "episode; all: sample for every task; zero: always 0; N: always N",

@@ -72,7 +72,8 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
     t0, started = time.perf_counter(), process_age_s()
     split = TimeSplit()
     with split.measure("build"):
-        runner = Episodes(task, cfg.backend, planner=cfg.planner, plan_rows=cfg.batch)
+        runner = Episodes(task, cfg.backend, planner=cfg.planner, plan_rows=cfg.batch,
+                          renderer=cfg.renderer)
     videos = EpisodeVideos.for_task(cfg, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)
@@ -91,6 +92,7 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
         rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
         log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
                  time.perf_counter() - t_batch, rate)
+    split.frames = runner.observer.frames  # camera frames the policy saw
     summary = split.summary(task.name, runner.backend_name, len(pending),
                             time.perf_counter() - t0)
     if started is not None:  # the process's age at the task's start: a run's timeline
@@ -104,8 +106,8 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
 
 class TimeSplit:
     """Where a task's wall time goes: building the runner (scene, compiled programs),
-    resetting batches, the policy (reset and actions, including any wait for its LLM or
-    server) and the physics (key actions or control steps, until the outcomes reach the
+    resetting batches, rendering what the policy sees, the policy (reset and actions,
+    including any wait for its LLM or server) and the physics (key actions or control steps, until the outcomes reach the
     host); the rest (records, videos) is "other".  With tasks running at once each stage
     also holds the other tasks' turns meanwhile.  It also counts the policy's rounds (one
     action for every running world of a batch) and the physics steps run for the batches'
@@ -115,7 +117,12 @@ class TimeSplit:
 
     def __init__(self) -> None:
         self.seconds = dict.fromkeys(self.STAGES, 0.0)
-        self.rounds = self.world_steps = self.live_steps = 0
+        self.rounds = self.world_steps = self.live_steps = self.frames = 0
+
+    def policy_turn(self, started: float, rendered_s: float) -> None:
+        """A policy's turn since `started`: its observation's rendering, then the rest."""
+        self.seconds["render"] += rendered_s
+        self.seconds["policy"] += time.perf_counter() - started - rendered_s
 
     @contextlib.contextmanager
     def measure(self, stage: str):
@@ -130,7 +137,8 @@ class TimeSplit:
                "wall_s": round(wall_s, 3)}
         rec.update({f"{k}_s": round(v, 3) for k, v in self.seconds.items()})
         rec["other_s"] = round(max(0.0, wall_s - sum(self.seconds.values())), 3)
-        rec.update(rounds=self.rounds, world_steps=self.world_steps, live_steps=self.live_steps)
+        rec.update(rounds=self.rounds, world_steps=self.world_steps, live_steps=self.live_steps,
+                   frames=self.frames)
         return rec
 
 
@@ -193,17 +201,17 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
                 break
             running = env.outcome == Outcome.RUNNING
             split.rounds += 1
-            t_policy = time.perf_counter()
+            t_policy, rendered = time.perf_counter(), runner.observer.render_s
             view = view.at(env)
             if driver is not None:
                 actions = yield from driver.next(policy, view, env)
-                split.seconds["policy"] += time.perf_counter() - t_policy
+                split.policy_turn(t_policy, runner.observer.render_s - rendered)
                 with split.measure("physics"):
                     env, _ = yield from on_pool(physics_pool, runner.step_dense, env, actions,
                                                 ctl)
             else:
                 actions = yield from policy.act_steps(view)
-                split.seconds["policy"] += time.perf_counter() - t_policy
+                split.policy_turn(t_policy, runner.observer.render_s - rendered)
                 with split.measure("physics"):
                     plan = runner.plan_request(env, actions)  # gathers with other tasks'
                     if plan is not None:

@@ -128,6 +128,21 @@ def load_policy(cfg: EvalConfig) -> tuple[str, str, Policy]:
     return spec, note, policy
 
 
+def observation_route(cfg: EvalConfig, policy: Policy, backend: str) -> str | None:
+    """The renderer the policy's observations go through ("cpu" or "warp"; None: it
+    declares none), chosen once for the run and logged."""
+    from agnostos_mjx.physics import resolve_renderer
+
+    spec = policy.observation_spec
+    if spec is None:
+        return None
+    route = resolve_renderer(cfg.renderer if cfg.renderer != "auto" else spec.renderer,
+                             backend)
+    log.info("observations: %s at %dx%d rendered by %s", ",".join(spec.cameras), spec.height,
+             spec.width, "MJX-Warp on the GPU" if route == "warp" else "OpenGL on the CPU")
+    return route
+
+
 # ---- the run -----------------------------------------------------------------------------
 def _steps_of(name: str, *args: Any) -> Steps:
     """`task_steps` of the task called `name`, its module imported when the job starts: a
@@ -187,10 +202,12 @@ def evaluate(cfg: EvalConfig) -> dict:
 
     started = datetime.now().isoformat(timespec="seconds")
     t0 = time.perf_counter()
+    renderer = observation_route(cfg, policy, backend)
     meta = {"config": asdict(cfg), "policy": {"spec": spec, "name": policy.name, "note": note,
-                                              "class": policy_class},
-            "backend": backend, "versions": versions(), "started": started,
-            "tasks": all_tasks}
+                                              "class": policy_class,
+                                              "privileged": bool(policy.privileged)},
+            "backend": backend, "renderer": renderer, "versions": versions(),
+            "started": started, "tasks": all_tasks}
 
     def mine() -> list[str]:  # the tasks this process runs (with a queue: has claimed)
         if queue is None:

@@ -2,7 +2,8 @@
 
 Every task an evaluation runs appends one line to ``<out>/timings.jsonl`` (a
 ``--local-processes`` run: ``<out>/proc-I/timings.jsonl``): its wall time split into
-building the runner, resetting batches, the policy and the physics, and the rest
+building the runner, resetting batches, rendering the policy's observations, the policy and
+the physics, and the rest
 (rollout.TimeSplit), the policy's rounds, and the physics steps run for the worlds against
 those their episodes needed (live: a world that ended waits for its batch's slowest world on
 the device backends, and a batch's padding worlds are not live).  This prints them as a
@@ -22,7 +23,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 TIMINGS_FILE = "timings.jsonl"
-MEASURED = ("build", "reset", "policy", "physics")  # timed by rollout.TimeSplit
+MEASURED = ("build", "reset", "render", "policy", "physics")  # timed by rollout.TimeSplit
 STAGES = (*MEASURED, "other")  # "other": the task's wall time less the measured stages
 
 
@@ -82,8 +83,8 @@ def time_split_table(runs: Iterable[Path]) -> str:
         span = ""
         if "start_s" in r:  # absent in runs before 2026-11-28
             span = f"{r['start_s']:.1f}-{r.get('end_s', r['start_s'] + wall):.1f}"
-        cells = [f"{r[s + '_s']:.1f} ({100 * r[s + '_s'] / wall:.0f}%)" if wall else "0"
-                 for s in STAGES]
+        cells = [f"{r.get(s + '_s', 0.0):.1f} ({100 * r.get(s + '_s', 0.0) / wall:.0f}%)"
+                 if wall else "0" for s in STAGES]
         executed = r.get("world_steps", 0)  # absent in runs before 2026-11-27
         steps = [str(r.get("rounds", "")), f"{executed / 1e6:.3f}" if executed else "",
                  f"{100 * r.get('live_steps', 0) / executed:.0f}%" if executed else ""]

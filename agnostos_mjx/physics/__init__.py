@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import TYPE_CHECKING
 
@@ -11,6 +12,11 @@ if TYPE_CHECKING:  # light at import: the launcher of --local-processes reads BA
     from agnostos_mjx.physics.base import Backend
 
 BACKENDS = ("auto", "native", "jax", "warp")
+# Where observations are rendered: MuJoCo's OpenGL renderer on CPU threads, or MJX-Warp's
+# batch ray tracer on the GPU (beside any physics backend: the worlds' state goes to it).
+RENDERERS = ("auto", "cpu", "warp")
+GPU_RENDERER_HINT = ("a CUDA GPU but no warp-lang: observations render on the CPU; "
+                     "pip install -e '.[gpu]' renders them on the GPU")
 # `auto` picks MJX-warp only from this many worlds per batch.  Warp's episodes/s grow with
 # the batch (on an H100: 0.54x native MuJoCo on 16 threads at 75 worlds, 2.25x at 1,024,
 # 6.87x at 4,096), but warp compiles ~10 s of programs per task and native none, so below
@@ -21,17 +27,46 @@ WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
 
-def warp_available() -> bool:
-    """True when JAX sees a CUDA GPU and mujoco-warp's dependency imports."""
+def cuda_gpu() -> bool:
+    """True when JAX sees a CUDA GPU."""
     try:
         import jax
 
-        if not any(d.platform == "gpu" for d in jax.devices()):
-            return False
+        return any(d.platform == "gpu" for d in jax.devices())
+    except Exception:  # noqa: BLE001 - any runtime failure means "no GPU"
+        return False
+
+
+@functools.cache
+def warp_available() -> bool:
+    """True when JAX sees a CUDA GPU and mujoco-warp's dependency imports."""
+    if not cuda_gpu():
+        return False
+    try:
         import warp  # noqa: F401
-    except Exception:  # noqa: BLE001 - any import/runtime failure means "not available"
+    except Exception:  # noqa: BLE001 - any import failure means "not available"
         return False
     return True
+
+
+def resolve_renderer(name: str, backend: str = "native") -> str:
+    """`auto` means the GPU's batch ray tracer ("warp") wherever it can run, next to any
+    physics backend, else MuJoCo's OpenGL renderer ("cpu"); a GPU without warp-lang gets a
+    one-line hint.  The route is chosen once per run and recorded in its results."""
+    if name not in RENDERERS:
+        raise ValueError(f"unknown renderer {name!r}; choose one of {', '.join(RENDERERS)}")
+    if name != "auto":
+        return name
+    if backend == "warp" or warp_available():
+        return "warp"
+    if cuda_gpu():
+        _hint_once()
+    return "cpu"
+
+
+@functools.cache
+def _hint_once() -> None:
+    log.warning("%s", GPU_RENDERER_HINT)
 
 
 def resolve_backend(name: str, batch: int | None = None) -> str:
@@ -57,4 +92,5 @@ def make_backend(name: str, model: mujoco.MjModel, threads: int | None = None) -
     return MjxBackend(model, impl=name)
 
 
-__all__ = ["BACKENDS", "WARP_MIN_BATCH", "make_backend", "resolve_backend", "warp_available"]
+__all__ = ["BACKENDS", "RENDERERS", "WARP_MIN_BATCH", "cuda_gpu", "make_backend",
+           "resolve_backend", "resolve_renderer", "warp_available"]

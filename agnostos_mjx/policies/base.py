@@ -244,6 +244,7 @@ _REGISTRY: dict[str, str | Callable[..., Policy]] = {
     "remote": "agnostos_mjx.remote.client:RemotePolicy",
     "openvla": "agnostos_mjx.remote.client:OpenVLAPolicy",
     "reference-vla": "agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
+    "timing": "agnostos_mjx.policies.timing:TimingPolicy",
 }
 
 

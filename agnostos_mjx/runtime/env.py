@@ -70,10 +70,11 @@ class Episodes:
     record_qpos: bool = False
 
     def __init__(self, task: Task, backend: str = "auto", threads: int | None = None,
-                 planner: str = "auto", plan_rows: int | None = None):
+                 planner: str = "auto", plan_rows: int | None = None, renderer: str = "auto"):
         """`plan_rows`: the rows the device planner's programs run at, fewer worlds padded
         (an evaluation's --batch): a world's float32 plan moves with its program's shape,
-        so the worlds of a task plan alike whether its seeds run in one batch or apart."""
+        so the worlds of a task plan alike whether its seeds run in one batch or apart.
+        `renderer`: where observations render (physics.RENDERERS; auto: the machine's)."""
         self.task = task
         self.plan_rows = plan_rows
         self.scene: SceneModel = build_scene(task)
@@ -83,7 +84,7 @@ class Episodes:
         self.dt = float(self.scene.model.opt.timestep)
         self.nu = self.scene.model.nu
         self.state_colors = StateColors(task, self.scene.model, self.scene.layout)
-        self.observer = Observer(task, self.scene, self.backend_name)
+        self.observer = Observer(task, self.scene, self.backend_name, renderer)
         self.spec = StepSpec(
             arm_q=self.scene.layout.slice("arm_q"), dt=self.dt,
             max_key_actions=task.max_key_actions, condition_step=self._condition_step,

@@ -1,11 +1,13 @@
 """What policies see of a batch: RLBench observations (observation.py's types) rendered
 for the worlds of an EnvState.  The `Observer` owns the renderers of one runner (GL
 contexts and Warp kernels are costly, so they are made once and reused), with one route
-per renderer: MuJoCo's OpenGL renderer on the CPU, MJX-Warp's batch ray tracer on a GPU.
+per renderer: MuJoCo's OpenGL renderer on CPU threads, MJX-Warp's batch ray tracer on a GPU
+(beside any physics backend: the worlds' state goes to the device).
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import jax
@@ -31,18 +33,27 @@ GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
 class Observer:
     """Renders and assembles observations of one task's worlds; owns its renderers."""
 
-    def __init__(self, task: Task, scene: SceneModel, backend_name: str):
+    def __init__(self, task: Task, scene: SceneModel, backend_name: str,
+                 renderer: str = "auto"):
+        """`renderer`: the run's route (``--renderer``); "auto" leaves it to each spec's,
+        and an "auto" spec to the machine (physics.resolve_renderer)."""
         self.task = task
         self.scene = scene
         self.backend_name = backend_name
+        self.run_renderer = renderer
         self._renderers: dict[tuple, Any] = {}
         self._programs: dict[tuple, Any] = {}  # (spec, batch) -> jitted warp observation
+        self.render_s = 0.0  # seconds spent rendering observations, for the run's time split
+        self.frames = 0  # camera frames rendered (one camera of one world)
 
     # ---- the routes -------------------------------------------------------------------
     def renderer_kind(self, spec: ObservationSpec) -> str:
-        if spec.renderer != "auto":
-            return spec.renderer
-        return "warp" if self.backend_name == "warp" else "cpu"
+        """"cpu" or "warp": the run's renderer when it names one, else the spec's, else the
+        machine's (physics.resolve_renderer)."""
+        from agnostos_mjx.physics import resolve_renderer
+
+        name = self.run_renderer if self.run_renderer != "auto" else spec.renderer
+        return resolve_renderer(name, self.backend_name)
 
     def renderer(self, spec: ObservationSpec, kind: str, nworld: int) -> Any:
         """The cached renderer of `spec` on `kind` ("cpu" or "warp") for `nworld` worlds."""
@@ -72,10 +83,39 @@ class Observer:
         if kind == "warp":
             data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
             return renderer.render_views(data, jnp.asarray(state.geom_rgba, jnp.float32))
-        return renderer.render_views(
-            np.asarray(p.qpos), np.asarray(p.mocap_pos), np.asarray(p.mocap_quat), spec.cameras,
-            state.geom_rgba, rgb=spec.wants("rgb"), depth=spec.needs_depth,
-            segmentation=spec.wants("segmentation"))
+        return self._cpu_views(renderer, state, spec)
+
+    def _cpu_views(self, renderer: Any, state: EnvState, spec: ObservationSpec
+                   ) -> dict[str, Any]:
+        """The CPU renderer's images of the worlds still running; a world that has ended
+        acts no more, so it gets blank images (and an identity camera pose) unrendered."""
+        from agnostos_mjx.render import CameraImages, clip_planes
+
+        p = state.physics
+        rows = np.nonzero(~np.asarray(state.done, bool))[0]
+        rgba = state.geom_rgba
+        every = len(rows) == state.batch
+        pick = (lambda x: np.asarray(x)) if every else (lambda x: np.asarray(x)[rows])
+        views = renderer.render_views(
+            pick(p.qpos), pick(p.mocap_pos), pick(p.mocap_quat), spec.cameras,
+            pick(rgba) if rgba is not None and np.ndim(rgba) == 3 else rgba, rgb=spec.wants("rgb"),
+            depth=spec.needs_depth, segmentation=spec.wants("segmentation"))
+        if every:
+            return views
+
+        def scatter(x: Any, blank: Any) -> Any:
+            if x is None:
+                return None
+            out = np.empty((state.batch, *x.shape[1:]), x.dtype)
+            out[...] = blank
+            out[rows] = x
+            return out
+
+        far = clip_planes(self.scene.model)[1]
+        return {name: CameraImages(pos=scatter(v.pos, 0.0), mat=scatter(v.mat, np.eye(3)),
+                                   rgb=scatter(v.rgb, 0), depth=scatter(v.depth, far),
+                                   segmentation=scatter(v.segmentation, -1))
+                for name, v in views.items()}
 
     def _warp_cameras(self, state: EnvState, spec: ObservationSpec
                       ) -> dict[str, CameraObservation]:
@@ -123,17 +163,23 @@ class Observer:
 
     def observe(self, state: EnvState, spec: ObservationSpec) -> RLBenchObservation:
         """Render and assemble `spec`'s observation of every world of `state`."""
+        t = time.perf_counter()
         if self.renderer_kind(spec) == "warp":
             cameras = self._warp_cameras(state, spec)
             if spec.numpy:
                 cameras = {name: CameraObservation(**{
                     f: (np.asarray(v) if hasattr(v, "shape") else v) for f, v in vars(cam).items()})
                     for name, cam in cameras.items()}
+            else:  # the images are ready when the policy gets them: the time is rendering's
+                jax.block_until_ready(cameras)
+            self.frames += state.batch * len(spec.cameras)
         else:
             views = self.render_views(state, spec)
             cameras = {name: camera_observation(views[name], k, near, far, spec)
                        for name, (k, near, far) in camera_constants(self.scene.model,
                                                                      spec).items()}
+            self.frames += int(np.sum(~np.asarray(state.done, bool))) * len(spec.cameras)
+        self.render_s += time.perf_counter() - t
         return RLBenchObservation(
             cameras=cameras, **self.proprioception(state),
             instructions=tuple(self.task.descriptions(int(v))[0] for v in state.variation),

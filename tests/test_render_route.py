@@ -1,0 +1,115 @@
+"""Where observations render: the route chosen once from what the machine has, the run's
+override, ended worlds left unrendered, and the timing policy's closed loop."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from agnostos_mjx import eval as ev
+from agnostos_mjx import observation as ob
+from agnostos_mjx import physics
+from agnostos_mjx.runtime.outcome import Outcome
+
+SIZE = 32
+
+
+def test_auto_renders_on_the_gpu_wherever_warp_can(monkeypatch, caplog) -> None:
+    monkeypatch.setattr(physics, "warp_available", lambda: True)
+    assert physics.resolve_renderer("auto", "native") == "warp"
+    assert physics.resolve_renderer("cpu", "native") == "cpu"
+    monkeypatch.setattr(physics, "warp_available", lambda: False)
+    monkeypatch.setattr(physics, "cuda_gpu", lambda: False)
+    assert physics.resolve_renderer("auto", "native") == "cpu"
+    assert physics.resolve_renderer("auto", "warp") == "warp"  # beside warp physics
+    monkeypatch.setattr(physics, "cuda_gpu", lambda: True)  # a GPU without warp-lang
+    physics._hint_once.cache_clear()
+    with caplog.at_level(logging.WARNING, logger="agnostos_mjx.physics"):
+        assert physics.resolve_renderer("auto", "native") == "cpu"
+        assert physics.resolve_renderer("auto", "native") == "cpu"
+    assert [r.getMessage() for r in caplog.records] == [physics.GPU_RENDERER_HINT]
+    with pytest.raises(ValueError, match="unknown renderer 'gl'"):
+        physics.resolve_renderer("gl")
+
+
+def test_the_runs_renderer_overrides_the_specs(monkeypatch) -> None:
+    from agnostos_mjx.runtime.observe import Observer
+
+    monkeypatch.setattr(physics, "warp_available", lambda: False)
+    spec = ob.ObservationSpec(renderer="warp")
+    observer = Observer(None, None, "native", renderer="cpu")
+    assert observer.renderer_kind(spec) == "cpu"
+    assert Observer(None, None, "native").renderer_kind(spec) == "warp"
+    assert Observer(None, None, "native").renderer_kind(ob.ObservationSpec()) == "cpu"
+
+
+@pytest.fixture(scope="module")
+def lamp():
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    runner = Episodes(get_task("lamp_on"), "native", renderer="cpu")
+    env = runner.reset(jax.random.split(jax.random.PRNGKey(3), 3), np.zeros(3, np.int32))
+    return runner, env
+
+
+def test_ended_worlds_are_not_rendered(lamp) -> None:
+    """A world that has ended acts no more: blank images, no frame counted; the running
+    worlds' pixels are those of a whole-batch render."""
+    runner, env = lamp
+    spec = ob.ObservationSpec(cameras=("front", "wrist"), height=SIZE, width=SIZE,
+                              modalities=("rgb", "depth", "segmentation"), renderer="cpu")
+    try:
+        whole = runner.observe(env, spec)
+    except RuntimeError as err:  # no headless GL
+        pytest.skip(str(err))
+    frames = runner.observer.frames
+    ended = replace(env, outcome=np.array([Outcome.RUNNING, Outcome.SUCCESS, Outcome.RUNNING],
+                                          np.int32))
+    part = runner.observe(ended, spec)
+    assert runner.observer.frames - frames == 2 * 2
+    for name in spec.cameras:
+        a, b = whole.cameras[name], part.cameras[name]
+        for field in ("rgb", "depth", "segmentation", "extrinsics"):
+            assert np.array_equal(getattr(a, field)[[0, 2]], getattr(b, field)[[0, 2]]), field
+        assert not b.rgb[1].any() and (b.segmentation[1] == -1).all()
+    assert runner.observer.render_s > 0
+
+
+def test_timing_policy_runs_the_dense_loop_and_the_split_names_rendering(lamp, tmp_path: Path
+                                                                         ) -> None:
+    runner, env = lamp
+    try:
+        runner.observe(env, ob.ObservationSpec(height=SIZE, width=SIZE, renderer="cpu"))
+    except RuntimeError as err:  # no headless GL
+        pytest.skip(str(err))
+    out = tmp_path / "run"
+    code = ev.main(["--policy", "timing", "--policy-arg", "cameras=front,wrist",
+                    "--policy-arg", f"size={SIZE}", "--policy-arg", "chunk=2",
+                    "--action-mode", "dense", "--dense-steps", "6", "--tasks", "lamp_on",
+                    "--seeds", "0", "--episodes", "2", "--batch", "2", "--renderer", "cpu",
+                    "--quiet", "--out", str(out)])
+    assert code == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["renderer"] == "cpu" and results["config"]["renderer"] == "cpu"
+    assert results["policy"]["privileged"] is False
+    records = [json.loads(x) for x in (out / "episodes.jsonl").read_text().splitlines()]
+    assert [r["outcome"] for r in records] == ["max_steps", "max_steps"]
+    (split,) = [line for line in map(json.loads, (out / "timings.jsonl").read_text()
+                                     .splitlines()) if "task" in line]
+    # asked every 2 of 6 control steps: 3 observations of 2 worlds x 2 cameras
+    assert split["frames"] == 3 * 2 * 2 and split["render_s"] > 0
+    assert split["rounds"] == 6
+
+
+def test_timing_policy_refuses_a_bad_chunk() -> None:
+    from agnostos_mjx.policies.timing import TimingPolicy
+
+    with pytest.raises(ValueError, match="chunk"):
+        TimingPolicy(chunk=0)
