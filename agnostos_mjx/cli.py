@@ -31,6 +31,20 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+def prog(module: str) -> str:
+    """The command's name in argparse's usage and error lines, as the user typed it: the
+    console script (``agnostos-eval``, pyproject's [project.scripts]) that ran `module`,
+    else ``python -m <module>`` (sys.argv[0] is then the module's file)."""
+    from importlib import metadata
+
+    name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    if name and not name.endswith(".py"):
+        scripts = metadata.entry_points(group="console_scripts", name=name)
+        if any(script.module == module for script in scripts):
+            return name
+    return f"python -m {module}"
+
+
 def atomic_write(path: Path, text: str | bytes) -> None:
     """Write via a temporary file and os.replace, so readers never see half a file."""
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")

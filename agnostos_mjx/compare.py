@@ -29,7 +29,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx.cli import HelpFormatter, atomic_write
+from agnostos_mjx.cli import HelpFormatter, atomic_write, prog
 from agnostos_mjx.evaluation.protocol import GROUPS, group_label
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import aggregate
@@ -283,7 +283,7 @@ def format_statistics(st: dict, labels: tuple[str, str]) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.compare", formatter_class=HelpFormatter,
+    p = argparse.ArgumentParser(prog=prog("agnostos_mjx.compare"), formatter_class=HelpFormatter,
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("run_a", type=Path, help="first evaluation folder (holds episodes.jsonl[.gz])")
     p.add_argument("run_b", type=Path, help="second evaluation folder")

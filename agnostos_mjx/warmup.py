@@ -38,7 +38,7 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from agnostos_mjx.cli import HelpFormatter
+from agnostos_mjx.cli import HelpFormatter, prog
 from agnostos_mjx.evaluation.config import positive_int
 from agnostos_mjx.settings import cache_root, configure_jax, gpu_plugin_installed, usable_cores
 
@@ -337,7 +337,7 @@ def _task_names(spec: str) -> list[str]:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.warmup", description=__doc__,
+    p = argparse.ArgumentParser(prog=prog("agnostos_mjx.warmup"), description=__doc__,
                                 formatter_class=HelpFormatter)
     p.add_argument("--tasks", default="unseen",
                    help="task names and/or splits (seen, unseen, unseen_level1, unseen_level2, "

@@ -504,10 +504,10 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     configure_jax()
-    from agnostos_mjx.cli import HelpFormatter, setup_logging
+    from agnostos_mjx.cli import HelpFormatter, prog, setup_logging
     from agnostos_mjx.tasks import parse_tasks
 
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.data.export",
+    p = argparse.ArgumentParser(prog=prog("agnostos_mjx.data.export"),
                                 description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter)
     p.add_argument("--out", required=True)
