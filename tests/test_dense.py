@@ -6,6 +6,8 @@ budget, the device program against the host path, and the command line's errors.
 from __future__ import annotations
 
 import json
+import re
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,7 +16,8 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import eval as ev
-from agnostos_mjx.evaluation.dense import DenseDriver, as_chunk
+from agnostos_mjx.evaluation.config import UsageError
+from agnostos_mjx.evaluation.dense import DenseDriver, PolicyAnswerError, as_chunk, check_answer
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
 from agnostos_mjx.runtime.dense import DenseControl
@@ -102,8 +105,34 @@ def test_chunks_run_k_rows_open_loop_then_ask_again() -> None:
         rows.append(stop.value.value.pos[0, 0])
     assert policy.calls == driver.queries == 3
     assert rows == [100, 101, 102, 200, 201, 202, 300]
-    with pytest.raises(ValueError, match=r"got pos \(2, 4\)"):
-        as_chunk(KeyActions(np.zeros((2, 4)), np.zeros((2, 4)), np.zeros(2), np.ones(2, bool)), 2)
+
+
+def test_answers_of_other_shapes_are_one_line_errors() -> None:
+    """One checker for both action modes: rows (B, ...) always, chunks (B, H, ...) in dense
+    mode; anything else names the shapes expected and given, in one line."""
+    row = KeyActions(np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), np.ones(2),
+                     np.ones(2, bool))
+    chunk = KeyActions(*(np.repeat(np.asarray(x)[:, None], 4, 1) for x in
+                         (row.pos, row.quat, row.gripper, row.valid)))
+    assert check_answer(row, 2, "p") == 0 and check_answer(chunk, 2, "p", chunks=True) == 4
+    assert as_chunk(row, 2, "p").pos.shape == (2, 1, 3)
+    bad = {"pos (2, 4)": replace(row, pos=np.zeros((2, 4))),
+           "quat (4,)": replace(row, quat=np.array([1.0, 0, 0, 0])),  # broadcast silently
+           "gripper (1,)": replace(row, gripper=np.ones(1)),
+           "pos (3, 3)": replace(row, pos=np.zeros((3, 3)))}
+    for got, answer in bad.items():
+        for chunks in (False, True):
+            with pytest.raises(PolicyAnswerError, match=re.escape(got)) as e:
+                check_answer(answer, 2, "mine", chunks)
+            assert str(e.value).startswith("policy mine answered pos ") and "\n" not in str(e.value)
+            assert "expected KeyActions of pos (B, 3), quat (B, 4) wxyz, gripper (B,), valid (B,)" \
+                in str(e.value) and str(e.value).endswith("B = 2 worlds")
+    with pytest.raises(PolicyAnswerError, match=r"pos \(2, 4, 3\).*expected KeyActions of pos "
+                                                r"\(B, 3\).*valid \(B,\), B = 2"):
+        check_answer(chunk, 2, "mine")  # a chunk in key-action mode
+    with pytest.raises(PolicyAnswerError, match="policy mine answered tuple, not KeyActions"):
+        check_answer((row.pos, row.quat), 2, "mine")
+    assert isinstance(PolicyAnswerError("x"), UsageError)  # eval.py prints it in one line
 
 
 def test_a_chunked_replay_gives_the_one_row_replay(replayed) -> None:

@@ -504,6 +504,43 @@ def test_a_policy_that_raises_is_reported_not_just_counted(tasks: str, code: int
     assert outcomes.count("policy_error") == 1
 
 
+UNBATCHED_POLICY = '''
+import numpy as np
+
+from agnostos_mjx.policies import Policy
+from agnostos_mjx.tasks.base import KeyActions
+
+
+class Unbatched(Policy):
+    """One quaternion for all worlds: numpy would broadcast it without a word."""
+    name = "unbatched"
+
+    def act(self, view):
+        b = len(view.instructions)
+        return KeyActions(pos=np.zeros((b, 3)), quat=np.array([1.0, 0, 0, 0]),
+                          gripper=np.ones(b), valid=np.ones(b, bool))
+'''
+
+
+@pytest.mark.parametrize("fail_fast", [True, pytest.param(False, marks=pytest.mark.xfail(
+    strict=True, reason="evaluation/run.py's on_error records the UsageError as a failed "
+                        "task instead of re-raising it"))])
+def test_an_answer_of_the_wrong_shape_stops_the_run_in_one_line(fail_fast: bool, tmp_path: Path,
+                                                                 capsys) -> None:
+    """A key-action answer of other shapes than (B, 3), (B, 4), (B,), (B,) is the policy's
+    bug: the run stops at its first answer with one line naming both, exit 2."""
+    policy = tmp_path / "unbatched.py"
+    policy.write_text(UNBATCHED_POLICY)
+    rc = ev.main(["--policy", f"{policy}:Unbatched", "--tasks", "lamp_on,lamp_off", "--seeds",
+                  "0", "--episodes", "2", "--batch", "2", "--backend", "native", "--quiet",
+                  "--out", str(tmp_path / "run"), *(["--fail-fast"] * fail_fast)])
+    err = capsys.readouterr().err
+    assert rc == 2, err[-3000:]
+    assert err == ("error: policy unbatched answered pos (2, 3), quat (4,), gripper (2,), "
+                   "valid (2,); expected KeyActions of pos (B, 3), quat (B, 4) wxyz, gripper "
+                   "(B,), valid (B,), B = 2 worlds\n")
+
+
 def test_policy_error_summary_counts_and_decides(capsys) -> None:
     """Merged runs point at the processes' logs; a minority of crashes only warns."""
     crashed, fine = {"outcome": "policy_error"}, {"outcome": "success"}

@@ -56,22 +56,43 @@ def dense_control(cfg: EvalConfig, runner: Episodes) -> DenseControl:
     return DenseControl.at(hz, runner.dt, runner.task.max_key_actions, cfg.dense_steps)
 
 
-def as_chunk(actions: KeyActions, batch: int) -> KeyActions:
-    """A policy's answer as a chunk (B, H, ...) of numpy arrays; a ValueError naming the
-    shapes when it is neither one row nor a chunk per world."""
-    pos, quat = np.asarray(actions.pos, np.float64), np.asarray(actions.quat, np.float64)
-    grip, valid = np.asarray(actions.gripper, np.float64), np.asarray(actions.valid, bool)
-    if pos.shape == (batch, 3):
-        pos, quat, grip, valid = pos[:, None], quat[:, None], grip[:, None], valid[:, None]
-    h = pos.shape[1] if pos.ndim == 3 else 0
-    if (pos.shape != (batch, h, 3) or quat.shape != (batch, h, 4) or grip.shape != (batch, h)
-            or valid.shape != (batch, h) or h < 1):
-        raise ValueError(
-            f"a dense policy returns one row per world (pos (B, 3), quat (B, 4), gripper "
-            f"(B,), valid (B,)) or a chunk (pos (B, H, 3), quat (B, H, 4), gripper (B, H), "
-            f"valid (B, H)), B = {batch}; got pos {pos.shape}, quat {quat.shape}, gripper "
-            f"{grip.shape}, valid {valid.shape}")
-    return KeyActions(pos, quat, grip, valid)
+ROW_SHAPES = "pos (B, 3), quat (B, 4) wxyz, gripper (B,), valid (B,)"
+CHUNK_SHAPES = "pos (B, H, 3), quat (B, H, 4) wxyz, gripper (B, H), valid (B, H)"
+
+
+class PolicyAnswerError(UsageError):
+    """A policy's answer in another form than its action mode takes: the policy's bug, the
+    same in every batch, so the run stops with this one line (eval.py's UsageError)
+    instead of ending every task's episodes as policy_error."""
+
+
+def check_answer(actions: Any, batch: int, policy_name: str, chunks: bool = False) -> int:
+    """The chunk length H of a policy's answer, 0 for one row per world; a
+    PolicyAnswerError naming the shapes expected and given unless it is KeyActions of one
+    row per world (or, with `chunks`, a chunk per world).  Checked here because a wrong
+    shape otherwise broadcasts in the control code (an unbatched quaternion) or fails deep
+    inside it."""
+    expected = f"{ROW_SHAPES} or a chunk {CHUNK_SHAPES}" if chunks else ROW_SHAPES
+    if not isinstance(actions, KeyActions):
+        raise PolicyAnswerError(f"policy {policy_name} answered {type(actions).__name__}, "
+                                f"not KeyActions of {expected}")
+    got = [np.shape(x) for x in (actions.pos, actions.quat, actions.gripper, actions.valid)]
+    h = got[0][1] if chunks and len(got[0]) == 3 else 0
+    lead = (batch, h) if h else (batch,)
+    if got != [(*lead, 3), (*lead, 4), lead, lead]:
+        raise PolicyAnswerError(
+            f"policy {policy_name} answered pos {got[0]}, quat {got[1]}, gripper {got[2]}, "
+            f"valid {got[3]}; expected KeyActions of {expected}, B = {batch} worlds")
+    return h
+
+
+def as_chunk(actions: KeyActions, batch: int, policy_name: str) -> KeyActions:
+    """A dense policy's answer, checked (check_answer), as a chunk (B, H, ...) of numpy
+    arrays."""
+    h = check_answer(actions, batch, policy_name, chunks=True)
+    rows = (np.asarray(actions.pos, np.float64), np.asarray(actions.quat, np.float64),
+            np.asarray(actions.gripper, np.float64), np.asarray(actions.valid, bool))
+    return KeyActions(*(rows if h else (x[:, None] for x in rows)))
 
 
 class DenseDriver:
@@ -92,7 +113,7 @@ class DenseDriver:
         policy waits on, as Policy.act_steps); `view` is what the policy sees of `env`."""
         if self.chunk is None or self.row >= self.rows:
             answer = yield from policy.act_steps(view)
-            self.chunk = as_chunk(answer, env.batch)
+            self.chunk = as_chunk(answer, env.batch, policy.name)
             h = self.chunk.pos.shape[1]
             self.rows = h if self.execute is None else min(h, self.execute)
             self.row = 0

@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from agnostos_mjx.cli import Progress, process_age_s
-from agnostos_mjx.evaluation.config import EvalConfig
-from agnostos_mjx.evaluation.dense import DenseDriver, dense_control
+from agnostos_mjx.evaluation.config import EvalConfig, UsageError
+from agnostos_mjx.evaluation.dense import DenseDriver, check_answer, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
 from agnostos_mjx.evaluation.timings import MEASURED
 from agnostos_mjx.policies.base import Policy, Round
@@ -211,6 +211,7 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
                                                 ctl)
             else:
                 actions = yield from policy.act_steps(view)
+                check_answer(actions, env.batch, policy.name)
                 split.policy_turn(t_policy, runner.observer.render_s - rendered)
                 with split.measure("physics"):
                     plan = runner.plan_request(env, actions)  # gathers with other tasks'
@@ -227,6 +228,8 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
             env = replace(env, outcome=np.where(ended, reasons, env.outcome))
             record(env, np.where(env.done, env.outcome, Outcome.RUNNING))
             report(rounds + 1)
+    except UsageError:  # an answer of the wrong form (dense.check_answer) stops the run
+        raise
     except Exception:
         if cfg.fail_fast:
             raise
