@@ -48,7 +48,7 @@ from agnostos_mjx import settings, warmup
 from agnostos_mjx.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
 from agnostos_mjx.evaluation import processes
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
-from agnostos_mjx.evaluation.records import interrupted_message
+from agnostos_mjx.evaluation.records import default_out, interrupted_message
 from agnostos_mjx.evaluation.summary import (
     failed_task_summary,
     merge_main,
@@ -76,6 +76,8 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     except KeyError as e:
         print(f"error: {e.args[0]}", file=sys.stderr)
         return 2
+    if cfg.local_processes is None:
+        argv = default_processes(cfg, argv)
     # What every process of a run would compile alike, once per machine and before them.
     default_selection = cfg.policy in ("auto", "retrieval", "xicm") and cfg.selection == "auto"
     if cfg.backend == "warp" and cfg.num_processes == 1:
@@ -133,6 +135,25 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     log.info("wrote %s", cfg.out)
     return max(request_summaries(results), policy_error_summary(results),
                failed_task_summary(results))
+
+
+def default_processes(cfg: EvalConfig, argv: list[str]) -> list[str]:
+    """Sets cfg.local_processes to the machine's default (processes.default_count) and
+    returns the command line its processes get (with the run's folder, chosen here)."""
+    n, why = processes.default_count(cfg)
+    cfg.local_processes = n
+    if n == 1:
+        return argv
+    if cfg.out is None:
+        try:
+            cfg.out = str(default_out(resolve_policy(cfg)[0]))
+        except Exception:  # noqa: BLE001 - one process reports the policy's error
+            cfg.local_processes = 1
+            return argv
+        argv = [*argv, "--out", cfg.out]
+    print(f"agnostos_mjx.eval: {n} processes ({why}; --local-processes 1 runs one)",
+          flush=True)
+    return argv
 
 
 def start_devices(cfg: EvalConfig, spec: str) -> None:

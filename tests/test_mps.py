@@ -347,3 +347,27 @@ def test_cli_option() -> None:
     assert parse_config([]).mps == "auto" and parse_config(["--mps", "off"]).mps == "off"
     with pytest.raises(SystemExit):
         parse_config(["--mps", "maybe"])
+
+
+def test_default_process_count_follows_the_gpus_and_cores(tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """--local-processes by default: 8 per GPU, at most 16 and half the cores; 1 without a
+    GPU and for a process of a larger run."""
+    from agnostos_mjx import settings
+    from agnostos_mjx.evaluation import processes
+    from agnostos_mjx.evaluation.config import EvalConfig
+
+    monkeypatch.setattr(mps, "DEV", tmp_path)  # no /dev/nvidia*
+    bare = {"PATH": ""}
+    cfg = EvalConfig()
+    assert processes.default_count(cfg, bare)[0] == 1
+    (tmp_path / "nvidia0").touch()
+    (tmp_path / "nvidiactl").touch()
+    for cores, gpus, expected in ((16, "0", 8), (32, "0,1", 16), (64, "0,1,2,3", 16),
+                                  (4, "0", 2), (2, "0", 1)):
+        monkeypatch.setattr(settings, "usable_cores", lambda c=cores: c)
+        env = {**bare, "CUDA_VISIBLE_DEVICES": gpus}
+        assert processes.default_count(cfg, env)[0] == expected, (cores, gpus)
+    env = {**bare, "CUDA_VISIBLE_DEVICES": "0"}
+    assert processes.default_count(EvalConfig(num_processes=4, process_id=1), env)[0] == 1
+    assert processes.default_count(EvalConfig(resume=True), env)[0] == 1

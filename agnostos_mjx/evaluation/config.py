@@ -195,12 +195,12 @@ class EvalConfig:
         None, "process 0's address: each process calls jax.distributed.initialize with it "
               "(one JAX cluster; sharding stays on each host's local devices); without it "
               "the processes run independently", group=SCALE, metavar="HOST:PORT")
-    local_processes: int = option(
-        1, "run as N processes on this machine (each takes the next task no other has taken, "
-           "longest first, see --task-queue; with G GPUs process I on GPU I mod G, see --mps; "
-           "logs in --out/proc-I.log), then merge: on a 2 x H100 host the main job took "
-           "103-109 s native and 140 s warp as 8 processes (see "
-           "agnostos_mjx/evaluation/processes.py)",
+    local_processes: int | None = option(
+        None, "run as N processes on this machine (each takes the next task no other has "
+              "taken, longest first, see --task-queue; with G GPUs process I on GPU I mod G, "
+              "see --mps; logs in --out/proc-I.log), then merge; default: 8 per NVIDIA GPU "
+              "(at most 16 and half the cores), the fastest count measured on GPU hosts, "
+              "and 1 without a GPU (see docs/performance.md)",
         group=SCALE, type=positive_int, metavar="N")
     task_queue: str | None = option(
         None, "a folder shared by processes on one machine: instead of every N-th task, "

@@ -57,6 +57,10 @@ from agnostos_mjx.settings import GPU_MEM_FRACTION
 
 log = logging.getLogger("agnostos_mjx.eval")
 JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
+# --local-processes by default on a GPU host: the main job's fastest count there, 8 per
+# GPU on 16 cores, no faster from 16 on (docs/performance.md); each wants two cores.
+PROCESSES_PER_GPU = 8
+MAX_DEFAULT_PROCESSES = 16
 QUEUE_DIR = "queue"  # --out/queue: the claims of the processes (task_queue.py)
 
 
@@ -81,6 +85,22 @@ def _episodes_done(out: Path, n: int) -> int:
             with path.open("rb") as f:
                 total += sum(1 for _ in f)
     return total
+
+
+def default_count(cfg: EvalConfig, environ: dict[str, str] | None = None) -> tuple[int, str]:
+    """--local-processes when not given: PROCESSES_PER_GPU per visible NVIDIA GPU, at most
+    MAX_DEFAULT_PROCESSES and half the usable cores; one process without a GPU, for a
+    process of a larger run, and for --resume without --out.  Returns (count, why)."""
+    from agnostos_mjx.settings import usable_cores
+
+    if cfg.num_processes > 1 or cfg.coordinator or (cfg.resume and cfg.out is None):
+        return 1, "one process of a run"
+    gpus, source = mps.visible_gpus(dict(os.environ if environ is None else environ))
+    if not gpus:
+        return 1, source
+    cores = usable_cores()
+    n = max(1, min(PROCESSES_PER_GPU * len(gpus), MAX_DEFAULT_PROCESSES, cores // 2))
+    return n, f"{len(gpus)} GPU(s) and {cores} cores"
 
 
 def main(cfg: EvalConfig, argv: Sequence[str]) -> int:

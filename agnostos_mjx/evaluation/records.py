@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shlex
 from collections.abc import Sequence
+from datetime import datetime
 from pathlib import Path
 
 from agnostos_mjx.cli import atomic_write
@@ -99,6 +101,12 @@ def interrupted_message(out_dir: Path, argv: Sequence[str], out: Path | None = N
     where = (f"{kept} finished episode{'s' * (kept != 1)} saved in {out_dir / EPISODES_FILE}"
              if kept else "no episode had finished")
     return f"\ninterrupted; {where}; to continue: {resume_command(argv, out or out_dir)}"
+
+
+def default_out(policy: str) -> Path:
+    """A new run's folder: results/<policy>-<timestamp>."""
+    tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", policy.split(":")[-1]).strip("_") or "policy"
+    return Path("results") / f"{tag}-{datetime.now():%Y%m%d-%H%M%S}"
 
 
 def latest_run(root: Path = Path("results")) -> Path | None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import re
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, replace
@@ -32,6 +31,7 @@ from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, se
 from agnostos_mjx.evaluation.records import (
     EPISODES_FILE,
     append_records,
+    default_out,
     latest_run,
     record_key,
     repair_records,
@@ -53,11 +53,6 @@ log = logging.getLogger("agnostos_mjx.eval")
 
 
 # ---- the run's folder --------------------------------------------------------------------
-def default_out(policy: str) -> Path:
-    tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", policy.split(":")[-1]).strip("_") or "policy"
-    return Path("results") / f"{tag}-{datetime.now():%Y%m%d-%H%M%S}"
-
-
 def process_dir(out: Path, cfg: EvalConfig) -> Path:
     """Where this process writes: `out` itself, or out/proc-I when several processes share
     it, so each keeps its own episodes.jsonl (and --resume) with no file locking."""
