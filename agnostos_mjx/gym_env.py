@@ -74,7 +74,7 @@ from agnostos_mjx.data.lerobot_layout import (
     check_state,
     state_vector,
 )
-from agnostos_mjx.data.rotations import check_rotation
+from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation
 from agnostos_mjx.evaluation.config import VARIATION_MODES
 from agnostos_mjx.observation import CAMERAS
 from agnostos_mjx.tasks.base import KeyActions, Split
@@ -165,19 +165,55 @@ def lerobot_features(opts: EnvOptions) -> dict[str, tuple[str, tuple[int, ...], 
     return out
 
 
+def dataset_inputs(features: Mapping[str, Mapping[str, Any]]
+                   ) -> tuple[dict[str, tuple[int, ...]], dict[str, tuple[str, ...]]]:
+    """A LeRobot dataset's features (its meta/info.json ``features``) as a policy trained on
+    it sees them: the shapes of its ``observation.*`` and ``action`` features (images
+    channel-first, as LeRobot's ``dataset_to_policy_features`` turns them), and the
+    per-dimension names of ``observation.state`` and ``action``, which name the export's
+    state and rotation layouts (data/lerobot_layout.py)."""
+    shapes: dict[str, tuple[int, ...]] = {}
+    names: dict[str, tuple[str, ...]] = {}
+    for key, ft in features.items():
+        if not key.startswith(("observation", "action")):
+            continue
+        shape = tuple(int(n) for n in ft["shape"])
+        if ft.get("dtype") in ("image", "video") and len(shape) == 3 and \
+                list(ft.get("names") or [])[2:3] in (["channel"], ["channels"]):
+            shape = (shape[2], shape[0], shape[1])
+        shapes[key] = shape
+        if key in (STATE_KEY, "action") and isinstance(ft.get("names"), list):
+            names[key] = tuple(ft["names"])
+    return shapes, names
+
+
+# The layouts a policy's state and action names can name: the option that picks each.
+LAYOUT_OPTIONS = {STATE_KEY: ("state", STATE_NAMES),
+                  "action": ("rotation", {r: action_names(r) for r in ROTATION_NAMES})}
+# Options that the policy's features (shapes, names) fill in when left unset (None).
+FROM_POLICY = ("cameras", "size", "state", "rotation")
+
+
 def options_for_policy(features: Mapping[str, Sequence[int]] | None,
+                       names: Mapping[str, Sequence[str]] | None = None,
                        **options: Any) -> EnvOptions:
     """EnvOptions that give a LeRobot policy the inputs it was trained on.
 
     `features`: the policy's feature shapes, inputs and ``action`` (LeRobot's
-    ``input_features`` and ``output_features``), or None for no policy.  ``cameras`` and
-    ``size`` left out (or None) come from its ``observation.images.<camera>`` inputs, shape
-    (3, N, N); given ones, and ``state`` / ``rotation``, are checked against its
-    ``observation.state`` and ``action`` sizes.  A policy fed other inputs than it was
-    trained on still runs and scores 0% without a word, so any feature the env cannot give
-    is a ValueError, in one line, that names it."""
+    ``input_features`` and ``output_features``, or ``dataset_inputs`` of its training
+    data), or None for no policy.  `names`: the training data's names of the
+    ``observation.state`` and ``action`` dimensions (``dataset_inputs``), when known.
+    ``cameras`` and ``size`` left out (or None) come from its ``observation.images.<camera>``
+    inputs, shape (3, N, N), ``state`` and ``rotation`` from the layouts its names name;
+    given ones are checked against them, and against its ``observation.state`` and
+    ``action`` sizes.  A policy fed other inputs than it was trained on still runs and
+    scores 0% without a word (the rlbench and libero states are both 8 long: only the
+    names tell them apart), so any feature the env cannot give is a ValueError, in one
+    line, that names it."""
     images: dict[str, int] = {}
     problems: list[str] = []
+    names = {key: tuple(n) for key, n in (names or {}).items()}
+    given = [k for k in FROM_POLICY if options.get(k) is not None]
     for key, shape in (features or {}).items():
         shape = tuple(int(s) for s in shape)
         camera = key.removeprefix(IMAGE_PREFIX)
@@ -192,19 +228,30 @@ def options_for_policy(features: Mapping[str, Sequence[int]] | None,
             problems.append(f"{key} {shape} (the env renders RGB squares, (3, N, N))")
         else:
             images[camera] = shape[1]
-    given = [k for k in ("cameras", "size") if options.get(k) is not None]
     if "cameras" not in given and images:
         options["cameras"] = tuple(images)
     if "size" not in given and images:
         options["size"] = max(images.values())  # unequal sizes are reported below
+    named = {}  # per named feature: the layout its names name, or None
+    for key, (option, layouts) in LAYOUT_OPTIONS.items():
+        if key in names:
+            named[key] = next((lay for lay, n in layouts.items() if n == names[key]), None)
+            if option not in given and named[key] is not None:
+                options[option] = named[key]
     opts = EnvOptions(**{k: v for k, v in options.items()
-                         if v is not None or k not in ("cameras", "size")})
+                         if v is not None or k not in FROM_POLICY})
     problems += [f"{IMAGE_PREFIX}{cam} (3, {n}, {n})" for cam, n in images.items()
                  if cam not in opts.cameras or n != opts.size]
     wants = {STATE_KEY: (opts.state_dim,), "action": (opts.action_dim,)}
     for key, shape in wants.items():
         if key in (features or {}) and tuple(features[key]) != shape:
             problems.append(f"{key} {tuple(features[key])}")
+    ours = {STATE_KEY: STATE_NAMES[opts.state], "action": action_names(opts.rotation)}
+    for key, layout in named.items():
+        if names[key] != ours[key]:
+            option = LAYOUT_OPTIONS[key][0]
+            problems.append(f"{key} named {','.join(names[key])} ("
+                            + (f"{option} {layout})" if layout else "no layout of ours)"))
     if problems:
         hint = f"; leave {' and '.join(given)} unset to take the policy's" if given else ""
         raise ValueError(

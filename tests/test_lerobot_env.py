@@ -24,6 +24,7 @@ from agnostos_mjx.data import lerobot_layout as layout  # noqa: E402
 from agnostos_mjx.gym_env import (  # noqa: E402
     AgnostosVectorEnv,
     EnvOptions,
+    dataset_inputs,
     lerobot_features,
     make_suites,
     options_for_policy,
@@ -290,8 +291,53 @@ def test_a_policy_the_env_cannot_feed_is_a_one_line_error(policy, options, named
         assert re.search(pattern, message), (pattern, message)
 
 
+def test_the_training_datas_names_set_the_layouts() -> None:
+    """The export's info.json as a policy trained on it sees it (images channel-first, as
+    LeRobot's dataset_to_policy_features): its shapes set cameras and size, its state and
+    action names the state and rotation layouts, which lengths alone cannot tell apart."""
+    feats = layout.features(("front", "wrist"), 64, 64, "libero", "axis_angle",
+                            video_info={"video.codec": "h264"})
+    shapes, names = dataset_inputs(feats)
+    assert shapes == {"observation.images.front": (3, 64, 64),
+                      "observation.images.wrist": (3, 64, 64), "observation.state": (8,),
+                      "action": (7,)}
+    assert names == {"observation.state": layout.STATE_NAMES["libero"],
+                     "action": layout.action_names("axis_angle")}
+    opts = options_for_policy(shapes, names)
+    assert (opts.cameras, opts.size, opts.state, opts.rotation) == (
+        ("front", "wrist"), 64, "libero", "axis_angle")
+    assert options_for_policy(shapes, names, state="libero").state == "libero"
+
+
+@pytest.mark.parametrize("data,options,named", [
+    (("rlbench", "quat"), dict(state="libero"),
+     ["observation.state named x,y,z,qx,qy,qz,qw,gripper_open (state rlbench)",
+      "for state libero", "leave state unset"]),
+    (("xicm", "euler"), dict(rotation="axis_angle"),
+     ["action named x,y,z,rx,ry,rz,gripper (rotation euler)", "for rotation axis_angle",
+      "leave rotation unset"]),
+    (("libero", "quat"), dict(state="rlbench", size=64),
+     ["observation.state named x,y,z,ax,ay,az,finger_joint1,finger_joint2 (state libero)",
+      "leave size and state unset"]),
+])
+def test_another_layout_of_the_same_length_is_a_one_line_error(data, options, named) -> None:
+    """--env.state=libero for an rlbench-state policy (both 8 long) would run silently."""
+    shapes, names = dataset_inputs(layout.features(("front",), 64, 64, *data))
+    with pytest.raises(ValueError, match="the policy wants what this env does not give") as e:
+        options_for_policy(shapes, names, **options)
+    assert "\n" not in str(e.value)
+    for part in named:
+        assert part in str(e.value), (part, str(e.value))
+    names = {**names, "observation.state": ("joint1", "joint2", "joint3", "joint4", "joint5",
+                                            "joint6", "joint7", "gripper")}
+    with pytest.raises(ValueError, match=r"observation.state named joint1,.*,gripper \(no "
+                                         r"layout of ours\)"):
+        options_for_policy(shapes, names)
+
+
 # Just what lerobot_env_agnostos.configuration_agnostos imports from lerobot, so the
-# plug-in's config runs here without lerobot or torch; policy configs as config.json.
+# plug-in's config runs here without lerobot or torch; policy configs as config.json,
+# datasets as meta/info.json.
 FAKE_LEROBOT = {
     "lerobot/__init__.py": "",
     "lerobot/envs/__init__.py": "",
@@ -309,9 +355,12 @@ class PolicyFeature:
     "lerobot/configs/parser.py": """
 import sys
 
-def get_path_arg(field):
-    opt = f"--{field}.path="
+def parse_arg(name):
+    opt = f"--{name}="
     return next((a[len(opt):] for a in sys.argv[1:] if a.startswith(opt)), None)
+
+def get_path_arg(field):
+    return parse_arg(f"{field}.path")
 
 def get_cli_overrides(field):
     return []
@@ -343,56 +392,157 @@ class EnvConfig:
     def register_subclass(cls, name):
         return lambda sub: sub
 """,
+    "lerobot/utils/__init__.py": "",
+    "lerobot/utils/constants.py": """
+import os
+from pathlib import Path
+
+HF_LEROBOT_HOME = Path(os.environ["HF_LEROBOT_HOME"])
+""",
+    "lerobot/datasets/__init__.py": """
+import json
+from pathlib import Path
+
+from lerobot.utils.constants import HF_LEROBOT_HOME
+
+class LeRobotDatasetMetadata:
+    def __init__(self, repo_id, root=None, revision=None):
+        root = Path(root) if root else HF_LEROBOT_HOME / repo_id
+        self.features = json.loads((root / "meta/info.json").read_text())["features"]
+""",
 }
 CONFIG_RUN = """
 import json, sys
 from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
 cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
-print(json.dumps({"cameras": cfg.cameras, "size": cfg.size,
+print(json.dumps({"cameras": cfg.cameras, "size": cfg.size, "state": cfg.state,
+                  "rotation": cfg.rotation,
                   "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
 """
 
 
-def test_plugin_config_takes_the_policy_of_the_command_line(tmp_path) -> None:
-    """The plug-in's EnvConfig reads the policy that ``--policy.path`` names, as
-    lerobot-eval does, and builds its cameras, size and features from it, or stops with
-    the one-line error (lerobot's side faked: FAKE_LEROBOT)."""
+@pytest.fixture
+def plugin_config(tmp_path):
+    """Runs the plug-in's EnvConfig(task="lamp_on", **options) in a process whose command
+    line is `argv`, lerobot's side faked (FAKE_LEROBOT; HF_LEROBOT_HOME = tmp_path/home)."""
     import json
     import os
     import subprocess
 
+    fake = tmp_path / "fake"
     for name, text in FAKE_LEROBOT.items():
-        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
-        (tmp_path / name).write_text(text)
-    policy = tmp_path / "pretrained_model"
-    policy.mkdir()
-    shapes = lambda keys: {k: {"shape": list(ACT_64[k])} for k in keys}  # noqa: E731
-    (policy / "config.json").write_text(json.dumps({
-        "input_features": shapes([k for k in ACT_64 if k != "action"]),
-        "output_features": shapes(["action"])}))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(PLUGIN)])}
+        (fake / name).parent.mkdir(parents=True, exist_ok=True)
+        (fake / name).write_text(text)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(fake), str(PLUGIN)]),
+           "HF_LEROBOT_HOME": str(tmp_path / "home")}
 
     def config(options: dict, *argv: str) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-c", CONFIG_RUN, json.dumps(options), *argv],
                               capture_output=True, text=True, env=env, timeout=300)
 
+    return config
+
+
+def _policy_dir(path: Path, features: dict, dataset: dict | None = None) -> Path:
+    """A checkpoint's pretrained_model/ as lerobot writes it: config.json (the feature
+    shapes) and, from lerobot-train, train_config.json (which names its dataset)."""
+    import json
+
+    path.mkdir(parents=True)
+    shapes = lambda keys: {k: {"shape": list(features[k])} for k in keys}  # noqa: E731
+    (path / "config.json").write_text(json.dumps({
+        "input_features": shapes([k for k in features if k != "action"]),
+        "output_features": shapes(["action"])}))
+    if dataset is not None:
+        (path / "train_config.json").write_text(json.dumps({"dataset": dataset}))
+    return path
+
+
+def _dataset(root: Path, cameras, size: int, state: str, rotation: str) -> Path:
+    """A dataset's meta/info.json as the export writes it (data/lerobot.py: features)."""
+    import json
+
+    (root / "meta").mkdir(parents=True)
+    feats = layout.features(cameras, size, size, state, rotation)
+    (root / "meta/info.json").write_text(json.dumps({"codebase_version": "v3.0",
+                                                    "features": feats}))
+    return root
+
+
+def _one_line_stop(run, *parts: str) -> None:
+    assert run.returncode == 1 and run.stdout == "", run.stderr[-3000:]
+    assert run.stderr.startswith("--env.type=agnostos: the policy wants what this env does "
+                                 "not give: ") and run.stderr.count("\n") == 1, run.stderr
+    for part in parts:
+        assert part in run.stderr, (part, run.stderr)
+
+
+def test_plugin_config_takes_the_policy_of_the_command_line(plugin_config, tmp_path) -> None:
+    """The plug-in's EnvConfig reads the policy that ``--policy.path`` names, as
+    lerobot-eval does, and builds its cameras, size and features from it, or stops with
+    the one-line error."""
+    import json
+
+    policy = _policy_dir(tmp_path / "pretrained_model", ACT_64)
     eval_argv = ("--env.type=agnostos", f"--policy.path={policy}", "--policy.device=cpu")
-    run = config({}, *eval_argv)
+    run = plugin_config({}, *eval_argv)
     assert run.returncode == 0, run.stderr[-3000:]
     got = json.loads(run.stdout)
     assert (got["cameras"], got["size"]) == ("front,wrist", 64)
     assert got["features"] == {"action": [8], "agent_pos": [8], "pixels/front": [64, 64, 3],
                                "pixels/wrist": [64, 64, 3]}
     # the policy's inputs not given: the command stops with one line that names them
-    run = config({"size": 224}, *eval_argv)
-    assert run.returncode == 1 and run.stdout == ""
-    assert run.stderr.startswith("--env.type=agnostos: the policy wants what this env does "
-                                 "not give: observation.images.front (3, 64, 64); ")
-    assert run.stderr.count("\n") == 1 and "leave size unset" in run.stderr
-    run = config({})  # no policy on the command line: the export's defaults
+    _one_line_stop(plugin_config({"size": 224}, *eval_argv),
+                   "not give: observation.images.front (3, 64, 64); ", "leave size unset")
+    run = plugin_config({})  # no policy on the command line: the export's defaults
     assert run.returncode == 0, run.stderr[-3000:]
     got = json.loads(run.stdout)
-    assert (got["cameras"].count(","), got["size"]) == (4, 224)
+    assert (got["cameras"].count(","), got["size"], got["state"], got["rotation"]) == (
+        4, 224, "rlbench", "quat")
+
+
+RLBENCH_STATE = "observation.state named x,y,z,qx,qy,qz,qw,gripper_open (state rlbench)"
+
+
+def test_plugin_config_takes_the_training_datas_inputs(plugin_config, tmp_path) -> None:
+    """lerobot-train's evaluation (``--env_eval_freq``) of a policy trained from scratch:
+    no --policy.path, but the dataset's info.json holds its inputs, shapes and layouts;
+    the env takes them, or stops in one line on any other given; lerobot-eval finds the
+    dataset through the checkpoint's train_config.json."""
+    import json
+
+    data = _dataset(tmp_path / "agnostos_seen", ("front", "wrist"), 64, "rlbench", "quat")
+    train = ("--env.type=agnostos", "--env_eval_freq=100", "--policy.type=act",
+             "--dataset.repo_id=local/agnostos_seen", f"--dataset.root={data}")
+    run = plugin_config({}, *train)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = json.loads(run.stdout)
+    assert (got["cameras"], got["size"], got["state"], got["rotation"]) == (
+        "front,wrist", 64, "rlbench", "quat")
+    assert got["features"]["pixels/wrist"] == [64, 64, 3]
+    _one_line_stop(plugin_config({"size": 224}, *train),
+                   "observation.images.front (3, 64, 64)", "leave size unset")
+    # the same length, another layout: only the names tell
+    _one_line_stop(plugin_config({"state": "libero"}, *train), RLBENCH_STATE,
+                   "for state libero", "leave state unset")
+    # a dataset under $HF_LEROBOT_HOME in other layouts sets them all
+    _dataset(tmp_path / "home/local/xicm_seen", ("wrist",), 32, "xicm", "euler")
+    run = plugin_config({}, "--env.type=agnostos", "--dataset.repo_id=local/xicm_seen")
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = json.loads(run.stdout)
+    assert (got["cameras"], got["size"], got["state"], got["rotation"]) == (
+        "wrist", 32, "xicm", "euler")
+    assert got["features"]["agent_pos"] == [7] and got["features"]["action"] == [7]
+    # lerobot-eval: the checkpoint's train_config.json names the dataset it was trained on
+    policy = _policy_dir(tmp_path / "act", ACT_64, {"repo_id": "local/agnostos_seen",
+                                                    "root": str(data)})
+    _one_line_stop(plugin_config({"state": "libero"}, "--env.type=agnostos",
+                                 f"--policy.path={policy}"), RLBENCH_STATE)
+    # ... not on this machine: the lengths are all there is to check
+    policy = _policy_dir(tmp_path / "elsewhere", ACT_64, {"repo_id": "someone/else",
+                                                          "root": None})
+    run = plugin_config({"state": "libero"}, "--env.type=agnostos", f"--policy.path={policy}")
+    assert run.returncode == 0 and json.loads(run.stdout)["state"] == "libero", run.stderr
 
 
 @pytest.mark.parametrize("call,match", [

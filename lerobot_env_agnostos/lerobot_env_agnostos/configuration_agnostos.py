@@ -3,22 +3,35 @@ agnostos_mjx.gym_env.EnvOptions' (the LeRobot export's layout flags and how epis
 ``features`` / ``features_map`` name the export's keys, and ``create_envs`` returns
 ``{suite: {task_id: AgnostosVectorEnv}}``.
 
-The cameras and image size default to the policy's: lerobot-eval builds this config
-before it loads the policy, and builds the envs from it before the policy sees an
-observation, so the config reads the policy's features itself, from ``--policy.path`` as
-lerobot-eval does (``EvalPipelineConfig.__post_init__``), and stops on any input the env
-cannot give.  Checked against lerobot 0.6.1's src/lerobot/envs/configs.py (EnvConfig,
-create_envs), configs/eval.py, envs/utils.py (preprocess_observation) and
-scripts/lerobot_eval.py (eval_main, rollout)."""
+The cameras, image size, state and rotation default to the policy's: lerobot-eval and
+lerobot-train build this config before they load the policy, and build the envs from it
+before the policy sees an observation, so the config reads the policy's features itself,
+from ``--policy.path`` as lerobot-eval does (``EvalPipelineConfig.__post_init__``), and the
+names of its state and action dimensions from its training data: lerobot-train's
+``--dataset.repo_id`` / ``--dataset.root`` (a policy trained from scratch takes its inputs
+from there: ``make_policy(ds_meta=...)``), else the dataset the checkpoint's
+train_config.json names, when it is on this machine.  Any input the env cannot give stops
+the command in one line.  Checked against lerobot 0.6.1's src/lerobot/envs/configs.py
+(EnvConfig, create_envs), configs/eval.py, configs/train.py, envs/utils.py
+(preprocess_observation), scripts/lerobot_eval.py (eval_main, rollout) and
+scripts/lerobot_train.py (the envs of ``--env_eval_freq``)."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from lerobot.configs import FeatureType, PolicyFeature, parser
 from lerobot.envs.configs import EnvConfig
 
-from agnostos_mjx.gym_env import lerobot_features, make_suites, options_for_policy, resolve_tasks
+from agnostos_mjx.gym_env import (
+    dataset_inputs,
+    lerobot_features,
+    make_suites,
+    options_for_policy,
+    resolve_tasks,
+)
 
 
 def policy_features() -> dict[str, tuple[int, ...]] | None:
@@ -36,21 +49,45 @@ def policy_features() -> dict[str, tuple[int, ...]] | None:
                                                 **cfg.output_features}.items()}
 
 
+def dataset_features() -> dict | None:
+    """info.json's features of the policy's training data: lerobot-train's dataset
+    (``--dataset.repo_id``, ``--dataset.root``, found as lerobot-train finds it), else
+    the one the ``--policy.path`` checkpoint was trained on (its train_config.json) when
+    it is on this machine (an evaluation downloads no dataset); None when neither."""
+    repo_id = parser.parse_arg("dataset.repo_id")
+    if repo_id:
+        from lerobot.datasets import LeRobotDatasetMetadata
+
+        return LeRobotDatasetMetadata(repo_id, root=parser.parse_arg("dataset.root"),
+                                      revision=parser.parse_arg("dataset.revision")).features
+    path = parser.get_path_arg("policy")
+    train_config = Path(path or "") / "train_config.json"
+    if not path or not train_config.is_file():
+        return None
+    from lerobot.utils.constants import HF_LEROBOT_HOME
+
+    dataset = json.loads(train_config.read_text()).get("dataset") or {}
+    if not dataset.get("root") and not isinstance(dataset.get("repo_id"), str):
+        return None
+    info = Path(dataset.get("root") or HF_LEROBOT_HOME / dataset["repo_id"]) / "meta/info.json"
+    return json.loads(info.read_text())["features"] if info.is_file() else None
+
+
 @EnvConfig.register_subclass("agnostos")
 @dataclass
 class AgnostosEnvConfig(EnvConfig):
     """``task``: a task, a suite (seen, level1, level2, unseen) or a comma-separated mix.
     ``cameras`` (comma-separated), ``size``, ``state``, ``rotation``: the export's flags of
-    the training data; ``cameras`` and ``size`` default to the policy's image inputs (all
-    five cameras at 224 px without a policy).  The rest: agnostos_mjx.gym_env's module
-    docstring."""
+    the training data; they default to the policy's image inputs and its training data's
+    state and action names (without either: all five cameras at 224 px, rlbench state,
+    quat actions).  The rest: agnostos_mjx.gym_env's module docstring."""
 
     task: str | None = "unseen"
     fps: int = 10  # the export's nominal keyframe rate
     cameras: str | None = None
     size: int | None = None
-    state: str = "rlbench"
-    rotation: str = "quat"
+    state: str | None = None
+    rotation: str | None = None
     control_mode: str = "keyaction"
     control_hz: float = 20.0  # control_mode dense: control steps per second
     dense_steps: int | None = None  # control_mode dense: the step budget
@@ -65,15 +102,20 @@ class AgnostosEnvConfig(EnvConfig):
 
     def __post_init__(self) -> None:
         policy = policy_features()
+        data = dataset_features()
+        shapes, names = dataset_inputs(data) if data is not None else ({}, {})
+        if policy is None and shapes:  # a policy trained from scratch on the dataset
+            policy = shapes
         try:  # a ValueError names a bad option, or the policy's inputs this env cannot give
-            opts = options_for_policy(policy, **self.gym_kwargs)
+            opts = options_for_policy(policy, names, **self.gym_kwargs)
         except ValueError as e:
-            if policy is None:
+            if policy is None and not names:
                 raise
             # the policy came from the command line: stop it with one line, not a traceback
             # of the config parser's
             raise SystemExit(f"--env.type=agnostos: {e}") from None
         self.cameras, self.size = ",".join(opts.cameras), opts.size
+        self.state, self.rotation = opts.state, opts.rotation
         resolve_tasks(self.task or "")
         for key, (kind, shape, policy_key) in lerobot_features(opts).items():
             self.features[key] = PolicyFeature(type=FeatureType[kind], shape=shape)
