@@ -61,15 +61,16 @@ def dataset_features() -> dict | None:
         return LeRobotDatasetMetadata(repo_id, root=parser.parse_arg("dataset.root"),
                                       revision=parser.parse_arg("dataset.revision")).features
     path = parser.get_path_arg("policy")
-    train_config = Path(path or "") / "train_config.json"
-    if not path or not train_config.is_file():
+    train_config = Path(path) / "train_config.json" if path else None
+    if train_config is None or not train_config.is_file():  # none, or a Hub repo id
+        return None
+    dataset = json.loads(train_config.read_text()).get("dataset") or {}
+    root, repo_id = dataset.get("root"), dataset.get("repo_id")
+    if not root and not isinstance(repo_id, str):  # none, or a list of datasets
         return None
     from lerobot.utils.constants import HF_LEROBOT_HOME
 
-    dataset = json.loads(train_config.read_text()).get("dataset") or {}
-    if not dataset.get("root") and not isinstance(dataset.get("repo_id"), str):
-        return None
-    info = Path(dataset.get("root") or HF_LEROBOT_HOME / dataset["repo_id"]) / "meta/info.json"
+    info = Path(root or HF_LEROBOT_HOME / repo_id) / "meta/info.json"
     return json.loads(info.read_text())["features"] if info.is_file() else None
 
 
