@@ -249,9 +249,8 @@ def options_for_policy(features: Mapping[str, Sequence[int]] | None,
     ours = {STATE_KEY: STATE_NAMES[opts.state], "action": action_names(opts.rotation)}
     for key, layout in named.items():
         if names[key] != ours[key]:
-            option = LAYOUT_OPTIONS[key][0]
-            problems.append(f"{key} named {','.join(names[key])} ("
-                            + (f"{option} {layout})" if layout else "no layout of ours)"))
+            what = f"{LAYOUT_OPTIONS[key][0]} {layout}" if layout else "no layout of ours"
+            problems.append(f"{key} named {','.join(names[key])} ({what})")
     if problems:
         hint = f"; leave {' and '.join(given)} unset to take the policy's" if given else ""
         raise ValueError(
