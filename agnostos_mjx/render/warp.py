@@ -1,9 +1,12 @@
 """`WarpRenderer`: the MJX ``impl="warp"`` batch ray-tracer (all worlds in one CUDA call),
-and `FixedCamLight`, the closed-form camera and light poses it renders from.  Importing
-this module needs neither warp nor a GPU (they are imported when a renderer is built)."""
+`FixedCamLight`, the closed-form camera and light poses it renders from, and
+`headlight_as_light`, which lights Warp's images as MuJoCo's OpenGL lights the CPU's.
+Importing this module needs neither warp nor a GPU (they are imported when a renderer is
+built)."""
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from typing import Any, Self
 
@@ -58,6 +61,37 @@ class FixedCamLight:
                 place(self.light_body, self.light_pos), light_xdir)
 
 
+# scenes/world.xml's inactive light that carries the headlight on Warp (headlight_as_light).
+HEADLIGHT_LIGHT = "headlight"
+
+
+def headlight_as_light(model: mujoco.MjModel) -> tuple[mujoco.MjModel, int]:
+    """A copy of ``model`` whose headlight is its light `HEADLIGHT_LIGHT`, and that light's id.
+
+    MuJoCo's OpenGL renderer places the headlight once per scene update
+    (``mjv_updateScene`` -> ``mjv_makeLights``, at the scene's camera) and
+    ``mjv_updateCamera`` does not move it, so `CpuRenderer` lights every camera of a
+    ``render_views`` call with the headlight of the call's *first* camera.  MuJoCo Warp
+    lights each camera with its own headlight, so only the first camera agreed.  Warp's
+    headlight is switched off here and the scene's inactive placeholder light turned into a
+    directional light with the headlight's colours, which `WarpRenderer.pose` aims along
+    the first camera's view.  A model without the placeholder, or without a headlight, is
+    returned unchanged with id -1 (each camera then keeps Warp's own headlight)."""
+    light = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_LIGHT, HEADLIGHT_LIGHT)
+    if light < 0 or not model.vis.headlight.active:
+        return model, -1
+    head = model.vis.headlight
+    m = copy.copy(model)
+    m.vis.headlight.active = 0
+    m.light_active[light] = True
+    m.light_type[light] = mujoco.mjtLightType.mjLIGHT_DIRECTIONAL
+    m.light_castshadow[light] = False
+    m.light_ambient[light] = head.ambient
+    m.light_diffuse[light] = head.diffuse
+    m.light_specular[light] = head.specular
+    return m, light
+
+
 class WarpRenderer:
     """MJX-Warp batch ray-tracer: all worlds of an ``mjx.Data`` batch in one GPU call.
 
@@ -66,7 +100,9 @@ class WarpRenderer:
     nothing measurable on an H100). ``data`` passed to the render methods must be a warp-impl
     batch (leading axis ``nworld``) on which forward/kinematics already ran (cam_xpos,
     geom_xpos are read). Colours come from the mjx.Model (``mjx_model``, default
-    ``put_model(model, impl="warp")``) or per world from ``geom_rgba`` [B, ngeom, 4].
+    ``put_model`` of the renderer's `model`) or per world from ``geom_rgba`` [B, ngeom, 4].
+    Lighting is `CpuRenderer`'s: the headlight of the first of ``cameras`` lights them all
+    (`headlight_as_light`; a given ``mjx_model`` must be ``put_model(renderer.model)``).
     """
 
     def __init__(
@@ -87,12 +123,15 @@ class WarpRenderer:
         from agnostos_mjx.physics.quiet_mjx import mjx
 
         model = for_warp(model)
+        model, self._headlight = headlight_as_light(model)
         self.width, self.height, self.nworld = int(width), int(height), int(nworld)
         self.camera_names = tuple(cameras) if cameras is not None else camera_names(model)
         for cam in self.camera_names:
             if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, cam) < 0:
                 raise unknown_camera(model, cam)
         self._model = model
+        self._first_cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA,
+                                            self.camera_names[0])
         self.near, self.far = clip_planes(model)
         self.depth, self.segmentation = bool(depth), bool(segmentation)
         self.mx = mjx_model if mjx_model is not None else mjx.put_model(model, impl="warp")
@@ -149,6 +188,11 @@ class WarpRenderer:
         self._pose_jit: Any = None
         self._camlight = FixedCamLight(model) if FixedCamLight.supports(model) else None
 
+    @property
+    def model(self) -> mujoco.MjModel:
+        """The MjModel Warp renders: the caller's, lit as `CpuRenderer` lights it."""
+        return self._model
+
     def template(self) -> Any:
         """A warp ``mjx.Data`` batch of ``nworld`` worlds, made once (its state is replaced)."""
         import jax
@@ -176,9 +220,16 @@ class WarpRenderer:
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
         d = template.replace(qpos=f32(qpos), mocap_pos=f32(mocap_pos), mocap_quat=f32(mocap_quat))
         if self._camlight is None:
-            return jax.vmap(lambda d: mjx.forward(mx, d))(d)
-        d = jax.vmap(lambda d: mjx.kinematics(mx, d))(d)
-        cam_xpos, cam_xmat, light_xpos, light_xdir = self._camlight(d.xpos, d.xmat, jnp)
+            d = jax.vmap(lambda d: mjx.forward(mx, d))(d)
+            cam_xpos, cam_xmat = d.cam_xpos, d.cam_xmat
+            light_xpos, light_xdir = d._impl.light_xpos, d._impl.light_xdir
+        else:
+            d = jax.vmap(lambda d: mjx.kinematics(mx, d))(d)
+            cam_xpos, cam_xmat, light_xpos, light_xdir = self._camlight(d.xpos, d.xmat, jnp)
+        if self._headlight >= 0:  # the first camera's headlight, as mjv_makeLights places it
+            cam = self._first_cam
+            light_xpos = light_xpos.at[..., self._headlight, :].set(cam_xpos[..., cam, :])
+            light_xdir = light_xdir.at[..., self._headlight, :].set(-cam_xmat[..., cam, :, 2])
         return d.tree_replace({"cam_xpos": cam_xpos, "cam_xmat": cam_xmat,
                                "_impl.light_xpos": light_xpos, "_impl.light_xdir": light_xdir})
 
