@@ -111,7 +111,10 @@ def render_both(task_name: str, size: int, worlds: int, cameras: Sequence[str],
         for kind in ("cpu", "warp"):
             spec = ObservationSpec(cameras=tuple(cameras), height=size, width=size,
                                    modalities=("rgb", "depth", "segmentation"), renderer=kind)
-            views[kind] = runner.observer.render_views(env, spec)
+            # Host copies before the renderers close: Warp's images are computed
+            # asynchronously and need their render context until they are done.
+            views[kind] = {name: jax.tree.map(np.asarray, images) for name, images
+                           in runner.observer.render_views(env, spec).items()}
         return views["cpu"], views["warp"], np.asarray(runner.scene.model.geom_bodyid)
     finally:
         runner.observer.close()

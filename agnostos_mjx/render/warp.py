@@ -277,7 +277,12 @@ class WarpRenderer:
         return np.asarray(self.render_jax(data, camera))
 
     def close(self) -> None:
-        """Drop the render context so its GPU buffers are released."""
+        """Drop the render context so its GPU buffers are released, once the renders already
+        dispatched are done (JAX runs them asynchronously; without their context they fail)."""
+        if self._rc is not None:
+            import jax
+
+            jax.effects_barrier()
         self._rc = None
 
     def __enter__(self) -> Self:
