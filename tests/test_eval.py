@@ -522,9 +522,7 @@ class Unbatched(Policy):
 '''
 
 
-@pytest.mark.parametrize("fail_fast", [True, pytest.param(False, marks=pytest.mark.xfail(
-    strict=True, reason="evaluation/run.py's on_error records the UsageError as a failed "
-                        "task instead of re-raising it"))])
+@pytest.mark.parametrize("fail_fast", [True, False])
 def test_an_answer_of_the_wrong_shape_stops_the_run_in_one_line(fail_fast: bool, tmp_path: Path,
                                                                  capsys) -> None:
     """A key-action answer of other shapes than (B, 3), (B, 4), (B,), (B,) is the policy's

@@ -371,3 +371,6 @@ def test_default_process_count_follows_the_gpus_and_cores(tmp_path: Path,
     env = {**bare, "CUDA_VISIBLE_DEVICES": "0"}
     assert processes.default_count(EvalConfig(num_processes=4, process_id=1), env)[0] == 1
     assert processes.default_count(EvalConfig(resume=True), env)[0] == 1
+    monkeypatch.setattr(settings, "usable_cores", lambda: 16)
+    few = EvalConfig(tasks="lamp_on,close_jar", seeds=[0])  # one process per (task, seed)
+    assert processes.default_count(few, env)[0] == 2

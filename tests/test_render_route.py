@@ -113,3 +113,10 @@ def test_timing_policy_refuses_a_bad_chunk() -> None:
 
     with pytest.raises(ValueError, match="chunk"):
         TimingPolicy(chunk=0)
+
+
+def test_dense_periods_scan_their_conditions_in_short_chunks() -> None:
+    from agnostos_mjx.runtime.phase import CONDITION_ROWS, condition_rows
+
+    assert [condition_rows(n) for n in (1, 8, 10, 16, 17, 1000)] == [8, 8, 16, 16, 32,
+                                                                    CONDITION_ROWS]

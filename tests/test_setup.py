@@ -177,10 +177,7 @@ def test_console_scripts_resolve() -> None:
 
 
 @pytest.mark.parametrize("script", [
-    pytest.param("agnostos-eval", marks=pytest.mark.xfail(
-        strict=True, reason="evaluation/config.py's build_parser still names "
-                            "'python -m agnostos_mjx.eval'; it wants cli.prog('agnostos_mjx.eval')")),
-    "agnostos-export", "agnostos-warmup", "agnostos-compare"])
+    "agnostos-eval", "agnostos-export", "agnostos-warmup", "agnostos-compare"])
 def test_usage_and_errors_name_the_command_typed(script: str, monkeypatch: pytest.MonkeyPatch,
                                                  capsys: pytest.CaptureFixture) -> None:
     """A console script's usage and error lines name the script; run as ``python -m`` (its

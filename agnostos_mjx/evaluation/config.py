@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from agnostos_mjx import settings
-from agnostos_mjx.cli import HelpFormatter
+from agnostos_mjx.cli import HelpFormatter, prog
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
 from agnostos_mjx.mps import MODES as MPS_MODES
@@ -277,7 +277,7 @@ def _default(f: Field) -> Any:
 def build_parser() -> argparse.ArgumentParser:
     """The command line of EvalConfig's fields (see `option`)."""
     parser = argparse.ArgumentParser(
-        prog="python -m agnostos_mjx.eval",
+        prog=prog("agnostos_mjx.eval"),
         description="Evaluate a policy on AGNOSTOS tasks (X-ICM protocol) and write "
                     "episodes.jsonl, results.json, results.csv and results.md.",
         formatter_class=HelpFormatter)

@@ -89,9 +89,11 @@ def _episodes_done(out: Path, n: int) -> int:
 
 def default_count(cfg: EvalConfig, environ: dict[str, str] | None = None) -> tuple[int, str]:
     """--local-processes when not given: PROCESSES_PER_GPU per visible NVIDIA GPU, at most
-    MAX_DEFAULT_PROCESSES and half the usable cores; one process without a GPU, for a
-    process of a larger run, and for --resume without --out.  Returns (count, why)."""
+    MAX_DEFAULT_PROCESSES, half the usable cores and one per (task, seed) of the run; one
+    process without a GPU, for a process of a larger run, and for --resume without --out.
+    Returns (count, why)."""
     from agnostos_mjx.settings import usable_cores
+    from agnostos_mjx.tasks.catalog import parse_task_names
 
     if cfg.num_processes > 1 or cfg.coordinator or (cfg.resume and cfg.out is None):
         return 1, "one process of a run"
@@ -99,7 +101,8 @@ def default_count(cfg: EvalConfig, environ: dict[str, str] | None = None) -> tup
     if not gpus:
         return 1, source
     cores = usable_cores()
-    n = max(1, min(PROCESSES_PER_GPU * len(gpus), MAX_DEFAULT_PROCESSES, cores // 2))
+    units = len(parse_task_names(cfg.tasks)) * len(cfg.seeds)
+    n = max(1, min(PROCESSES_PER_GPU * len(gpus), MAX_DEFAULT_PROCESSES, cores // 2, units))
     return n, f"{len(gpus)} GPU(s) and {cores} cores"
 
 

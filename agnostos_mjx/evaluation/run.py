@@ -225,6 +225,8 @@ def evaluate(cfg: EvalConfig) -> dict:
                              plot=cfg.num_processes == 1)
 
     def on_error(index: int, error: Exception) -> None:
+        if isinstance(error, UsageError):  # e.g. answers of the wrong shape: the run stops
+            raise error
         name = todo[index][1]
         failed[name] = f"{type(error).__name__}: {error}"
         log.error("%s failed, the other tasks go on (its episodes not recorded run again "

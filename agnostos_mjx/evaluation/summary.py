@@ -247,7 +247,8 @@ def merge(out: Path) -> dict:
         for r in load_records(p.parent / EPISODES_FILE):
             records.setdefault(record_key(r), r)
     merged = list(records.values())
-    meta = {k: first[k] for k in ("config", "policy", "backend", "versions", "tasks")}
+    meta = {k: first.get(k) for k in ("config", "policy", "backend", "renderer", "versions",
+                                      "tasks")}
     meta["config"] = asdict(cfg)
     meta["started"] = min(m["started"] for m in metas)
     meta["processes"] = [{"process_id": m["config"]["process_id"], "wall_s": m["wall_s"],

@@ -24,8 +24,10 @@ from agnostos_mjx.runtime.dense import DenseControl, dense_action
 from agnostos_mjx.runtime.key_action import StepSpec, key_action
 from agnostos_mjx.runtime.observe import Observer
 from agnostos_mjx.runtime.phase import (
+    CONDITION_ROWS,
     DevicePhases,
     HostPhases,
+    condition_rows,
     host_device,
     scan_conditions,
     steps_per_iteration,
@@ -109,9 +111,11 @@ class Episodes:
         self._reachable = control.jit_for_robot(control.reachable, self.kin) if on_device else (
             lambda *args: control.reachable(self.kin, *args))
         self._device_programs: dict = {}  # batch size -> jitted key action (compiled once each)
-        # Dense control's IK (runtime/dense.py), placed as the planner is.
+        # Dense control's IK (runtime/dense.py): one small descent per control step, which
+        # native physics runs on the host (a device call's round trip costs more than the
+        # numpy IK) unless the device planner is asked for by name.
         self._dense_ik = control.jit_for_robot(control.dense_ik, self.kin)
-        self._dense_plan = self._dense_ik if on_device else (
+        self._dense_plan = self._dense_ik if planner == "device" else (
             lambda q, p, r: control.dense_ik(self.kin, q, p, r))
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
 
@@ -301,12 +305,13 @@ class Episodes:
         return GatheredPlanner.for_robot(self.kin).submit(q0, actions.pos, actions.quat,
                                                           self.plan_rows)
 
-    def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run
-                     ) -> tuple[EnvState, tuple[StepResult, ...]]:
+    def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run,
+                     rows: int = CONDITION_ROWS) -> tuple[EnvState, tuple[StepResult, ...]]:
         """`run(phases, state, actions, plan)` on the host (HostPhases, numpy; its jitted
-        helpers on the CPU), the plan `plan_fn(q, pos, quat)` from the current joints."""
+        helpers on the CPU), the plan `plan_fn(q, pos, quat)` from the current joints;
+        `rows`: the condition program's rows per call."""
         phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
-                            self.record_qpos)
+                            self.record_qpos, rows)
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
         plan = tuple(map(np.asarray, plan_fn(
             q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype))))
@@ -371,7 +376,8 @@ class Episodes:
         if self.on_mjx and not record:
             return self.dense_on_device(state, targets, ctl), ()
         return self._run_on_host(state, targets, self._dense_plan,
-                                 lambda *args: dense_action(self.spec, *args, ctl))
+                                 lambda *args: dense_action(self.spec, *args, ctl),
+                                 condition_rows(ctl.period_steps))
 
     def dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
                         physics=None) -> EnvState:

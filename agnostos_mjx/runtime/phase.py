@@ -57,6 +57,13 @@ def scan_conditions(condition_step: Callable) -> Callable:
 CONDITION_ROWS = 128
 
 
+def condition_rows(steps: int) -> int:
+    """Rows per condition call for phases of at most `steps` steps (a dense control period):
+    the next power of two, at least 8, at most CONDITION_ROWS, so that short phases do not
+    scan a whole chunk of padding rows."""
+    return min(CONDITION_ROWS, max(8, 1 << (max(steps, 1) - 1).bit_length()))
+
+
 def host_device() -> jax.Device | None:
     """The CPU, where a host key action runs its small jitted helpers (the condition scan,
     grasps) next to its physics: on a GPU host each call would otherwise wait behind the
@@ -78,13 +85,15 @@ class HostPhases:
     xp = np
 
     def __init__(self, backend: Backend, model: mujoco.MjModel, conditions: Callable,
-                 record_qpos: bool = False):
+                 record_qpos: bool = False, rows: int = CONDITION_ROWS):
         """`conditions`: `jax.jit(jax.vmap(scan_conditions(condition_step)))`, made once per
-        runner (a new jit per key action would compile anew each time)."""
+        runner (a new jit per key action would compile anew each time); `rows`: rows per
+        call of it (`condition_rows`)."""
         self.backend = backend
         self.model = model
         self.record_qpos = record_qpos
         self._conditions = conditions
+        self.rows = rows
 
     def run_phase(self, state: EnvState, steps: np.ndarray, ctrl_at: Callable
                   ) -> tuple[EnvState, np.ndarray, np.ndarray, StepResult | None]:
@@ -119,18 +128,18 @@ class HostPhases:
 
     def _scan(self, state: EnvState, sens: np.ndarray, attached: np.ndarray, valid: np.ndarray
               ) -> tuple[Any, np.ndarray, np.ndarray]:
-        """The conditions over a phase's rows in chunks of CONDITION_ROWS (the last one
+        """The conditions over a phase's rows in chunks of `self.rows` (the last one
         padded with rows that are not valid), so a runner compiles one condition program
         whatever its phases' lengths; returns the carry and the first success and failure
         rows (-1: none)."""
         b, t = valid.shape
         carry, none = state.carry, np.full(b, -1)
         s_idx, f_idx = none, none
-        for start in range(0, t, CONDITION_ROWS):
-            rows = [x[:, start:start + CONDITION_ROWS] for x in (sens, attached, valid)]
-            pad = CONDITION_ROWS - rows[0].shape[1]
+        for start in range(0, t, self.rows):
+            rows = [x[:, start:start + self.rows] for x in (sens, attached, valid)]
+            pad = self.rows - rows[0].shape[1]
             if pad:  # the last row repeated, marked not valid
-                rows = [np.pad(x, [(0, 0), (0, pad)] + [(0, 0)] * (x.ndim - 2), mode="edge")
+                rows = [np.concatenate([x, np.repeat(x[:, -1:], pad, axis=1)], axis=1)
                         for x in rows]
                 rows[2][:, -pad:] = False
             carry, s, f = self._conditions(carry, *rows, state.variation)
