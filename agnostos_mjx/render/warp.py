@@ -16,6 +16,18 @@ import numpy as np
 from agnostos_mjx.render.common import CameraImages, camera_names, clip_planes, unknown_camera
 
 
+def captured(program: Any, *args: Any) -> Any:
+    """`program(*args)` run to its end with Python's garbage collector paused: Warp captures
+    its kernels into a CUDA graph, and a collection meanwhile may free an old XLA program,
+    whose unloading fails the capture (physics.mjx_backend.gc_paused)."""
+    import jax
+
+    from agnostos_mjx.physics.mjx_backend import gc_paused
+
+    with gc_paused():
+        return jax.block_until_ready(program(*args))
+
+
 class FixedCamLight:
     """Camera and light poses of a scene whose cameras and lights are all fixed to a body.
 
@@ -239,7 +251,7 @@ class WarpRenderer:
 
         if self._pose_jit is None:
             self._pose_jit = jax.jit(self.pose)
-        return self._pose_jit(self.template(), qpos, mocap_pos, mocap_quat)
+        return captured(self._pose_jit, self.template(), qpos, mocap_pos, mocap_quat)
 
     def views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
         """:meth:`render_views` without the checks (traceable: use inside a jit)."""
@@ -260,12 +272,12 @@ class WarpRenderer:
     def render_buffers(self, data: Any, geom_rgba: Any = None) -> tuple[Any, Any, Any]:
         """The bare renderer (``refit_bvh`` + ``render``): packed device buffers, for timing."""
         self._check(data)
-        return self._buffers(data, geom_rgba)
+        return captured(self._buffers, data, geom_rgba)
 
     def render_views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
         """Every camera of the context -> :class:`CameraImages` of JAX device arrays."""
         self._check(data)
-        return self._views(data, geom_rgba)
+        return captured(self._views, data, geom_rgba)
 
     def render_jax(self, data: Any, camera: str) -> Any:
         """Like :meth:`render` but returns the device array (no host copy)."""

@@ -121,6 +121,8 @@ class Observer:
                       ) -> dict[str, CameraObservation]:
         """Every camera of `spec` on MJX-Warp as one device program: pose (kinematics and
         camera poses), trace, then depth clipping, extrinsics and point clouds."""
+        from agnostos_mjx.render.warp import captured
+
         p = state.physics
         renderer = self.renderer(spec, "warp", len(p.qpos))
         constants = camera_constants(self.scene.model, spec)
@@ -136,8 +138,8 @@ class Observer:
                 return out
 
             self._programs[key] = jax.jit(observe_all)
-        arrays = self._programs[key](renderer.template(), p.qpos, p.mocap_pos, p.mocap_quat,
-                                     jnp.asarray(state.geom_rgba, jnp.float32))
+        arrays = captured(self._programs[key], renderer.template(), p.qpos, p.mocap_pos,
+                          p.mocap_quat, jnp.asarray(state.geom_rgba, jnp.float32))
         return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
                 for name, (k, near, far) in constants.items()}
 
@@ -170,8 +172,6 @@ class Observer:
                 cameras = {name: CameraObservation(**{
                     f: (np.asarray(v) if hasattr(v, "shape") else v) for f, v in vars(cam).items()})
                     for name, cam in cameras.items()}
-            else:  # the images are ready when the policy gets them: the time is rendering's
-                jax.block_until_ready(cameras)
             self.frames += state.batch * len(spec.cameras)
         else:
             views = self.render_views(state, spec)
