@@ -609,7 +609,7 @@ def test_tasks_at_once_give_the_records_of_each_task_alone(tmp_path: Path, monke
     assert all(r["success"] for r in together.values())
 
 
-@pytest.mark.slow  # the device planner compiled on 2 cores at several sizes
+@pytest.mark.slow  # the device planner compiled at several sizes
 def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypatch) -> None:
     """With the device planner, tasks running at once plan their key actions in shared
     calls (runtime/plan_rows.py), gathered in an order that timing cannot change: a rerun
