@@ -2,8 +2,8 @@
 
 Processes that share a GPU without CUDA MPS time-slice it: 8 processes of 75 worlds each
 ran slower together than one process, and 4x faster under MPS (docs/performance.md).
-This module decides where each
-process runs and, for ``--mps auto|on``, starts one MPS control daemon per shared GPU.
+This module decides where each process runs and, for ``--mps auto|on``, starts one MPS
+control daemon per shared GPU.
 Only the standard library is used: the launcher must not start JAX.
 
 **GPUs** (`visible_gpus`): none unless an NVIDIA driver is there (``nvidia-smi`` on PATH or

@@ -8,9 +8,8 @@ process would have written them (summary.merge).
 
 Why: with MJX-Warp at the protocol's batch of 75 a physics step leaves the GPU mostly idle
 (its cost is latency, not work), so tasks run side by side in processes (figures in
-docs/performance.md).  Each
-process gets ``0.6 / K`` of its GPU's memory for JAX, K being the most processes on one GPU,
-unless ``--gpu-mem-fraction`` says otherwise (Warp allocates its CUDA graphs outside JAX's
+docs/performance.md).  Each process gets ``0.6 / K`` of its GPU's memory for JAX, K being
+the most processes on one GPU, unless ``--gpu-mem-fraction`` says otherwise (Warp allocates its CUDA graphs outside JAX's
 pool; 0.9 / 8 ran out).
 
 GPU placement: with G > 1 GPUs visible (the entries of CUDA_VISIBLE_DEVICES, else the
