@@ -57,7 +57,7 @@ def atomic_write(path: Path, text: str | bytes) -> None:
 
 def process_age_s() -> float | None:
     """Seconds since this process started (interpreter start-up included), from Linux's
-    /proc at its 10 ms resolution; None where there is no /proc."""
+    /proc at its clock-tick resolution; None where there is no /proc."""
     try:
         with open("/proc/self/stat") as f:
             start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])

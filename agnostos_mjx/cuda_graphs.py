@@ -3,10 +3,9 @@
 XLA runs a `while` loop on a GPU from the host: each iteration launches the body's kernels
 and copies the loop's predicate back, and the waiting thread spins meanwhile. Compiled with
 GPU_GRAPH_OPTIONS, the loop (conditional nodes included) is one CUDA graph: no host round
-trip per iteration and no spinning thread (the IK planner on an H200: 1 CPU-ms a plan, not
-48). The kernels are the same, so the numbers are too. The selection's program (its DDIM
-steps a `scan`) ran no faster with them (H200: 103 against 104 ms and the same CPU-ms a
-call), so it stays a plain jit.
+trip per iteration and no spinning thread (the IK planner's CPU time per plan fell by far;
+docs/performance.md). The kernels are the same, so the numbers are too. The selection's
+program (its DDIM steps a `scan`) ran no faster with them, so it stays a plain jit.
 """
 
 from __future__ import annotations

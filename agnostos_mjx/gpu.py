@@ -5,7 +5,7 @@ XLA_PYTHON_CLIENT_MEM_FRACTION), which starves a VLA or an LLM served on the sam
 ``--gpu-mem-fraction F`` (or $AGNOSTOS_GPU_MEM_FRACTION) caps our pool at F of the card;
 0 turns preallocation off (memory is taken as needed).  When a remote policy or LLM server
 URL points at this machine and nothing is set, F = LOCAL_SERVER_FRACTION (0.35: 28 GB of an
-80 GB H100, ample for MJX-Warp batches of thousands of worlds, leaving 52 GB for the
+80 GB card, ample for MJX-Warp batches of thousands of worlds, leaving 52 GB for the
 server, e.g. an openpi server started with XLA_PYTHON_CLIENT_MEM_FRACTION=0.5).
 XLA_PYTHON_CLIENT_* variables set by the user are left alone.  The variables are read when
 JAX starts its backend, so this must run before the first computation.

@@ -1,10 +1,9 @@
 """GPUs of this machine for ``--local-processes N``: placement and private CUDA MPS daemons.
 
-Processes that share a GPU without CUDA MPS time-slice it: on an H100, 8 processes of
-75 worlds each took 4.1 ms per physics step (0.145 M world-steps/s together, slower than
-one process), and 0.9 ms each (0.64 M world-steps/s, 4x more) under MPS
-(docs/performance.md).  This module decides where each
-process runs and, for ``--mps auto|on``, starts one MPS control daemon per shared GPU.
+Processes that share a GPU without CUDA MPS time-slice it: 8 processes of 75 worlds each
+ran slower together than one process, and 4x faster under MPS (docs/performance.md).
+This module decides where each process runs and, for ``--mps auto|on``, starts one MPS
+control daemon per shared GPU.
 Only the standard library is used: the launcher must not start JAX.
 
 **GPUs** (`visible_gpus`): none unless an NVIDIA driver is there (``nvidia-smi`` on PATH or
@@ -36,15 +35,11 @@ with ``echo quit | nvidia-cuda-mps-control`` when the run ends, fails or is inte
 it is sent at once, without waiting.  A daemon left running in those folders by a launcher
 that was killed is reused and then stopped.
 
-Seen on a lent machine with 2 H100s (driver 580): ``control`` is a SOCK_SEQPACKET socket
-that accepts a connection; under a daemon started with CUDA_VISIBLE_DEVICES=1, a client
-with the variable unset, "0" or GPU 1's UUID got GPU 1 alone, and one with "1" got
-CUDA_ERROR_NO_DEVICE (100); JAX ran there; ``quit`` with a client still working took 6 s,
-until that client ended, which kept allocating memory meanwhile.  This module there (its
-code run by a small driver, not through the eval command): 4 processes on 2 GPUs ran as
-MPS clients (nvidia-smi: M+C) on GPUs 0, 1, 0, 1, one daemon per GPU; with
-CUDA_VISIBLE_DEVICES=1, 3 processes on GPU 1; a 120-character --out moved the pipe folder to
-/tmp (removed afterwards); every daemon quit at the end.
+The MPS behaviour this relies on (seen on a two-GPU host; docs/performance.md):
+``control`` is a SOCK_SEQPACKET socket that accepts a connection; under a daemon started
+with CUDA_VISIBLE_DEVICES=1, a client with the variable unset, "0" or GPU 1's UUID got
+GPU 1 alone, and one with "1" got CUDA_ERROR_NO_DEVICE (100); ``quit`` with a client still
+working returns only when that client ends, which keeps allocating memory meanwhile.
 """
 
 from __future__ import annotations
@@ -76,9 +71,9 @@ LONGEST_SOCKET = "control_privileged"
 START_TIMEOUT_S = 20.0
 PROBE_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 30.0
-MEASURED = ("on an H100, 8 processes took 4.1 ms per physics step each (0.145 M "
-            "world-steps/s together, slower than one process), 0.9 ms each (0.64 M "
-            "world-steps/s) under CUDA MPS")
+# Why the warning matters, in the user's terms (the measurement: docs/performance.md).
+MEASURED = ("8 processes on one GPU ran slower together than one process, and 4x faster "
+            "under CUDA MPS")
 # Creates a CUDA context in a client of the daemon of the environment: exit 1 and the CUDA
 # error when that fails; "context ok" when it works; nothing when there is no libcuda.
 PROBE = r"""

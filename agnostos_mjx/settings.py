@@ -113,8 +113,8 @@ def _backend_started() -> bool:
 def lower_cpu_optimisation() -> None:
     """Add XLA's CPU optimisation level 1 to XLA_FLAGS unless a level is set there already.
 
-    The default level made the small unrolled kinematics kernels 100x slower at run time
-    (18 ms vs 0.18 ms per forward-kinematics call, jaxlib 0.10 on 2 x86 cores).  The level
+    The default level made the small unrolled kinematics kernels about 100x slower at run
+    time (docs/performance.md).  The level
     changes floating-point results in the last bits, so every command applies it the same
     way.  XLA reads the flags when JAX starts its backend: this must come before."""
     flags = os.environ.get("XLA_FLAGS", "")

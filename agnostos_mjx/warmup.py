@@ -3,8 +3,8 @@
     python -m agnostos_mjx.warmup --tasks unseen --backend warp
 
 On a fresh GPU machine the first MuJoCo Warp step of a scene builds Warp's CUDA kernels,
-one module after another (~110 s for the first scene, ~15 s for each further size;
-mjx_notes.md), and every process of a `--local-processes` run would build the same kernels
+one module after another (minutes for the first scene, more for each further size;
+docs/performance.md), and every process of a `--local-processes` run would build the same kernels
 at once.  Warp keeps built kernels on disk and JAX keeps compiled programs in its
 persistent cache (agnostos_mjx.settings.configure_jax), so this command does each build
 once, two things at the same time:
@@ -12,8 +12,7 @@ once, two things at the same time:
   `--kernel-jobs` processes, each its share (physics/warp_build.py);
 - the default policies' demo selection once (X-ICM's lang+vis.out dynamics features, which
   the retrieval baseline uses too): its networks are one set of programs per machine, and
-  without this every process of the first run compiled them at once (16 s for the sampler
-  alone on an H100, 2026-11-26);
+  without this every process of the first run compiled them at once;
 - the device planner's programs (a key action's plan, the reset's reachability checks),
   which every task shares: the robot is the same in every scene.
 Then, with `--task-runs` (the default off warp), tasks run once in parallel processes
@@ -68,7 +67,7 @@ def warm_planner(batch: int, planner: str = "auto") -> dict:
     control.jit_for_robot): a key action's plan (control.plan_arm) and the reset's
     reachability check at each multiple of REACH_STEPS key actions up to the longest
     task, all at the run's batch.  Without this every process compiled them at its first
-    reset (an H100 process: 5.6 s for the plan, 13.5 s for the checks).  The host planner
+    reset (docs/performance.md).  The host planner
     (numpy) has nothing to compile."""
     import numpy as np
 
@@ -168,8 +167,8 @@ def _worker(name: str, args: argparse.Namespace) -> dict:
 
 
 def default_kernel_jobs() -> int:
-    """Processes building Warp's kernels at once: half the machine's cores, at most 8 (on a
-    16-core H200, 8 processes built the unseen scenes' modules in 21 s, 16 in 33 s)."""
+    """Processes building Warp's kernels at once: half the machine's cores, at most 8 (more
+    were slower on a 16-core host: docs/performance.md)."""
     return max(1, min(usable_cores() // 2, 8))
 
 
@@ -241,8 +240,8 @@ def one_gpu_env(environ: Mapping[str, str]) -> dict[str, str]:
     """`environ` showing its first GPU alone when it shows several, as --local-processes
     shows each process its one GPU: JAX's persistent cache keys a program by the topology
     of the devices JAX sees, so a program compiled where 2 GPUs were visible is not found
-    by a process that sees 1 (on a 2 x H200 host every process compiled the selection
-    again: a fresh main job took 246 s)."""
+    by a process that sees 1 (every process would compile the selection again:
+    docs/performance.md)."""
     from agnostos_mjx import mps
 
     gpus, _ = mps.visible_gpus(environ)

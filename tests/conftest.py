@@ -18,7 +18,7 @@ TASKS = ("open_drawer", "push_buttons")  # the tiny bank's seen tasks
 
 # The per-task tests (resets, seeds, expert success) run every task in the slow suite and,
 # in the default suite, two: an articulated button (lamp_on) and pick-and-place into a volume
-# (phone_on_base).  Each task a test touches costs its programs' compile (3-7 s on 2 cores
+# (phone_on_base).  Each task a test touches costs its programs' compile (seconds
 # with a cold cache), so the default suite touches few; a hinged door is reset in
 # test_compile_once and a failure condition checked in test_tasks_delicate_physics.
 DEFAULT_SUITE_TASKS = frozenset({"lamp_on", "phone_on_base"})
@@ -75,7 +75,7 @@ def tiny_bank_config(out: Path, demos: int = 2):
 
 @pytest.fixture(scope="session")
 def bank_dir(tmp_path_factory) -> Path:
-    """Two seen tasks x two demos at 32 x 32 pixels (about 20 s on 2 cores)."""
+    """Two seen tasks x two demos at 32 x 32 pixels (module-scoped: generation is slow)."""
     from agnostos_mjx.data.generate import generate
 
     out = tmp_path_factory.mktemp("bank")

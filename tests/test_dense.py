@@ -331,7 +331,7 @@ def test_dense_device_program_traces_with_the_documented_shapes() -> None:
 @pytest.mark.slow
 @pytest.mark.mjx_cpu  # MJX-jax's own physics compiled on the CPU
 def test_dense_device_step_matches_host_path_on_mjx() -> None:
-    """MJX-jax's own physics (20 min on 2 busy CPU cores, mostly compiling): the replay's
+    """MJX-jax's own physics (slow: mostly compiling): the replay's
     first 40 control steps on the device program and on the host path (record=True) end
     alike."""
     from agnostos_mjx.runtime.env import Episodes

@@ -95,7 +95,7 @@ def test_one_step_lowers_autoencoder_loss(pairs):
     assert after < before
 
 
-@pytest.mark.slow  # an 80 s compile on 2 cores; the training fixtures run the same loss
+@pytest.mark.slow  # a long compile; the training fixtures run the same loss
 def test_one_step_lowers_diffusion_loss():
     model = create(lambda: DynamicsModel(TEXT_QUICK, UNET_QUICK, rngs=nnx.Rngs(0)))
     z = np.random.default_rng(0).normal(size=(2, 4, 16, 16, 4)).astype(np.float32)
@@ -139,9 +139,8 @@ class _ShardingProbe(nnx.Module):
 
 def test_building_modules_skips_the_unseen_error_message_walk(monkeypatch):
     """layers.abstract / create: while a constructor is traced, a tracer's AttributeError
-    does not walk back through the whole trace for its message (quadratic: 19 of the 22 s
-    of loading the shipped dynamics model with jax 0.10 / flax 0.12; jax 0.11.2 on the lent
-    GPUs loads it in 1.3 s either way), and JAX's method is back afterwards."""
+    does not walk back through the whole trace for its message (quadratic: most of
+    loading the shipped dynamics model with jax 0.10 / flax 0.12), and JAX's method is back afterwards."""
     from jax._src.interpreters import partial_eval
 
     frame, tracer = partial_eval.JaxprStackFrame, partial_eval.DynamicJaxprTracer
@@ -219,7 +218,7 @@ def test_feature_shapes_and_determinism(pipe, pairs):
         np.testing.assert_allclose(one[part][0], a[part][1], rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.slow  # trains the quick model (the pipe fixture): a minute on 2 cores
+@pytest.mark.slow  # trains the quick model (the pipe fixture)
 def test_the_selections_one_program_gives_the_features_scores_bit_for_bit(pipe, pairs):
     """query_similarity (frames to scores in one compiled program) gives exactly the
     scores of extract, normalised and normalised_similarity one after the other."""
@@ -581,7 +580,7 @@ def test_tasks_waiting_on_gathered_rows_are_released_together_in_key_order():
     assert run_blocking(task("d", 4)) == ["d1!", "d2!"] and calls == [["d1", "d2"]]
 
 
-@pytest.mark.slow  # a benchmark's smoke test: ~20 s of compiles on 2 cores
+@pytest.mark.slow  # a benchmark's smoke test: its compiles
 def test_dynamics_benchmark_quick_mode(tmp_path):
     from agnostos_mjx.dynamics import bench
 
@@ -680,7 +679,7 @@ def _first_frames(tasks: tuple[str, ...], n: int) -> tuple[np.ndarray, list[str]
     return np.concatenate(frames), words
 
 
-@pytest.mark.slow  # the shipped model, old and new, on 32 scenes: ~2 minutes on 2 cores
+@pytest.mark.slow  # the shipped model, old and new, on 32 scenes
 def test_shipped_query_features_and_top18_unchanged_by_cpu_work():
     """Issue 13's gate: the query features of the shipped model (the evaluation's 10 DDIM
     steps) of 32 scenes of two unseen tasks, computed as before the CPU work (flax's layers,

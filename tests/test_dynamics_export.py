@@ -190,7 +190,7 @@ def test_damaged_export_is_a_clear_error(exported, tmp_path):
         eval_cli.main(["--run", str(exported), "--synthetic", "4"])
 
 
-@pytest.mark.slow  # tracing the large preset's shapes takes ~20-30 s on 2 cores
+@pytest.mark.slow  # tracing the large preset's shapes
 def test_default_preset_export_fits_the_budget():
     """From shapes only (the large preset, 48.6 M parameters, would be ~97 MB)."""
     ship = PRESETS["default"]

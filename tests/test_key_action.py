@@ -40,7 +40,7 @@ def _constructed_actions(ep: Episodes, env) -> list[KeyActions]:
     return steps
 
 
-@pytest.mark.slow  # a trace of the whole device program: ~40 s on 2 cores
+@pytest.mark.slow  # a trace of the whole device program
 @pytest.mark.parametrize("task", ["lamp_on", "phone_on_base"])
 def test_device_step_traces_with_the_documented_shapes(task):
     """The device program (with and without grasp welds) traces, at both stop modes, to an

@@ -1,7 +1,7 @@
 """Backend parity: native MuJoCo (float64) against MJX with impl="jax" on CPU
 (float32), on lamp_on at batch 1.
 
-MJX-jax compiles slowly on CPU (about 15-20 s for the 40-step runner here),
+MJX-jax compiles slowly on CPU,
 so the horizon is kept short."""
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def object_frames(layout):
             if name.endswith((".pos", ".quat")) and not name.startswith("tip.")]
 
 
-@pytest.mark.slow  # an MJX compile (30 s on 2 cores)
+@pytest.mark.slow  # an MJX compile
 def test_native_and_mjx_jax_agree_on_a_short_arm_motion():
     """Per-world step counts, and from the same reset state (key 3), 40 physics steps (0.2 s) of the same
     joint targets towards the lamp switch's hover point, through each backend's
@@ -154,7 +154,7 @@ def test_warp_steps_run_with_the_garbage_collector_paused(monkeypatch):
 
 
 def test_auto_backend_uses_warp_only_for_large_batches(monkeypatch):
-    """Measured on the H200 host: native threads beat MJX-warp below a few thousand
+    """Native threads beat MJX-warp below a few thousand
     worlds, so `auto` picks warp only from WARP_MIN_BATCH worlds and only where warp runs."""
     import agnostos_mjx.physics as physics
 

@@ -181,7 +181,7 @@ def test_ik_stops_early_on_easy_targets(kin):
     q, ok, _, _ = solve_ik(kin, q0, pos, quat)
     assert ok.all()
     assert np.abs(q - q0).max() < 1.5  # the solution near the warm start, not another branch
-    assert time.perf_counter() - start < 1.0  # ~10 ms on one core; generous for shared CI
+    assert time.perf_counter() - start < 1.0  # a bound for a slow shared machine, far above its usual
 
 
 def test_ik_spread_seeds_are_deterministic_and_in_limits(kin):

@@ -57,7 +57,7 @@ for devices in (1, 4):
     sharding.configure(devices)
     features[devices] = extract(pipe, pairs.first, list(pairs.instructions))
 # Equal to float32 rounding: XLA compiles the 2-query-per-device program differently from
-# the 8-query one, and on some CPUs (this project's 2-core machines, 2026-11-25) the
+# the 8-query one, and on some CPUs (this project's 2-core machines) the
 # features then differ in the last bits (measured: 3e-8 in vis.in).
 for part, value in features[1].items():
     np.testing.assert_allclose(features[4][part], value, rtol=0, atol=1e-6, err_msg=part)
@@ -134,7 +134,7 @@ def test_sharded_features_equal_one_device() -> None:
 @pytest.mark.slow
 @pytest.mark.mjx_cpu  # MJX-jax's own physics compiled on the CPU
 def test_sharded_mjx_jax_run_equals_one_device() -> None:
-    """Two MJX-jax compiles on CPU (about 85 s on 2 cores)."""
+    """Two MJX-jax compiles on CPU (slow)."""
     run_on_4_devices(MJX, timeout=600)
 
 

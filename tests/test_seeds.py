@@ -69,7 +69,7 @@ def test_same_key_same_expert_episode(name):
     np.testing.assert_array_equal(first.physics.qpos, second.physics.qpos)
 
 
-@pytest.mark.slow  # ~11 s on 2 cores; the slow group runs it in CI
+@pytest.mark.slow  # the slow group runs it in CI
 @pytest.mark.parametrize("name", ["push_buttons", "close_jar"])
 def test_an_episode_does_not_depend_on_its_batch(name):
     """Each world runs its own timeline (as RLBench runs one episode at a time): an episode

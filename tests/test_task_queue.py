@@ -13,6 +13,7 @@ from agnostos_mjx.evaluation.task_queue import (
     TaskQueue,
     balanced_shares,
     claim_order,
+    expected_costs,
     expected_s,
     longest_first,
     prepare,
@@ -80,6 +81,35 @@ def test_a_task_longer_than_two_mean_shares_splits_by_seed():
     shares = balanced_shares(units, "native", 16)
     firsts = [units[share[0]] for share in shares]
     assert {f"straighten_rope@{s}" for s in (0, 1, 2)} <= set(firsts)
+
+
+def test_the_costs_file_keeps_the_claim_orders_and_thus_the_records():
+    """The costs live in task_costs.json (tools/task_cost.py --write); these are the orders
+    its shipped numbers give, which the processes' claims and so the records follow."""
+    names = list_tasks("unseen_level1") + list_tasks("unseen_level2")
+    costs = expected_costs()
+    assert set(costs) == {"native", "warp"} and costs["native"]["straighten_rope"] == 123
+    assert [claim_order(names, "native", 8, p, overlap=3) for p in range(8)] == [
+        [18, 2], [21, 19, 8, 2], [14, 11, 7, 2], [0, 5, 6, 2], [12, 10, 4, 2],
+        [22, 1, 13, 2], [15, 17, 20, 2], [9, 16, 3, 2]]
+    assert [claim_order(names, "warp", 16, p)[:2] for p in range(16)] == [
+        [0, 7], [1, 7], [10, 7], [12, 7], [14, 7], [18, 7], [15, 7], [9, 7], [19, 7], [5, 8],
+        [16, 2], [22, 4], [20, 3], [11, 17], [6, 13], [21, 7]]
+    assert [claim_order(list_tasks("seen"), "native", 4, p)[:3] for p in range(4)] == [
+        [17, 16, 7], [5, 4, 1], [3, 9, 12], [2, 8, 6]]
+    assert sum(expected_s(names)) == 633 and sum(expected_s(names, "warp")) == 757
+
+
+def test_the_queue_reads_its_costs_without_jax():
+    """Launchers import the queue before anything heavy: it must not pull in JAX."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from agnostos_mjx.evaluation.task_queue import expected_s; "
+            "expected_s(['lamp_on']); print('jax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "False"
 
 
 def test_a_task_goes_to_one_process_only(tmp_path: Path):

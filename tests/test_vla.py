@@ -137,7 +137,7 @@ def test_usage_errors(tmp_path, capsys):
 
 def test_data_worker_holds_one_runner_at_a_time():
     """A data worker that moves to another task closes the old runner first (one GL context
-    per process: NVIDIA's EGL refused a second one on the lent H100)."""
+    per process: NVIDIA's EGL refused a second one on a GPU host)."""
     from agnostos_mjx.train import vla_data
 
     vla_data._RUNNER.clear()

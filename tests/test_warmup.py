@@ -217,7 +217,7 @@ def test_the_shared_programs_compile_where_one_gpu_is_visible(tmp_path, monkeypa
 def test_the_parent_of_a_warp_run_does_not_start_jax():
     """The run's parent process checks the marker and starts the kernel step without
     starting JAX: on a GPU, JAX there would take most of the memory from the run's
-    processes (a fresh H200 run's 8 processes all failed with CUDA out of memory)."""
+    processes (a fresh run's 8 processes all failed with CUDA out of memory)."""
     import subprocess
     import sys
 

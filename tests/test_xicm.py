@@ -225,7 +225,7 @@ def test_build_memory_extend_replaces_rerecorded_tasks(memory, bank_dir, tmp_pat
     np.testing.assert_array_equal(new.text[: others.sum()], memory.text[others])
 
 
-@pytest.mark.slow  # two retrieval runs of 3 tasks with the selection's network on 2 cores
+@pytest.mark.slow  # two retrieval runs of 3 tasks with the selection's network
 def test_tasks_gathering_their_selection_rows_record_what_sharing_records(tmp_path, monkeypatch):
     """The GPU's way (agnostos_mjx/gather.py) through the whole evaluation, forced on the
     CPU: the rows of the tasks waiting at once go out together once all wait, and since a

@@ -7,8 +7,8 @@ meanwhile is compared with its speed alone.
 Prints one JSON line: the seconds of `import jax` and of the backend start, and the main
 thread's speed during the start as a share of its speed alone (near 1: the start releases
 the GIL and could run beside the imports; near 0: it holds it).  On a GPU host a process of
-the main job spends ~1.1 s in the backend start (py-spy, one H200:
-eval/reports/main_job_h200_native/).
+the main job spends about a second in the backend start
+(eval/reports/main_job_h200_native/).
 """
 
 from __future__ import annotations

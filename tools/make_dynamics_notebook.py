@@ -61,7 +61,7 @@ For each of the 23 unseen tasks, one scene (variation 0, evaluation seed 0) is r
 frame rendered and its instruction taken, exactly as the policies query the model. The middle
 column shows the first-frame latent and the right column the predicted last-frame latent (three
 of the four latent channels as RGB): where they differ is where the model expects the scene to
-change. About 2 s per query on a CPU core, much less on a GPU. (With
+change. Seconds per query on a CPU core, much less on a GPU. (With
 `AGNOSTOS_NOTEBOOK_SMALL=1`, as `tests/test_notebooks.py` runs it: three of the tasks.)"""),
     nbf.v4.new_code_cell("""from agnostos_mjx.dynamics.features import extract, similarity
 from agnostos_mjx.runtime.env import Episodes

@@ -9,7 +9,7 @@ GPU, 4 on the CPU) and again with the rows rotated by 5/8 of the call; the devic
 600 and 1,800 rows.  Prints the largest change of a row's result for each.  Where a
 program's rows move with their place, calls may mix the rows of several tasks only in an
 order that timing cannot change (agnostos_mjx/gather.py).  eval/reports/main_job_h100_native
-has the H100's table.
+has a GPU's table.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ on its place in the call.
     AGNOSTOS_JAX_CACHE=<empty dir> [XLA_FLAGS=...] python tools/selection_compile.py LABEL OUT
 
 Run it twice from empty caches and compare the saved scores (numpy) to see whether two
-compiles agree; eval/reports/main_job_h100_native has the H100's figures.
+compiles agree; eval/reports/main_job_h100_native has a GPU's figures.
 """
 
 from __future__ import annotations

@@ -341,7 +341,7 @@ def _worker_env(threads: int) -> Iterator[None]:
     """Settings for spawned workers (inherited at spawn; the parent renders nothing while
     they run): thread caps for llvmpipe's render threads and OpenMP/BLAS pools, and JAX on
     the CPU: a worker simulates with native MuJoCo and renders on the CPU, and N processes
-    each pre-allocating most of one GPU's memory would fail (seen on a lent H100 with 16
+    each pre-allocating most of one GPU's memory would fail (seen on a GPU host with 16
     workers).  Values the user set are kept."""
     values = {k: str(threads) for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS",
                                          "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}

@@ -6,7 +6,7 @@ instruction as its task, ``robot_type`` "panda".
 
 Two layouts (``--lerobot-version``), the same data columns in both:
 
-v3.0 (lerobot >= 0.4; checked against huggingface/lerobot 7427f31, 2026-08-23:
+v3.0 (lerobot >= 0.4; checked against huggingface/lerobot 7427f31:
 src/lerobot/datasets/utils.py (paths, DatasetInfo), feature_utils.py
 (get_hf_features_from_features, create_empty_dataset_info), dataset_metadata.py
 (save_episode, _save_episode_metadata: the episodes parquet's columns), dataset_writer.py

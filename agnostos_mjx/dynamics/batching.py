@@ -5,8 +5,8 @@ Every chunk is padded to `size` rows, so each network compiles one program.  XLA
 for a row changes with the batch shape (~1e-5 between 4 and 8 rows on the CPU).  On the CPU
 it does not change with the row's place in a call or the rows beside it, so the selection's
 `gather.RowBatcher` puts the rows of several tasks' replanning rounds in one call as they
-come without changing any task's records.  On a GPU it can change with the place (an H100,
-64-row calls: the sampler's latents of 18 of 64 rows moved by up to 1e-2 when the rows were
+come without changing any task's records.  On a GPU it can change with the place (on a
+GPU, 64-row calls: the sampler's latents of 18 of 64 rows moved by up to 1e-2 when the rows were
 rotated by 40 places, the scores by 7e-5; the encoder and the similarity did not move:
 `python tools/row_place_probe.py`), so there the batcher gathers (agnostos_mjx/gather.py).
 

@@ -7,10 +7,10 @@ Two numbers the evaluation and the training depend on:
 * feature queries/s: ``lang`` + ``vis.out`` of N first frames + instructions (the 50-step
   guided DDIM sampler), for each batch size, timed after a warm-up call of that size.
 
-Targets (printed beside the numbers; nothing asserts on them): on one H100/H200 the
-default preset should train at >= 20 steps/s (measured 12.5 in the training run, so a
-fixed per-step cost is suspected) and answer >= 75 queries/s, so that a replan of 75
-worlds costs about a second.  ``--quick`` uses the tiny preset and 8 DDIM steps: a CPU
+Targets (printed beside the numbers; nothing asserts on them): on one data-centre GPU the
+default preset should train at >= 20 steps/s (the training run's rate, below it, is in
+docs/performance.md) and answer >= 75 queries/s, so that a replan of 75 worlds costs
+about a second.  ``--quick`` uses the tiny preset and 8 DDIM steps: a CPU
 smoke run in seconds.
 
 ``--old-vs-new`` (issue 13) times instead the evaluation's query features (encode + ``vis.out``

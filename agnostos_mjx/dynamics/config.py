@@ -102,7 +102,7 @@ DIFFUSION_DEFAULT = DiffusionConfig()
 # Fewer DDIM steps keep CPU tests fast; the schedule and guidance stay the real ones.
 DIFFUSION_QUICK = DiffusionConfig(sample_steps=8)
 # Training lengths for the ~3,600-demo seen bank: ~22 AE epochs; ~125 UNet epochs for the
-# default (shipped) model, measured on an H200 at 12.5 steps/s (train/README.md).
+# default (shipped) model (its training rate: docs/performance.md).
 AE_TRAIN_DEFAULT = TrainConfig(steps=6_000, batch_size=32, lr=2e-4, warmup=300)
 DYN_TRAIN_DEFAULT = TrainConfig(steps=7_000, batch_size=64, lr=2e-4, warmup=500)
 DYN_TRAIN_LARGE = TrainConfig(steps=15_000, batch_size=64, lr=2e-4, warmup=500)

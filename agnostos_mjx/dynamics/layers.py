@@ -15,8 +15,8 @@ class GroupNorm(nnx.GroupNorm):
     """`nnx.GroupNorm` (same parameters, statistics and formula: E[x^2] - E[x]^2, the same
     values up to float round-off) with the statistics summed per channel over the spatial
     axes first, then per group.  flax reduces a (..., groups, size) view over non-adjacent
-    axes, which XLA's CPU backend ran 2-5.6x slower at the UNet's shapes (2-core x86,
-    issue 13).  Options other than the models' (masks, dtypes, ...) take flax's path."""
+    axes, which XLA's CPU backend ran several times slower at the UNet's shapes (issue 13;
+    docs/performance.md).  Options other than the models' (masks, dtypes, ...) take flax's path."""
 
     def __call__(self, x: jax.Array, *, mask: jax.Array | None = None) -> jax.Array:
         if (mask is not None or self.reduction_axes is not None or self.axis_name is not None
@@ -90,8 +90,8 @@ def dot_product_attention(
     **_: object,
 ) -> jax.Array:
     """flax's `nnx.dot_product_attention` (the same scaling, masking and softmax: the same
-    values up to float round-off), arranged for XLA's CPU backend, 5x faster on the UNet's
-    16x16 self-attention (256 tokens, 4 heads of 16; 2-core x86):
+    values up to float round-off), arranged for XLA's CPU backend, several times faster on the
+    UNet's 16x16 self-attention (256 tokens, 4 heads of 16; docs/performance.md):
 
     * the heads are moved ahead of the sequence axes before both matmuls: flax contracts
       `...qhd,...khd` and `...hqk,...khd` directly, which runs as strided batched matmuls;
@@ -155,10 +155,9 @@ def cheap_tracer_attribute_errors() -> Iterator[None]:
     ``Variable.set_value`` then probes ``getattr(value, "sharding", None)``.  On a tracer,
     JAX answers with an AttributeError whose message it builds first by walking back
     through every equation traced so far (``_origin_msg``); ``getattr`` swallows the
-    message.  Over the dynamics model's ~1,600 draws that walk took 19 of the 22 s of
-    building its abstract model on a 2-core CPU with jax 0.10.2 / flax 0.12.8 (every
-    process loading the shipped model paid it), 2.9 s without; with jax 0.11.2 it takes
-    1.3 s either way.  Here the message is left empty
+    message.  Over the dynamics model's ~1,600 draws that walk was most of building its
+    abstract model with jax 0.10 (every process loading the shipped model paid it;
+    docs/performance.md).  Here the message is left empty
     while a constructor is traced; where JAX lacks that method, nothing changes."""
     try:
         from jax._src.interpreters import partial_eval

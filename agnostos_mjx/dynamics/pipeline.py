@@ -112,12 +112,11 @@ def _pooled(graph: nnx.GraphDef, state: nnx.State, ids: jax.Array, mask: jax.Arr
     return nnx.merge(graph, state).text(ids, mask)[1]
 
 
-# Rows per compiled call (batching.py pads every call to it).  On an accelerator a chunk of
-# 64 costs 152 ms at batch 75 on an H100 (256 rows: 351 ms).  On the CPU the 10-step query
-# features cost per query (2-core x86, 32 queries): chunks of 1: 460 ms, 4: 302, 8: 283,
-# 16: 270, 32: 276; 4 wastes least on the evaluation's small rounds (1-3 replanning worlds
-# are common late in a task).  Chunks of 64 ran 2x slower per row there, the weights no
-# longer fitting the caches.
+# Rows per compiled call (batching.py pads every call to it).  An accelerator's call costs
+# less per row in larger chunks, so it takes a large one.  On the CPU the cost per query
+# barely falls beyond chunks of 4, and 4 wastes least on the evaluation's small rounds (1-3
+# replanning worlds are common late in a task); chunks of 64 ran slower per row there, the
+# weights no longer fitting the caches (docs/performance.md).
 ACCELERATOR_CHUNK, CPU_CHUNK = 64, 4
 
 

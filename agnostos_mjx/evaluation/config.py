@@ -212,7 +212,7 @@ class EvalConfig:
                 "auto starts a private MPS daemon (pipe and log folders in --out/mps) and "
                 "stops it at exit, unless one already runs, and warns once if it cannot; on: "
                 "the same, but exit 2 if it cannot; off: none, the processes time-slice the "
-                "GPU (8 on one H100: 4x slower than under MPS). With several GPUs process I "
+                "GPU (several times slower than under MPS: docs/performance.md). With several GPUs process I "
                 "runs on GPU I mod G; no effect without a GPU", group=SCALE, choices=MPS_MODES)
     merge: bool = option(
         False, "only merge --out/proc-*/episodes.jsonl into --out's results files "

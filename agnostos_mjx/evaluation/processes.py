@@ -7,10 +7,9 @@ free it takes the next task no other process has taken, longest expected first
 process would have written them (summary.merge).
 
 Why: with MJX-Warp at the protocol's batch of 75 a physics step leaves the GPU mostly idle
-(its cost is latency, not work), so tasks run side by side: on one H100 host the warm main
-job takes 138 s as 8 warp processes under MPS (docs/performance.md).  Each
-process gets ``0.6 / K`` of its GPU's memory for JAX, K being the most processes on one GPU,
-unless ``--gpu-mem-fraction`` says otherwise (Warp allocates its CUDA graphs outside JAX's
+(its cost is latency, not work), so tasks run side by side in processes (figures in
+docs/performance.md).  Each process gets ``0.6 / K`` of its GPU's memory for JAX, K being
+the most processes on one GPU, unless ``--gpu-mem-fraction`` says otherwise (Warp allocates its CUDA graphs outside JAX's
 pool; 0.9 / 8 ran out).
 
 GPU placement: with G > 1 GPUs visible (the entries of CUDA_VISIBLE_DEVICES, else the
@@ -20,8 +19,8 @@ processes 0..5 on GPUs 0, 1, 2, 3, 0, 1.  With one GPU or none the processes kee
 process's environment, as before.
 
 CUDA MPS (``--mps``, agnostos_mjx/mps.py): processes sharing a GPU without MPS time-slice
-it (8 on one H100: 4.1 ms per physics step each, slower together than one process; 0.9 ms
-each under MPS).  For each GPU that two or more processes share, ``auto`` (the default)
+it (8 processes together ran slower than one; under MPS several times faster:
+docs/performance.md).  For each GPU that two or more processes share, ``auto`` (the default)
 and ``on`` start a private MPS control daemon for the run (pipe and log folders
 ``--out/mps/pipe|log``, or ``--out/mps/gpu<K>/pipe|log`` with several GPUs), give its
 processes CUDA_MPS_PIPE_DIRECTORY / CUDA_MPS_LOG_DIRECTORY (and no CUDA_VISIBLE_DEVICES:
@@ -58,7 +57,7 @@ from agnostos_mjx.settings import GPU_MEM_FRACTION
 log = logging.getLogger("agnostos_mjx.eval")
 JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
 # --local-processes by default on a GPU host: the main job's fastest count there, 8 per
-# GPU on 16 cores, no faster from 16 on (docs/performance.md); each wants two cores.
+# GPU, no faster beyond (docs/performance.md); each wants two cores.
 PROCESSES_PER_GPU = 8
 MAX_DEFAULT_PROCESSES = 16
 QUEUE_DIR = "queue"  # --out/queue: the claims of the processes (task_queue.py)

@@ -318,7 +318,7 @@ def llm_summary(report: dict | None) -> int:
 def policy_error_summary(results: dict) -> int:
     """Say how many episodes ended as policy_error (the policy raised: a crash, not a
     decision, e.g. out of GPU memory); the exit code: 3 when more than half did, since
-    the table then measures the crash (seen: 16 reference-VLA processes on one H100, every
+    the table then measures the crash (seen: 16 reference-VLA processes on one GPU, every
     episode out of memory, a table of zeros with exit 0)."""
     episodes = results.get("episodes") or []
     failed = sum(r.get("outcome") == "policy_error" for r in episodes)

@@ -2,10 +2,9 @@
 then whatever another process has not started yet.
 
 A fixed split (process I runs tasks I, I+N, ...) leaves processes idle while others still
-work: in the main job on a 2 x H100 host, 16 processes had 1 or 2 of the 23 tasks each, and
-the slowest needed 81.6 s of task time against a mean of 56.5 s
-(docs/performance.md).  Here each process first takes its share of a split balanced by
-`EXPECTED_S` (`claim_order`), then the next task no process has taken yet, longest first
+work: with 1 or 2 tasks per process the slowest share sets the run's wall
+(docs/performance.md, Task costs).  Here each process first takes its share of a split
+balanced by the expected costs in task_costs.json (`claim_order`), then the next task no process has taken yet, longest first
 (the short tasks fill the gaps at the end), so the run ends when the last task does.  A
 task longer than two mean shares goes out by seed (`split_by_seed`), as units
 ``task@seed``.
@@ -19,6 +18,8 @@ episodes of, so that the task stays with the process whose folder holds them.
 from __future__ import annotations
 
 import errno
+import functools
+import json
 import os
 import statistics
 from collections import Counter
@@ -31,51 +32,20 @@ from agnostos_mjx.evaluation.records import EPISODES_FILE, load_records
 
 T = TypeVar("T")
 
-# Expected seconds of each task's 75 episodes, by backend: shares are balanced by their sums;
-# a task not listed counts as its backend's median.
-# warp: the unseen tasks of the warm main job on a 2 x H100 host, without the ~10 s that a
-# process's first task adds for compiling (timings.jsonl in eval/reports/main_job_h100_x2).
-# native, unseen: the main job's CPU seconds, `python tools/task_cost.py RUN` on a warm H200
-# run (its world-steps times the task's step under its expert on one core of a 2-core CPU,
-# plus 12 s for 25 planning rounds; eval/reports/main_job_h200_native); native, seen: the
-# reference VLA's evaluation on a 2 x H100 host (eval/reports/reference_vla), alike in scale.
-EXPECTED_S = {
-    "warp": {
-        "put_toilet_roll_on_stand": 47, "put_knife_on_chopping_board": 44,
-        "take_lid_off_saucepan": 44, "put_rubbish_in_bin": 44,
-        "put_umbrella_in_umbrella_stand": 44, "straighten_rope": 43,
-        "take_plate_off_colored_dish_rack": 39, "put_books_on_bookshelf": 38,
-        "turn_oven_on": 37, "phone_on_base": 35, "basketball_in_hoop": 35,
-        "unplug_charger": 33, "beat_the_buzz": 31, "open_grill": 30, "toilet_seat_down": 29,
-        "water_plants": 28, "take_usb_out_of_computer": 27, "scoop_with_spatula": 27,
-        "lamp_off": 27, "close_laptop_lid": 26, "close_microwave": 26, "lamp_on": 20,
-        "close_fridge": 3,
-    },
-    "native": {
-        "straighten_rope": 123, "water_plants": 48, "take_lid_off_saucepan": 43,
-        "put_toilet_roll_on_stand": 39, "put_rubbish_in_bin": 28, "unplug_charger": 28,
-        "take_plate_off_colored_dish_rack": 27, "basketball_in_hoop": 26,
-        "put_books_on_bookshelf": 26, "scoop_with_spatula": 25,
-        "put_umbrella_in_umbrella_stand": 24, "phone_on_base": 21,
-        "put_knife_on_chopping_board": 21, "open_grill": 20, "turn_oven_on": 20,
-        "take_usb_out_of_computer": 19, "beat_the_buzz": 17, "close_laptop_lid": 17,
-        "close_microwave": 16, "toilet_seat_down": 16, "lamp_off": 14, "lamp_on": 14,
-        "close_fridge": 1,
-        # seen
-        "place_cups": 75, "put_item_in_drawer": 65, "meat_off_grill": 64,
-        "sweep_to_dustpan_of_size": 59, "stack_blocks": 57, "light_bulb_in": 54,
-        "stack_cups": 52, "turn_tap": 52, "close_jar": 51, "slide_block_to_color_target": 48,
-        "put_groceries_in_cupboard": 47, "reach_and_drag": 44,
-        "place_shape_in_shape_sorter": 44, "put_money_in_safe": 43,
-        "place_wine_at_rack_location": 40, "push_buttons": 37,
-        "insert_onto_square_peg": 33, "open_drawer": 19,
-    },
-}
+COSTS_FILE = Path(__file__).with_name("task_costs.json")  # tools/task_cost.py --write
+
+
+@functools.cache
+def expected_costs() -> dict[str, dict[str, float]]:
+    """Each backend's expected seconds per task, from `COSTS_FILE`: data a measured run
+    renews, not code (read once per process; no JAX)."""
+    table = json.loads(COSTS_FILE.read_text())
+    return {backend: table[backend] for backend in ("native", "warp")}
 
 
 SEED_UNIT = "@"  # a unit of one seed of a task: "straighten_rope@1"
 # Written by a process of a queue once its results are final: the launcher merges then,
-# while the processes end (an interpreter's teardown takes 0.5 s and more).
+# while the processes end (an interpreter's teardown is not free).
 FINISHED_FILE = "finished"
 
 
@@ -86,19 +56,19 @@ def unit_task(unit: str) -> tuple[str, int | None]:
 
 
 def expected_s(names: Sequence[str], backend: str = "native") -> list[float]:
-    """`EXPECTED_S` of each name on `backend` (MJX-jax counts as warp); the backend's
+    """`expected_costs` of each name on `backend` (MJX-jax counts as warp); the backend's
     median for a task not listed.  A task split into units of one seed (`split_by_seed`)
     is shared equally by its units in `names`."""
-    table = EXPECTED_S["native" if backend == "native" else "warp"]
+    table = expected_costs()["native" if backend == "native" else "warp"]
     median = statistics.median(table.values())
     tasks = [unit_task(name)[0] for name in names]
     units = Counter(tasks)
     return [table.get(task, median) / units[task] for task in tasks]
 
 
-# straighten_rope's process got ~1.8x the CPU time of the others (2.9 against 1.6 cores on
-# one H200, its physics running while their threads waited on their policies): at 1.6 mean
-# shares of 8 processes it ended before them, at 3.1 of 16 it ended the run.
+# A process with one long task gets more CPU time than the others (its physics runs while
+# their threads wait on their policies), so it may hold up to two mean shares before it ends
+# the run alone (docs/performance.md, Task costs).
 ALONE_SHARES = 2.0
 
 
@@ -107,7 +77,7 @@ def split_by_seed(names: Sequence[str], backend: str, processes: int,
     """The queue's units of work: each task whole, or one unit per seed ("task@seed") for a
     task expected to take more than `ALONE_SHARES` mean shares of a process, which would end
     the run in its process alone (straighten_rope, ~20% of the main job's CPU work, on 16
-    processes: its process ran 29.6 s, the others 22-28 s).  A world's episode does not
+    processes).  A world's episode does not
     depend on the others in its batch, so the records do not change but for `batch_size`."""
     if processes < 2 or len(seeds) < 2:
         return list(names)

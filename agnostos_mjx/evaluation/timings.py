@@ -42,64 +42,68 @@ def read_timings(runs: Iterable[Path], kind: str = "task") -> list[dict]:
 STARTUP_PARTS = (("imports_s", "imports"), ("policy_s", "policy load"))
 
 
+def _cell(value: float | None, fmt: str = ".1f") -> str:
+    """A number as a table cell; a field the run did not record prints empty."""
+    return "" if value is None else format(value, fmt)
+
+
 def process_table(runs: Iterable[Path]) -> str:
     """Per process: start-up seconds (start to first task), split into its parts where the
     run recorded them (the seconds up to the end of the imports, then each part's own), and
-    the seconds its tasks took; empty for runs from before these lines were written."""
+    the seconds its tasks took; empty when the runs have no process lines."""
     rows = sorted(read_timings(runs, "process"), key=lambda r: r["process"])
     if not rows:
         return ""
 
-    def cell(value: float | None) -> str:
-        return "" if value is None else f"{value:.1f}"
-
     def parts(r: dict) -> list[str]:  # each part's own seconds, from the process's ages
         ages = [r.get("startup", {}).get(key) for key, _ in STARTUP_PARTS]
-        ages.append(r["startup_s"])
+        ages.append(r.get("startup_s"))
         if None in ages:
             return [""] * len(ages)
-        return [cell(ages[0])] + [cell(b - a) for a, b in zip(ages, ages[1:])]
+        return [_cell(ages[0])] + [_cell(b - a) for a, b in zip(ages, ages[1:])]
 
     head = ["process", "tasks", "start-up s", *(f"{name} s" for _, name in STARTUP_PARTS),
             "rest s", "tasks s"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines += ["| " + " | ".join([str(r["process"]), str(r["tasks"]), cell(r["startup_s"]),
-                                 *parts(r), cell(r["tasks_s"])]) + " |" for r in rows]
+    lines += ["| " + " | ".join([str(r["process"]), str(r.get("tasks", "")),
+                                 _cell(r.get("startup_s")), *parts(r),
+                                 _cell(r.get("tasks_s"))]) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
 def time_split_table(runs: Iterable[Path]) -> str:
-    """Per task and in all: wall seconds and each stage's seconds (share of the wall)."""
+    """Per task and in all: wall seconds and each stage's seconds (share of the wall).  A
+    field a run did not record prints as an empty cell, so any run folder makes a table."""
     rows = read_timings(runs)
     if not rows:
-        raise ValueError("no timings.jsonl in these run folders (written by evaluations "
-                         "since 2026-11-25)")
+        raise ValueError("no timings.jsonl with task lines in these run folders")
     head = ["task", "backend", "episodes", "wall s", "process s", *(f"{s} s" for s in STAGES),
             "rounds", "world-steps (M)", "live"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
-    def line(name: str, backend: str, episodes: int, r: dict) -> str:
-        wall = r["wall_s"]
-        span = ""
-        if "start_s" in r:  # absent in runs before 2026-11-28
-            span = f"{r['start_s']:.1f}-{r.get('end_s', r['start_s'] + wall):.1f}"
-        cells = [f"{r.get(s + '_s', 0.0):.1f} ({100 * r.get(s + '_s', 0.0) / wall:.0f}%)"
-                 if wall else "0" for s in STAGES]
-        executed = r.get("world_steps", 0)  # absent in runs before 2026-11-27
-        steps = [str(r.get("rounds", "")), f"{executed / 1e6:.3f}" if executed else "",
-                 f"{100 * r.get('live_steps', 0) / executed:.0f}%" if executed else ""]
-        return (f"| {name} | {backend} | {episodes} | {wall:.1f} | {span} | "
+    def line(name: str, backend: str, episodes: int | str, r: dict) -> str:
+        wall, start, executed = r.get("wall_s"), r.get("start_s"), r.get("world_steps")
+        end = r.get("end_s", start + wall if start is not None and wall is not None else None)
+        span = f"{_cell(start)}-{_cell(end)}" if start is not None else ""
+        cells = [f"{_cell(r.get(s + '_s'))} ({100 * r.get(s + '_s', 0.0) / wall:.0f}%)"
+                 if wall and s + "_s" in r else "" for s in STAGES]
+        steps = [str(r.get("rounds", "")),
+                 _cell(executed / 1e6, ".3f") if executed else "",
+                 f"{100 * r['live_steps'] / executed:.0f}%"
+                 if executed and "live_steps" in r else ""]
+        return (f"| {name} | {backend} | {episodes} | {_cell(wall)} | {span} | "
                 + " | ".join(cells + steps) + " |")
 
     for r in rows:
-        lines.append(line(r["task"], r["backend"], r["episodes"], r))
+        lines.append(line(r["task"], r.get("backend", ""), r.get("episodes", ""), r))
     counts = ("wall_s", *(s + "_s" for s in STAGES), "rounds", "world_steps", "live_steps")
-    total = {k: sum(r.get(k, 0) for r in rows) for k in counts}
-    if all("start_s" in r for r in rows):  # the span of the processes' ages
-        total.update(start_s=min(r["start_s"] for r in rows),
-                     end_s=max(r["start_s"] + r["wall_s"] for r in rows))
-    backends = ",".join(sorted({r["backend"] for r in rows}))
-    lines.append(line("all", backends, sum(r["episodes"] for r in rows), total))
+    total = {k: sum(r[k] for r in rows if k in r) for k in counts if any(k in r for r in rows)}
+    starts = [r.get("start_s") for r in rows]
+    if None not in starts:  # the span of the processes' ages
+        total.update(start_s=min(starts),
+                     end_s=max(r["start_s"] + r.get("wall_s", 0.0) for r in rows))
+    backends = ",".join(sorted({r.get("backend", "") for r in rows} - {""}))
+    lines.append(line("all", backends, sum(r.get("episodes", 0) for r in rows), total))
     return "\n".join(lines) + "\n"
 
 

@@ -18,11 +18,10 @@ RENDERERS = ("auto", "cpu", "warp")
 GPU_RENDERER_HINT = ("a CUDA GPU but no warp-lang: observations render on the CPU; "
                      "pip install -e '.[gpu]' renders them on the GPU")
 # `auto` picks MJX-warp only from this many worlds per batch.  Warp's episodes/s grow with
-# the batch (on an H100: 0.54x native MuJoCo on 16 threads at 75 worlds, 2.25x at 1,024,
-# 6.87x at 4,096), but warp compiles ~10 s of programs per task and native none, so below
-# ~4,096 worlds native finishes a task's few batches first; the main job (75 worlds) is no
-# faster on warp either, as 8 processes on one H100 or H200 or on a 2 x H100 host
-# (docs/performance.md).  Native is also bit-reproducible, which warp's atomics are not.
+# the batch (slower than native MuJoCo's threads at 75 worlds, faster from a few hundred), but
+# warp compiles programs for each task and native none, so below ~4,096 worlds native
+# finishes a task's few batches first; the main job (75 worlds) is no faster on warp
+# either, in processes on one GPU or several (docs/performance.md).  Native is also bit-reproducible, which warp's atomics are not.
 WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 

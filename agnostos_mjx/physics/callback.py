@@ -2,8 +2,7 @@
 
 The key action's device program (runtime/phase.py's DevicePhases: a while loop of physics
 steps with the conditions checked after each) normally steps MJX.  On a CPU, compiling
-MJX-jax's step into that program costs minutes per task (~6 CPU-minutes for lamp_on on
-2 cores), so this module lets the same program step MuJoCo's C physics instead, one host
+MJX-jax's step into that program costs minutes per task (docs/performance.md), so this module lets the same program step MuJoCo's C physics instead, one host
 callback per step: the device path's control flow (masks, freezing, in-loop conditions,
 welds from the kinematics) then compiles in seconds and can be compared with the host path
 in the default test suite.  Not a fast path: every step leaves the program.

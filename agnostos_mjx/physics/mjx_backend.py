@@ -2,7 +2,7 @@
 `impl="jax"` (any JAX device; used for parity tests on CPU).
 
 The mjx.Model is closed over by the jitted step function, never passed as a
-jit argument (passing it cost ~0.9 s a call).  The per-world grasp weld data
+jit argument (passing it made every call slow: docs/performance.md).  The per-world grasp weld data
 is the one batched model field.
 
 With several local devices (agnostos_mjx.sharding, ``--devices``) MJX-jax places the

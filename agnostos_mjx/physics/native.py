@@ -47,8 +47,8 @@ def _layout(model: mujoco.MjModel, spec: int, fields: dict) -> tuple[int, dict[s
 # One rollout at a time on the process's persistent thread pool (it already uses every
 # core): tasks running at once on threads (evaluation/rollout.py) take turns here while the
 # rest of their key actions (conditions, planner) and the policy overlap.  A pool per task
-# instead oversubscribed the cores: with 8 processes x 3 tasks on a 16-core host the main
-# job had finished 1 task after 330 s, where it takes 193 s in all with one pool.
+# instead oversubscribed the cores: the main job ran far slower with 8
+# processes x 3 tasks (docs/performance.md).
 _POOL_LOCK = threading.Lock()
 
 

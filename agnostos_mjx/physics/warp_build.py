@@ -1,14 +1,14 @@
 """Build the Warp kernels of a run's scenes ahead of time, many at once.
 
 Warp builds a module's kernels the first time one of them launches, one module after the
-other: on a fresh H100 the first scene's step took ~110 s before it ran, each further scene
-size ~15 s more (docs/performance.md), and every process of a run built what it met.  The modules a
+other: on a fresh machine the first scene's step waits about two minutes before it runs, each further
+scene size more (docs/performance.md), and every process of a run built what it met.  The modules a
 step launches do not depend on the data, so a *dry run* finds them without building any:
 the K-step call's function runs once per scene with `wp.launch` recording the kernel's
 module instead of launching it (and `capture_while` / `capture_if` taking each branch once).
 Then `part` of `parts` processes each build their share of the modules found (the same
-list in every process).  Threads do not help: on an H100, 16 threads built the 100 modules
-of the 23 unseen scenes in 66 s against 76 s for one (docs/performance.md).
+list in every process).  Threads barely help where processes do
+(docs/performance.md).
 Built modules land in Warp's kernel cache on disk, where every later process of the run, or
 of a later run, finds them.
 """

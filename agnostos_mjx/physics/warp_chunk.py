@@ -1,13 +1,13 @@
 """K MuJoCo Warp physics steps per JAX call: the device key action's fast path on a GPU.
 
 MJX's `impl="warp"` step is one XLA FFI call per physics step, and every FFI call runs a
-Python callback on the host (~0.4 ms) before Warp replays its CUDA graph.  Here one FFI call
+Python callback on the host before Warp replays its CUDA graph.  Here one FFI call
 runs K steps: it copies the batch's state into a MuJoCo Warp `Data` kept on the device for
 this (model, batch), steps it K times with per-step controls from a (K, B, nu) array, and
 writes each step's state and sensor rows out.  On a GPU the whole call (copies, K steps,
 records) is one CUDA graph, captured once per call site (graph mode WARP_STAGED, see
-`_graph_mode`) and replayed.  On an H100 it is 1.10x-1.12x faster per key action than
-`mjx.step` (docs/performance.md), with native MuJoCo's outcomes where `mjx.step` in graph
+`_graph_mode`) and replayed.  It is faster per key action than `mjx.step`
+(docs/performance.md), with native MuJoCo's outcomes where `mjx.step` in graph
 mode WARP gave wrong ones.
 
 The call is pure in its inputs: everything the next step depends on (qpos, qvel, time, the

@@ -13,7 +13,7 @@ index embedding never saw more), so that a lost episode does not run to the task
 25; ``--policy-arg max_steps=25`` turns that off.  The network runs on ``chunk`` worlds at a
 time (``--policy-arg chunk=N``, default 25; the last chunk is padded, so one program serves
 every batch): at 75 at once one forward pass needed 3.65 GiB of GPU memory, and 16
-evaluation processes on one H100 ran out of it.
+evaluation processes on one GPU ran out of it.
 """
 
 from __future__ import annotations

@@ -109,7 +109,7 @@ class WarpRenderer:
 
     ``nworld`` is fixed by the render context. ``cameras`` limits which cameras are rendered
     (default: all); ``depth`` and ``segmentation`` add those buffers to the context (they cost
-    nothing measurable on an H100). ``data`` passed to the render methods must be a warp-impl
+    nothing measurable). ``data`` passed to the render methods must be a warp-impl
     batch (leading axis ``nworld``) on which forward/kinematics already ran (cam_xpos,
     geom_xpos are read). Colours come from the mjx.Model (``mjx_model``, default
     ``put_model`` of the renderer's `model`) or per world from ``geom_rgba`` [B, ngeom, 4].

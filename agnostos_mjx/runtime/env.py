@@ -55,7 +55,7 @@ REACH_STEPS = 8  # the device planner checks an expert's key actions in multiple
 def resolve_planner(name: str) -> str:
     """`auto`: `device` when JAX has an accelerator, else `host`.  `device`: the jitted
     float32 planner (one program for every task, off the host's Python loop); `host`: numpy
-    float64 (the 2-core CPU path, bit for bit as before).  The two can pick different IK
+    float64 (the CPU path, bit for bit as before).  The two can pick different IK
     solutions near a limit, so a run's records say which (`Episodes.planner`)."""
     if name not in PLANNERS:
         raise ValueError(f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}")

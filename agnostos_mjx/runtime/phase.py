@@ -67,8 +67,8 @@ def condition_rows(steps: int) -> int:
 def host_device() -> jax.Device | None:
     """The CPU, where a host key action runs its small jitted helpers (the condition scan,
     grasps) next to its physics: on a GPU host each call would otherwise wait behind the
-    other programs queued there (py-spy, one H200, 8 processes: the physics threads waited
-    on condition scans longer than on their rollouts).  None where the CPU is JAX's default
+    other programs queued there (py-spy of 8 processes on one GPU: the physics threads
+    waited on condition scans longer than on their rollouts).  None where the CPU is JAX's default
     already (a device set explicitly would key new entries in jit's caches) or JAX may not
     use it (JAX_PLATFORMS without cpu)."""
     if jax.default_backend() == "cpu":
@@ -168,8 +168,8 @@ def steps_per_iteration(backend_name: str) -> int:
     one FFI call, physics/warp_chunk.py), after which the conditions run over the K rows and
     a world that ended inside is set back to its end step: bit for bit the one-step loop's
     result (tests/test_k_steps.py), at one Python FFI callback per K steps instead of one
-    per step.  K = 16, 32 and 64 cost the same on an H100 at 75 worlds, in one process and
-    in the 8-process main job (docs/performance.md); a finished world idles at most K - 1
+    per step.  K = 16, 32 and 64 cost the same at 75 worlds, in one process and in the
+    8-process main job (docs/performance.md); a finished world idles at most K - 1
     steps.  On MJX-jax (CPU tests) one step per iteration keeps the program small."""
     return WARP_STEPS_PER_ITERATION if backend_name == "warp" else 1
 

@@ -2,10 +2,10 @@
 round instead of one per task.
 
 Every scene has the same robot, so one program plans the key actions of any task's
-worlds (control.jit_for_robot).  On a GPU a task's key action was one `plan_arm` call of
-~45 ms at 75 worlds, and one process's 23 tasks queued 551 of them on its one stream; a
-call of 1,800 rows takes ~67 ms.  A world's plan moves with the rows beside it (up to
-8.6e-5 on an H100, 3e-5 on the CPU), so the requests gather (agnostos_mjx/gather.py): they
+worlds (control.jit_for_robot).  On a GPU a task's key action was one `plan_arm` call, and
+one process's 23 tasks queued hundreds of them on its one stream, where one call of all
+their rows costs not much more than one task's (docs/performance.md).  A world's plan moves
+with the rows beside it (slightly; docs/performance.md), so the requests gather (agnostos_mjx/gather.py): they
 go out together, ordered by content, once every running task waits on one, and a task run
 alone gets the one call of its own rows it got before.
 """

@@ -222,7 +222,7 @@ def add_data_flags(parser: argparse.ArgumentParser, training: bool = True) -> No
         choices=tuple(PRESETS),
         default="default",
         help="model and training sizes: 'default' (the shipped model: 14.7 M parameters, "
-        "about 12 min on one H200), 'large' (a 45 M-parameter model, 2.4x slower, too big "
+        "docs/performance.md has its training time), 'large' (a 45 M-parameter model, 2.4x slower, too big "
         "to ship) or 'quick' (CPU smoke run); single flags below override it",
     )
     g.add_argument(

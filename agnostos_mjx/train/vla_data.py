@@ -80,7 +80,7 @@ def _episodes(task_name: str, threads: int | None):
     task in a row builds its scene and compiles once.  When the worker moves to another
     task the old runner is closed first, so a process holds one renderer (GL context) at a
     time: on a GPU host's NVIDIA EGL a worker's second live renderer failed to get a
-    framebuffer ("Offscreen framebuffer is not complete", lent H100, 16 workers)."""
+    framebuffer ("Offscreen framebuffer is not complete", 16 workers)."""
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.tasks import get_task
 

@@ -28,9 +28,9 @@ log = logging.getLogger("agnostos_mjx.xicm")
 # top-18 with 50 steps, and cost a fifth; 5 steps lose prediction quality (51.3%) and
 # top-1 agreement (0.86).  The memory's features stay at 50 steps.
 QUERY_SAMPLE_STEPS = 10
-# Threads that run chunks of queries at once.  One XLA CPU call keeps ~1.5 of 2 cores busy
-# (2-core x86, 4-row chunks: 625 ms per query with one thread, 417 ms with two); a GPU runs
-# one chunk after another either way.
+# Threads that run chunks of queries at once.  One XLA CPU call keeps ~1.5 of 2 cores busy,
+# so two calls fill them (docs/performance.md); a GPU runs one chunk after another either
+# way.
 CPU_WORKERS, ACCELERATOR_WORKERS = 2, 1
 
 
@@ -90,8 +90,8 @@ class DynamicsSelector:
                                    gather=not rows_share_calls(), name="selection")
 
         if jax.default_backend() == "cpu" and "vis.out" in self.parts:
-            # 2-core x86: 0.30-0.37 s per query at 10 steps in the evaluation's batches
-            # (docs/performance.md), i.e. ~0.07 core-s per step.
+            # A CPU core's rate per DDIM step, from the 2-core figure per query at 10
+            # steps (docs/performance.md).
             log.info("dynamics features run on the CPU here: about %.2f s per query per core "
                      "(%d DDIM steps x 3 guided passes), once per (re)plan; --selection text "
                      "is the fast model-free mode", 0.07 * sample_steps, sample_steps)
