@@ -6,7 +6,7 @@ import json
 
 
 def test_physics_benchmark_runs_and_times(tmp_path):
-    from agnostos_mjx import bench
+    from agnostos_mjx.bench import backends as bench
 
     out = tmp_path / "bench.json"
     assert bench.main(["--tasks", "lamp_on", "--backends", "native", "--batches", "2",

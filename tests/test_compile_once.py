@@ -14,9 +14,9 @@ import jax
 import numpy as np
 import pytest
 
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
-from agnostos_mjx.tasks.base import KeyActions
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 COMPILE_EVENTS_TOOL = Path(__file__).resolve().parents[1] / "tools" / "compile_events.py"

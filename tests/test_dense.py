@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -16,13 +15,13 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import eval as ev
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.evaluation.config import UsageError
 from agnostos_mjx.evaluation.dense import DenseDriver, PolicyAnswerError, as_chunk, check_answer
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
 from agnostos_mjx.runtime.dense import DenseControl
 from agnostos_mjx.runtime.outcome import Outcome
-from agnostos_mjx.tasks.base import KeyActions
 from tests.conftest import episodes_for
 
 TASK = "turn_tap"  # a seen task with a short demo (3 key actions, about 90 control steps)
@@ -116,10 +115,10 @@ def test_answers_of_other_shapes_are_one_line_errors() -> None:
                          (row.pos, row.quat, row.gripper, row.valid)))
     assert check_answer(row, 2, "p") == 0 and check_answer(chunk, 2, "p", chunks=True) == 4
     assert as_chunk(row, 2, "p").pos.shape == (2, 1, 3)
-    bad = {"pos (2, 4)": replace(row, pos=np.zeros((2, 4))),
-           "quat (4,)": replace(row, quat=np.array([1.0, 0, 0, 0])),  # broadcast silently
-           "gripper (1,)": replace(row, gripper=np.ones(1)),
-           "pos (3, 3)": replace(row, pos=np.zeros((3, 3)))}
+    bad = {"pos (2, 4)": row._replace(pos=np.zeros((2, 4))),
+           "quat (4,)": row._replace(quat=np.array([1.0, 0, 0, 0])),  # broadcast silently
+           "gripper (1,)": row._replace(gripper=np.ones(1)),
+           "pos (3, 3)": row._replace(pos=np.zeros((3, 3)))}
     for got, answer in bad.items():
         for chunks in (False, True):
             with pytest.raises(PolicyAnswerError, match=re.escape(got)) as e:

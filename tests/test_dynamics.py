@@ -582,7 +582,7 @@ def test_tasks_waiting_on_gathered_rows_are_released_together_in_key_order():
 
 @pytest.mark.slow  # a benchmark's smoke test: its compiles
 def test_dynamics_benchmark_quick_mode(tmp_path):
-    from agnostos_mjx.dynamics import bench
+    from agnostos_mjx.bench import dynamics as bench
 
     assert bench.main(["--quick", "--out", str(tmp_path / "b.json")]) == 0
     result = json.loads((tmp_path / "b.json").read_text())
@@ -621,7 +621,7 @@ def _assert_stock(module: nnx.Module) -> None:
 def test_cpu_layers_give_flax_layers_features():
     """GroupNorm and attention specialised for the CPU (layers.py) against flax's own, on a
     quick-preset model with random weights: the same features up to float round-off."""
-    from agnostos_mjx.dynamics.bench import quick_pipeline, reference_pipeline
+    from agnostos_mjx.bench.dynamics import quick_pipeline, reference_pipeline
 
     pipe = quick_pipeline()
     pipe = replace(pipe, ae=_randomized(pipe.ae, 1), model=_randomized(pipe.model, 2), chunk=4)
@@ -684,7 +684,7 @@ def test_shipped_query_features_and_top18_unchanged_by_cpu_work():
     """Issue 13's gate: the query features of the shipped model (the evaluation's 10 DDIM
     steps) of 32 scenes of two unseen tasks, computed as before the CPU work (flax's layers,
     chunks of 64) and as now, agree to 1e-4 of their norm, and select the same top-18."""
-    from agnostos_mjx.dynamics.bench import reference_pipeline
+    from agnostos_mjx.bench.dynamics import reference_pipeline
     from agnostos_mjx.xicm.dynamics_selector import QUERY_SAMPLE_STEPS, load_pipeline
     from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 
@@ -727,7 +727,7 @@ def test_a_pipeline_serves_several_threads_at_once():
 def test_flops_reports_the_work_per_query_and_the_floor_of_n_queries(tmp_path, capsys):
     import json
 
-    from agnostos_mjx.dynamics import flops
+    from agnostos_mjx.bench import query_flops as flops
 
     assert flops.main(["--quick", "--queries", "100", "--repeats", "1",
                        "--out", str(tmp_path / "f.json")]) == 0

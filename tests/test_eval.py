@@ -524,7 +524,7 @@ UNBATCHED_POLICY = '''
 import numpy as np
 
 from agnostos_mjx.policies import Policy
-from agnostos_mjx.tasks.base import KeyActions
+from agnostos_mjx.actions import KeyActions
 
 
 class Unbatched(Policy):

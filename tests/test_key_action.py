@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import control
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.runtime.env import SETTLE_STEPS, Episodes
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task
-from agnostos_mjx.tasks.base import KeyActions
 
 POS_TOL = 0.01  # m: tip and object frames after the episode
 STEP_TOL = 3  # physics steps: the success step may move by float32 round-off in the plan

@@ -303,7 +303,7 @@ def test_object_text_report_counts(tmp_path) -> None:
     and differing query lines; it runs end to end on a task and rejects unknown tasks."""
     import json
 
-    from agnostos_mjx.xicm import object_text_report as rep
+    from agnostos_mjx.bench import object_text as rep
 
     truth = [{"a": [1, 2, 3], "b": [4, 5, 6]}, {"a": [1, 1, 1], "b": [2, 2, 2]}]
     seg = [{"a": [1, 2, 3], "b": [4, 7, 6]}, {"a": [1, 1, 1]}]

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,12 +13,12 @@ import pytest
 from agnostos_mjx.tasks import get_task
 
 # isort: split
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.eval import main
 from agnostos_mjx.policies import Policy, Round, make_policy, no_actions
 from agnostos_mjx.policies.oracle import OraclePolicy
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
-from agnostos_mjx.tasks.base import KeyActions
 
 
 class InvalidPolicy(Policy):
@@ -241,3 +243,23 @@ def test_the_evaluator_uses_every_optional_part(tmp_path: Path) -> None:
     assert [r["outcome"] for r in episodes] == ["bad_llm_output"] * 2
     assert [r["policy_info"] for r in episodes] == [{"world": 0}, {"world": 1}]
     assert results["llm"]["calls"] >= 1
+
+
+@pytest.mark.parametrize("module", ["agnostos_mjx.actions", "agnostos_mjx.policies"])
+def test_the_policy_contract_imports_neither_jax_nor_mujoco(module: str) -> None:
+    """A policy (or a client of a served one) writes its `act` against the contract and
+    `KeyActions` without loading the simulator's libraries."""
+    code = f"import sys, {module}; print(sorted({{'jax', 'mujoco'}} & set(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=Path(__file__).resolve().parents[1])
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_key_actions_are_a_pytree() -> None:
+    """JAX maps over KeyActions (the runtime converts and vmaps them) with no registration."""
+    import jax
+
+    acts = KeyActions(np.zeros((2, 3)), np.ones((2, 4)), np.ones(2), np.ones(2, bool))
+    doubled = jax.tree.map(lambda x: 2 * x, acts)
+    assert isinstance(doubled, KeyActions) and doubled.quat.shape == (2, 4)
+    assert len(jax.tree.leaves(acts)) == 4

@@ -12,6 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.control import (
     ACTION_BOUNDS,
     IK_POS_TOL,
@@ -25,7 +26,6 @@ from agnostos_mjx.math3d import quat_conj, quat_mul
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.tasks import get_task
-from agnostos_mjx.tasks.base import KeyActions
 from agnostos_mjx.world import ARM_JOINTS, HOME_QPOS, build_scene
 
 RLBENCH_TIP_POS = np.array([0.2785, -0.0082, 1.4719])

@@ -26,8 +26,8 @@ GPU_PLUGIN = importlib.util.find_spec("jax_plugins") is not None
 # The command-line modules that run JAX: each calls configure_jax first thing in main().
 COMMANDS = (
     "agnostos_mjx.eval", "agnostos_mjx.warmup", "agnostos_mjx.data.export",
-    "agnostos_mjx.data.generate", "agnostos_mjx.serve", "agnostos_mjx.bench",
-    "agnostos_mjx.observation_bench", "agnostos_mjx.dynamics.bench", "agnostos_mjx.remote.bench",
+    "agnostos_mjx.data.generate", "agnostos_mjx.serve", "agnostos_mjx.bench.backends",
+    "agnostos_mjx.bench.observation", "agnostos_mjx.bench.dynamics", "agnostos_mjx.bench.remote_policy",
     "agnostos_mjx.experts_check", "agnostos_mjx.xicm.build_memory", "agnostos_mjx.train.vla",
     "agnostos_mjx.train.vla_data", "agnostos_mjx.train.autoencoder", "agnostos_mjx.train.dynamics",
     "agnostos_mjx.train.evaluate", "agnostos_mjx.train.export", "agnostos_mjx.train.sampling_steps",

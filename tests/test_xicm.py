@@ -196,7 +196,7 @@ def test_instruction_features_are_encoded_once_per_text(memory, monkeypatch):
 def test_selection_report_counts_every_selected_demo(tmp_path):
     import json
 
-    from agnostos_mjx.xicm.selection_report import main
+    from agnostos_mjx.bench.selection import main
 
     assert main(["--tasks", "lamp_on", "--scenes", "2", "--k", "3", "--selection", "text",
                  "--out", str(tmp_path)]) == 0

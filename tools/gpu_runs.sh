@@ -117,7 +117,7 @@ case "$1" in
       --local-processes 8 --planner host; poll ;;
   obs)
     bench() {  # bench GPU LABEL
-      CUDA_VISIBLE_DEVICES=$1 python3 -m agnostos_mjx.observation_bench ${OBS_ARGS:---batches 1024 --renderers warp} \
+      CUDA_VISIBLE_DEVICES=$1 python3 -m agnostos_mjx.bench.observation ${OBS_ARGS:---batches 1024 --renderers warp} \
         --out "$OUT/obs_$2.json" > "$OUT/obs_$2.log" 2>&1
       echo "observation bench $2 exit $?" | tee -a $OUT/walls.txt
     }

@@ -57,8 +57,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.gather import send_alone
-from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
     from agnostos_mjx.observation import ObservationSpec, RLBenchObservation

@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.observation import ObservationSpec
 from agnostos_mjx.policies.base import Policy, Round
-from agnostos_mjx.tasks.base import KeyActions
 
 
 class ReferenceVLAPolicy(Policy):

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.policies.base import Policy, Round
-from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
     from agnostos_mjx.observation import RLBenchObservation

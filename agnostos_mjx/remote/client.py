@@ -44,6 +44,7 @@ from urllib.parse import urlparse
 import numpy as np
 
 from agnostos_mjx import settings
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.remote import json_wire
 from agnostos_mjx.remote.adapter import (
@@ -55,7 +56,6 @@ from agnostos_mjx.remote.adapter import (
     request,
 )
 from agnostos_mjx.remote.adapter import sim_state as world_sim_state
-from agnostos_mjx.tasks.base import KeyActions
 
 if TYPE_CHECKING:
     from agnostos_mjx.observation import RLBenchObservation

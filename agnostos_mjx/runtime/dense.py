@@ -26,6 +26,7 @@ import logging
 from dataclasses import dataclass
 
 from agnostos_mjx import control
+from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.runtime.key_action import (
     Phases,
     StepSpec,
@@ -36,7 +37,6 @@ from agnostos_mjx.runtime.key_action import (
 )
 from agnostos_mjx.runtime.outcome import is_done
 from agnostos_mjx.runtime.state import EnvState, StepResult
-from agnostos_mjx.tasks.base import KeyActions
 
 log = logging.getLogger(__name__)
 

@@ -14,6 +14,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
+from agnostos_mjx.actions import KeyActions  # defined there without JAX; re-exported here
 from agnostos_mjx.conditions import Condition, never
 from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.observables import Observation
@@ -38,19 +39,6 @@ class Placement:
     bodies: dict[str, tuple[jnp.ndarray, jnp.ndarray]] = field(default_factory=dict)
     joints: dict[str, jnp.ndarray] = field(default_factory=dict)
     colors: dict[str, jnp.ndarray] = field(default_factory=dict)
-
-
-@jax.tree_util.register_dataclass
-@dataclass
-class KeyActions:
-    """Key actions with a leading axis: one per world of a batch (B, ...) when a policy
-    acts, or a padded list for one world (K, ...) when an expert plans.  Tip position
-    (., 3), quaternion (., 4, wxyz), gripper open amount (.,) in [0, 1], validity (.,)."""
-
-    pos: jnp.ndarray
-    quat: jnp.ndarray
-    gripper: jnp.ndarray
-    valid: jnp.ndarray
 
 
 def key_actions(steps: list[tuple[jnp.ndarray, jnp.ndarray, float]], valid=None) -> KeyActions:

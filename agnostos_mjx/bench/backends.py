@@ -1,4 +1,4 @@
-"""Throughput benchmark: ``python -m agnostos_mjx.bench``.
+"""Throughput benchmark: ``python -m agnostos_mjx.bench.backends``.
 
 Two numbers per task, backend and batch size:
 
@@ -14,8 +14,8 @@ benchmark, not a test: nothing asserts on the numbers.
 
 Examples::
 
-    python -m agnostos_mjx.bench --quick                  # CPU smoke run, seconds
-    python -m agnostos_mjx.bench --backends native,warp --batches 1,75,1024 --out bench.json
+    python -m agnostos_mjx.bench.backends --quick                  # CPU smoke run, seconds
+    python -m agnostos_mjx.bench.backends --backends native,warp --batches 1,75,1024 --out bench.json
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 
 from agnostos_mjx.settings import configure_jax
 
-log = logging.getLogger("agnostos_mjx.bench")
+log = logging.getLogger("agnostos_mjx.bench.backends")
 
 
 def _int_list(text: str) -> list[int]:
@@ -49,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     from agnostos_mjx.cli import HelpFormatter
 
     p = argparse.ArgumentParser(
-        prog="python -m agnostos_mjx.bench",
+        prog="python -m agnostos_mjx.bench.backends",
         description="Physics steps/s and oracle episodes/s per task, backend and batch size.",
         formatter_class=HelpFormatter)
     p.add_argument("--tasks", default="all",
@@ -210,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: unknown backend(s) {', '.join(bad)}; choose among native, jax, warp",
               file=sys.stderr)
         return 2
-    print(f"agnostos_mjx.bench: tasks {', '.join(t.name for t in tasks)}; backends "
+    print(f"agnostos_mjx.bench.backends: tasks {', '.join(t.name for t in tasks)}; backends "
           f"{', '.join(backends)}; batches {', '.join(map(str, batches))}; {steps} steps",
           flush=True)
 

@@ -6,7 +6,7 @@ rendered from the front camera and the top-K demos are selected exactly as the p
 seen tasks over all selected demos, the majority task's share, and how stable that is across
 scenes: in how many scenes the same seen task holds the most demos.
 
-    python -m agnostos_mjx.xicm.selection_report --out selection_report
+    python -m agnostos_mjx.bench.selection --out selection_report
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def markdown(rows: list[dict[str, Any]], mode: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.xicm.selection_report",
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.selection",
                                 description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tasks", default="unseen", help="task names and/or split names")

@@ -1,4 +1,4 @@
-"""Dynamics-model throughput: ``python -m agnostos_mjx.dynamics.bench``.
+"""Dynamics-model throughput: ``python -m agnostos_mjx.bench.dynamics``.
 
 Two numbers the evaluation and the training depend on:
 
@@ -21,10 +21,10 @@ both give the same features (vis.in, vis.out, lang) up to float round-off.
 
 Examples::
 
-    python -m agnostos_mjx.dynamics.bench --quick
-    python -m agnostos_mjx.dynamics.bench --batches 1,8,75 --out dyn_bench.json
-    python -m agnostos_mjx.dynamics.bench --old-vs-new --batches 8,75 --repeats 5
-    python -m agnostos_mjx.dynamics.bench --old-vs-new --quick
+    python -m agnostos_mjx.bench.dynamics --quick
+    python -m agnostos_mjx.bench.dynamics --batches 1,8,75 --out dyn_bench.json
+    python -m agnostos_mjx.bench.dynamics --old-vs-new --batches 8,75 --repeats 5
+    python -m agnostos_mjx.bench.dynamics --old-vs-new --quick
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ import jax
 import numpy as np
 from flax import nnx
 
-from agnostos_mjx.bench import seconds_per_call
+from agnostos_mjx.bench.backends import seconds_per_call
 from agnostos_mjx.cli import HelpFormatter, atomic_write
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.config import FEATURE_DIM, LATENT_CHANNELS, LATENT_SIZE, PRESETS
@@ -182,7 +182,7 @@ def quick_pipeline() -> Pipeline:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.dynamics.bench",
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.dynamics",
                                 formatter_class=HelpFormatter, description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true",
                    help="tiny untrained model, quick preset, batches 1,4: a CPU smoke run")

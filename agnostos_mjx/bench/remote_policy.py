@@ -1,4 +1,4 @@
-"""Remote vs in-process policy cost: ``python -m agnostos_mjx.remote.bench [--quick]``.
+"""Remote vs in-process policy cost: ``python -m agnostos_mjx.bench.remote_policy [--quick]``.
 
 Runs the oracle on one batch of worlds per task twice, in process and through the
 reference server (a separate process on loopback, preset ``sim``), after a warm-up batch
@@ -59,7 +59,7 @@ def start_server() -> tuple[subprocess.Popen, str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     configure_jax()
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.remote.bench")
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.remote_policy")
     p.add_argument("--tasks", default="lamp_on,phone_on_base")
     p.add_argument("--batch", type=int, default=75)
     p.add_argument("--quick", action="store_true", help="lamp_on only")

@@ -10,8 +10,8 @@ five cameras at 128 px (the policy's `objects=segmented` spec) and compares the 
 * objects no camera sees (the original omits them from the text);
 * query lines that differ (what the LLM would be shown), as a share of the episodes.
 
-    python -m agnostos_mjx.xicm.object_text_report --out eval/reports/object_text_segmented
-    python -m agnostos_mjx.xicm.object_text_report --quick        # 2 tasks x 4 episodes
+    python -m agnostos_mjx.bench.object_text --out eval/reports/object_text_segmented
+    python -m agnostos_mjx.bench.object_text --quick        # 2 tasks x 4 episodes
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     from agnostos_mjx.cli import setup_logging
     from agnostos_mjx.tasks import parse_tasks
 
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.xicm.object_text_report",
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.object_text",
                                 description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tasks", default="unseen", help="task names and/or split names")

@@ -1,4 +1,4 @@
-"""Observation throughput: ``python -m agnostos_mjx.observation_bench``.
+"""Observation throughput: ``python -m agnostos_mjx.bench.observation``.
 
 Camera-frames/s of the full RLBench observation (RGB uint8, depth, world point cloud,
 segmentation; `--cameras` at `--size` px) per task and batch, for
@@ -16,9 +16,9 @@ of `--repeats` timed calls after one warm-up call.  A benchmark, not a test.
 
 Examples::
 
-    python -m agnostos_mjx.observation_bench --quick          # CPU, batch 75, one task
-    python -m agnostos_mjx.observation_bench --quick --render-threads 1,2 --repeats 10
-    python -m agnostos_mjx.observation_bench --out observation_bench.json
+    python -m agnostos_mjx.bench.observation --quick          # CPU, batch 75, one task
+    python -m agnostos_mjx.bench.observation --quick --render-threads 1,2 --repeats 10
+    python -m agnostos_mjx.bench.observation --out observation_bench.json
 """
 
 from __future__ import annotations
@@ -38,16 +38,16 @@ import numpy as np
 
 from agnostos_mjx.settings import configure_jax
 
-log = logging.getLogger("agnostos_mjx.observation_bench")
+log = logging.getLogger("agnostos_mjx.bench.observation")
 PERACT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
 TASKS = ("lamp_on", "stack_blocks", "close_fridge")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agnostos_mjx.bench import _int_list
+    from agnostos_mjx.bench.backends import _int_list
     from agnostos_mjx.cli import HelpFormatter
 
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.observation_bench",
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.observation",
                                 description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter)
     p.add_argument("--tasks", default=",".join(TASKS), help="comma-separated task names")

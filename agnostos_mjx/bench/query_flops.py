@@ -1,5 +1,5 @@
 """The demo selection's arithmetic per query and this machine's rate for it:
-``python -m agnostos_mjx.dynamics.flops``.
+``python -m agnostos_mjx.bench.query_flops``.
 
 A query's features are guided DDIM: each step runs the UNet on three conditionings (first
 frame and instruction, frame only, neither).  XLA's cost analysis gives the floating-point
@@ -10,8 +10,8 @@ selector runs) and, for reference, on a 1024^3 matmul, about the best this machi
 does.  With ``--queries N`` (the main job has ~5,900, counted from its records' plans) it
 prints the time that many queries need at each rate: a floor for a run on this machine.
 
-    python -m agnostos_mjx.dynamics.flops --queries 5916
-    python -m agnostos_mjx.dynamics.flops --quick
+    python -m agnostos_mjx.bench.query_flops --queries 5916
+    python -m agnostos_mjx.bench.query_flops --quick
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def measure(pipeline: Pipeline, threads: int, repeats: int) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.dynamics.flops",
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.query_flops",
                                 formatter_class=HelpFormatter,
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true",
@@ -119,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
 
     if a.quick:
-        from agnostos_mjx.dynamics.bench import quick_pipeline
+        from agnostos_mjx.bench.dynamics import quick_pipeline
 
         pipeline = quick_pipeline()
     else:

@@ -1,5 +1,5 @@
 """LLM request throughput against the scripted loopback server:
-``python -m agnostos_mjx.llm.bench``.
+``python -m agnostos_mjx.bench.llm``.
 
 Measures how long `--requests` chat completions take with `--latency` s of
 server latency at the client's concurrency, against the sequential time the
@@ -38,7 +38,7 @@ def run(requests: int, latency_s: float, concurrency: int) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.llm.bench",
+    p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.llm",
                                 formatter_class=HelpFormatter, description=__doc__.split("\n\n")[0])
     p.add_argument("--requests", type=int, default=1725,
                    help="requests to send (1,725 = 23 tasks x 75 episodes)")
