@@ -47,6 +47,12 @@ ended one's in ``info["final_obs"]`` and its info in ``info["final_info"]``, as 
 own ``create_envs`` asks of gymnasium).  A reset world starts the next episode of its seed
 sequence: g + num_envs.
 
+``renderer``: where the images render (auto: MJX-Warp's ray tracer wherever a GPU with
+warp-lang is, else MuJoCo's OpenGL on the CPU; cpu; warp), as the evaluator's
+``--renderer``.  The export renders on the CPU; its datasets record that and the scene
+version (data/look.py), and :func:`look_warning` says in one line when this env would
+render otherwise (the plug-in logs it once; ``renderer="cpu"`` renders as the export did).
+
 ``call(name)`` / ``get_attr(name)`` return one value per world, as gymnasium's vector envs
 do: ``task_description`` (each world's instruction, what lerobot-eval gives the policy as
 ``task``), ``task`` (the task's name), ``_max_episode_steps``, ``render``.  ``render()``:
@@ -77,6 +83,7 @@ from agnostos_mjx.data.lerobot_layout import (
 from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation
 from agnostos_mjx.evaluation.config import VARIATION_MODES
 from agnostos_mjx.observation import CAMERAS
+from agnostos_mjx.physics import RENDERERS
 from agnostos_mjx.tasks.base import KeyActions, Split
 
 # LeRobot-facing suite names -> our splits (--env.task=level1 runs every level-1 task).
@@ -109,6 +116,7 @@ class EnvOptions:
     render_camera: str = "front"
     render_size: int | None = None  # default: size
     autoreset_mode: str = "next_step"
+    renderer: str = "auto"  # as the evaluator's --renderer (physics.RENDERERS)
 
     def __post_init__(self) -> None:
         names = self.cameras.split(",") if isinstance(self.cameras, str) else self.cameras
@@ -144,6 +152,9 @@ class EnvOptions:
                              f"variation number, got {self.variations!r}")
         if not isinstance(self.protocol_seed, int) or self.protocol_seed < 0:
             raise ValueError(f"protocol_seed must be an integer >= 0, got {self.protocol_seed!r}")
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"unknown renderer {self.renderer!r}; choose from "
+                             f"{', '.join(RENDERERS)}")
 
     @property
     def action_dim(self) -> int:
@@ -259,6 +270,36 @@ def options_for_policy(features: Mapping[str, Sequence[int]] | None,
             f"({opts.state_dim},) for state {opts.state}, action ({opts.action_dim},) for "
             f"rotation {opts.rotation}){hint}")
     return opts
+
+
+def render_route(opts: EnvOptions) -> str:
+    """"cpu" or "warp": what the env's images render with on this machine (its
+    ``renderer``, auto resolved as the evaluator resolves it).  Sets JAX up first, as the
+    env does: this may be the process's first use of JAX."""
+    from agnostos_mjx.physics import resolve_renderer
+    from agnostos_mjx.settings import configure_jax
+
+    if opts.renderer == "auto":
+        configure_jax()
+    return resolve_renderer(opts.renderer, opts.backend)
+
+
+def look_warning(dataset_meta: Mapping[str, Any] | None, opts: EnvOptions,
+                 option: str = "renderer") -> str | None:
+    """One line when the training data (its meta/info.json as a dict) was rendered by
+    another renderer or scene version than this env renders with (data/look.py's
+    check_look), naming the `option` that renders as the data did; None when they agree
+    or the data records none."""
+    from agnostos_mjx.data.look import LOOK_KEY, check_look
+
+    record = (dataset_meta or {}).get(LOOK_KEY)
+    if not isinstance(record, Mapping):
+        return None  # no record: nothing to compare (and no need to resolve the route)
+    route = render_route(opts)
+    text = check_look(dataset_meta, route)
+    if text and record.get("renderer") in RENDERERS and record["renderer"] != route:
+        text += f"; {option}={record['renderer']} renders as the data was"
+    return text
 
 
 def resolve_tasks(spec: str) -> dict[str, list[str]]:
@@ -553,7 +594,8 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         from agnostos_mjx.observation import ObservationSpec
 
         opts = self.options
-        spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size)
+        spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size,
+                               renderer=opts.renderer)
         obs = self.runner.observe(self._state, spec)
         state = state_vector(opts.state, np.asarray(obs.gripper_pose, np.float32),
                              np.asarray(obs.gripper_open, np.float32),

@@ -407,14 +407,15 @@ from lerobot.utils.constants import HF_LEROBOT_HOME
 
 class LeRobotDatasetMetadata:
     def __init__(self, repo_id, root=None, revision=None):
-        root = Path(root) if root else HF_LEROBOT_HOME / repo_id
-        self.features = json.loads((root / "meta/info.json").read_text())["features"]
+        self.root = Path(root) if root else HF_LEROBOT_HOME / repo_id
+        self.features = json.loads((self.root / "meta/info.json").read_text())["features"]
 """,
 }
 CONFIG_RUN = """
 import json, sys
 from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
 cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
+AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))  # built twice, warns once
 print(json.dumps({"cameras": cfg.cameras, "size": cfg.size, "state": cfg.state,
                   "rotation": cfg.rotation,
                   "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
@@ -458,14 +459,17 @@ def _policy_dir(path: Path, features: dict, dataset: dict | None = None) -> Path
     return path
 
 
-def _dataset(root: Path, cameras, size: int, state: str, rotation: str) -> Path:
-    """A dataset's meta/info.json as the export writes it (data/lerobot.py: features)."""
+def _dataset(root: Path, cameras, size: int, state: str, rotation: str,
+             look: dict | None = None) -> Path:
+    """A dataset's meta/info.json as the export writes it (data/lerobot.py: features;
+    `look`: its "agnostos" record, data/look.py)."""
     import json
 
     (root / "meta").mkdir(parents=True)
     feats = layout.features(cameras, size, size, state, rotation)
     (root / "meta/info.json").write_text(json.dumps({"codebase_version": "v3.0",
-                                                    "features": feats}))
+                                                    "features": feats,
+                                                    **({"agnostos": look} if look else {})}))
     return root
 
 
@@ -545,7 +549,36 @@ def test_plugin_config_takes_the_training_datas_inputs(plugin_config, tmp_path) 
     assert run.returncode == 0 and json.loads(run.stdout)["state"] == "libero", run.stderr
 
 
+def test_plugin_config_warns_once_on_another_look(plugin_config, tmp_path) -> None:
+    """Training data rendered otherwise than the env renders: one warning line, once,
+    naming the option that renders as the data did; none when they agree."""
+    from agnostos_mjx.data.look import look_record
+
+    data = _dataset(tmp_path / "warp_seen", ("front",), 32, "rlbench", "quat",
+                    look={**look_record("cpu"), "renderer": "warp"})
+    train = ("--env.type=agnostos", "--dataset.repo_id=local/warp_seen", f"--dataset.root={data}")
+    run = plugin_config({"renderer": "cpu"}, *train)
+    assert run.returncode == 0, run.stderr[-3000:]
+    lines = [x for x in run.stderr.splitlines() if "--env.type=agnostos" in x]
+    assert len(lines) == 1, run.stderr
+    assert "renderer warp (here cpu)" in lines[0] and lines[0].endswith(
+        "; --env.renderer=warp renders as the data was"), lines[0]
+    run = plugin_config({"renderer": "warp"}, *train)  # as the data: no warning
+    assert run.returncode == 0 and "--env.type=agnostos" not in run.stderr, run.stderr[-3000:]
+    # lerobot-eval finds the data through the checkpoint; another scene version warns
+    data = _dataset(tmp_path / "old_seen", ("front",), 32, "rlbench", "quat",
+                    look={**look_record("cpu"), "scene_version": "0123456789ab"})
+    policy = _policy_dir(tmp_path / "act", {"observation.images.front": (3, 32, 32),
+                                            "observation.state": (8,), "action": (8,)},
+                         {"repo_id": "local/old_seen", "root": str(data)})
+    run = plugin_config({"renderer": "cpu"}, "--env.type=agnostos", f"--policy.path={policy}")
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stderr.count("scene version 0123456789ab") == 1, run.stderr
+    assert "--env.renderer=" not in run.stderr  # the renderer agrees
+
+
 @pytest.mark.parametrize("call,match", [
+    (lambda: EnvOptions(renderer="gl"), "unknown renderer"),
     (lambda: AgnostosVectorEnv("no_such_task", 1), "unknown task 'no_such_task'"),
     (lambda: resolve_tasks("level3"), "unknown task or suite 'level3'.*level1"),
     (lambda: make_suites("", 1), "must name a task or a suite"),
