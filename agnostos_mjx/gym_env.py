@@ -50,8 +50,11 @@ sequence: g + num_envs.
 ``renderer``: where the images render (auto: MJX-Warp's ray tracer wherever a GPU with
 warp-lang is, else MuJoCo's OpenGL on the CPU; cpu; warp), as the evaluator's
 ``--renderer``.  The export renders on the CPU; its datasets record that and the scene
-version (data/look.py), and :func:`look_warning` says in one line when this env would
-render otherwise (the plug-in logs it once; ``renderer="cpu"`` renders as the export did).
+version (data/look.py).  An env given its policy's ``training_data`` (the dataset's
+meta/info.json as a dict; the plug-in passes it) logs one warning line, once per process,
+at its first reset when it renders otherwise (:func:`look_warning`; ``renderer="cpu"``
+renders as the export did).  Not before: resolving ``auto`` starts JAX, whose GPU memory
+pool would then be taken before LeRobot loads its policy.
 
 ``call(name)`` / ``get_attr(name)`` return one value per world, as gymnasium's vector envs
 do: ``task_description`` (each world's instruction, what lerobot-eval gives the policy as
@@ -61,6 +64,7 @@ each world's frame of ``render_camera`` (uint8 H x W x 3; lerobot-eval's videos)
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -96,6 +100,8 @@ ROTATION_BOUNDS = {"quat": 1.0, "euler": np.pi, "axis_angle": np.pi, "rot6d": 1.
 # rollout (for its FreezeAfterEpisodeEnd wrapper; ignored here).
 KNOWN_OPTIONS = {"episode_keys", "variations", "lerobot_new_rollout"}
 STATE_KEY = "observation.state"  # the export's (and LeRobot's) state feature
+log = logging.getLogger(__name__)
+_warned: set[str] = set()  # look warnings already logged by this process
 
 
 @dataclass(frozen=True)
@@ -331,12 +337,17 @@ def resolve_tasks(spec: str) -> dict[str, list[str]]:
     return out
 
 
-def make_suites(task: str, num_envs: int, **options: Any) -> dict[str, dict[int, AgnostosVectorEnv]]:
+def make_suites(task: str, num_envs: int, training_data: Mapping[str, Any] | None = None,
+                renderer_flag: str = "renderer", **options: Any
+                ) -> dict[str, dict[int, AgnostosVectorEnv]]:
     """``{suite: {task_id: VectorEnv}}`` (what LeRobot's ``EnvConfig.create_envs``
     returns): one env of `num_envs` worlds per task; each builds its scene at first use,
-    so naming a whole suite costs nothing until it runs."""
+    so naming a whole suite costs nothing until it runs.  `training_data`,
+    `renderer_flag`: AgnostosVectorEnv's."""
     opts = EnvOptions(**options)
-    return {suite: {i: AgnostosVectorEnv(name, num_envs, opts) for i, name in enumerate(names)}
+    return {suite: {i: AgnostosVectorEnv(name, num_envs, opts, training_data=training_data,
+                                         renderer_flag=renderer_flag)
+                    for i, name in enumerate(names)}
             for suite, names in resolve_tasks(task).items()}
 
 
@@ -355,7 +366,11 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
     """`num_envs` worlds of one task (module docstring)."""
 
     def __init__(self, task: str, num_envs: int = 1, options: EnvOptions | None = None,
-                 **kwargs: Any) -> None:
+                 training_data: Mapping[str, Any] | None = None,
+                 renderer_flag: str = "renderer", **kwargs: Any) -> None:
+        """`training_data`: the policy's dataset's meta/info.json, to warn at the first
+        reset when it was rendered otherwise (module docstring); `renderer_flag`: how the
+        warning names the option that renders as the data did."""
         from agnostos_mjx.settings import configure_jax
         from agnostos_mjx.tasks import get_task
 
@@ -401,6 +416,8 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         self._needs_reset = np.zeros(num_envs, bool)
         self._instructions: tuple[str, ...] = ("",) * num_envs
         self._last_obs: dict | None = None
+        self._look: tuple[Mapping[str, Any], str] | None = (
+            None if training_data is None else (training_data, renderer_flag))
 
     # ---- what lerobot-eval reads ----------------------------------------------------------
     @property
@@ -464,6 +481,13 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
                 len(seed) != self.num_envs:
             raise ValueError(f"seed: one integer or {self.num_envs} integers, got {len(seed)}")
         super().reset(seed=None if seed is None else int(np.ravel(seed)[0]))
+        if self._look is not None:  # the training data's look, checked once
+            data, flag = self._look
+            self._look = None
+            text = look_warning(data, self.options, flag)
+            if text and text not in _warned:
+                _warned.add(text)
+                log.warning("%s", text)
         if "episode_keys" in options:
             keys = np.asarray(options["episode_keys"], np.uint32)
             if keys.shape != (self.num_envs, 2):

@@ -415,7 +415,10 @@ CONFIG_RUN = """
 import json, sys
 from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
 cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
-AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))  # built twice, warns once
+if "--reset" in sys.argv:  # the envs' first reset (where a look warning is logged)
+    for env in cfg.create_envs(1)["level1"].values():
+        env.reset(seed=0)
+        env.close()
 print(json.dumps({"cameras": cfg.cameras, "size": cfg.size, "state": cfg.state,
                   "rotation": cfg.rotation,
                   "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
@@ -549,32 +552,42 @@ def test_plugin_config_takes_the_training_datas_inputs(plugin_config, tmp_path) 
     assert run.returncode == 0 and json.loads(run.stdout)["state"] == "libero", run.stderr
 
 
-def test_plugin_config_warns_once_on_another_look(plugin_config, tmp_path) -> None:
-    """Training data rendered otherwise than the env renders: one warning line, once,
-    naming the option that renders as the data did; none when they agree."""
+def test_plugin_envs_warn_once_on_another_look(plugin_config, tmp_path) -> None:
+    """Training data rendered otherwise than the env renders: the plug-in's envs log one
+    warning line at their first reset, naming the flag that renders as the data did."""
     from agnostos_mjx.data.look import look_record
 
     data = _dataset(tmp_path / "warp_seen", ("front",), 32, "rlbench", "quat",
                     look={**look_record("cpu"), "renderer": "warp"})
-    train = ("--env.type=agnostos", "--dataset.repo_id=local/warp_seen", f"--dataset.root={data}")
-    run = plugin_config({"renderer": "cpu"}, *train)
+    run = plugin_config({"renderer": "cpu"}, "--env.type=agnostos",
+                        "--dataset.repo_id=local/warp_seen", f"--dataset.root={data}", "--reset")
     assert run.returncode == 0, run.stderr[-3000:]
-    lines = [x for x in run.stderr.splitlines() if "--env.type=agnostos" in x]
+    lines = [x for x in run.stderr.splitlines() if "training data was rendered" in x]
     assert len(lines) == 1, run.stderr
     assert "renderer warp (here cpu)" in lines[0] and lines[0].endswith(
         "; --env.renderer=warp renders as the data was"), lines[0]
-    run = plugin_config({"renderer": "warp"}, *train)  # as the data: no warning
-    assert run.returncode == 0 and "--env.type=agnostos" not in run.stderr, run.stderr[-3000:]
-    # lerobot-eval finds the data through the checkpoint; another scene version warns
-    data = _dataset(tmp_path / "old_seen", ("front",), 32, "rlbench", "quat",
-                    look={**look_record("cpu"), "scene_version": "0123456789ab"})
-    policy = _policy_dir(tmp_path / "act", {"observation.images.front": (3, 32, 32),
-                                            "observation.state": (8,), "action": (8,)},
-                         {"repo_id": "local/old_seen", "root": str(data)})
-    run = plugin_config({"renderer": "cpu"}, "--env.type=agnostos", f"--policy.path={policy}")
-    assert run.returncode == 0, run.stderr[-3000:]
-    assert run.stderr.count("scene version 0123456789ab") == 1, run.stderr
-    assert "--env.renderer=" not in run.stderr  # the renderer agrees
+
+
+def test_env_warns_once_on_another_look(caplog) -> None:
+    """The env's first reset compares the training data's look with its own, once per
+    process and message; data rendered as the env renders, or with no record: silence."""
+    import logging
+
+    from agnostos_mjx.data.look import look_record
+
+    look = look_record("cpu")
+    cases = {"same": {"agnostos": look}, "none": {"features": {}},
+             "other": {"agnostos": {**look, "scene_version": "0123456789ab"}}}
+    with caplog.at_level(logging.WARNING, logger="agnostos_mjx.gym_env"):
+        for name in ("same", "none", "other", "other"):
+            env = AgnostosVectorEnv("lamp_on", 1, EnvOptions(**SMALL, renderer="cpu"),
+                                    training_data=cases[name])
+            env.reset(seed=0)
+            env.reset(seed=1)
+            env.close()
+    texts = [r.getMessage() for r in caplog.records if r.name == "agnostos_mjx.gym_env"]
+    assert len(texts) == 1 and "scene version 0123456789ab" in texts[0], texts
+    assert "renderer=" not in texts[0]  # the renderers agree
 
 
 @pytest.mark.parametrize("call,match", [

@@ -11,9 +11,10 @@ names of its state and action dimensions from its training data: lerobot-train's
 ``--dataset.repo_id`` / ``--dataset.root`` (a policy trained from scratch takes its inputs
 from there: ``make_policy(ds_meta=...)``), else the dataset the checkpoint's
 train_config.json names, when it is on this machine.  Any input the env cannot give stops
-the command in one line.  Where that dataset records another renderer or scene version
-than the env renders with (the export's "agnostos" record in info.json, data/look.py),
-the config logs one warning line, once: the policy will see slightly different images.  Checked against lerobot 0.6.1's src/lerobot/envs/configs.py
+the command in one line.  That dataset's info.json goes to the envs, which log one
+warning line, once, at their first reset when it records another renderer or scene
+version than they render with (the export's "agnostos" record, data/look.py): the policy
+will see slightly different images.  Checked against lerobot 0.6.1's src/lerobot/envs/configs.py
 (EnvConfig, create_envs), configs/eval.py, configs/train.py, envs/utils.py
 (preprocess_observation), scripts/lerobot_eval.py (eval_main, rollout) and
 scripts/lerobot_train.py (the envs of ``--env_eval_freq``)."""
@@ -21,7 +22,6 @@ scripts/lerobot_train.py (the envs of ``--env_eval_freq``)."""
 from __future__ import annotations
 
 import json
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,7 +31,6 @@ from lerobot.envs.configs import EnvConfig
 from agnostos_mjx.gym_env import (
     dataset_inputs,
     lerobot_features,
-    look_warning,
     make_suites,
     options_for_policy,
     resolve_tasks,
@@ -51,10 +50,6 @@ def policy_features() -> dict[str, tuple[int, ...]] | None:
                                            or [])
     return {key: tuple(ft.shape) for key, ft in {**cfg.input_features,
                                                 **cfg.output_features}.items()}
-
-
-log = logging.getLogger(__name__)
-_warned: set[str] = set()  # look warnings already logged (the config may be built twice)
 
 
 def dataset_info() -> dict | None:
@@ -83,13 +78,6 @@ def dataset_info() -> dict | None:
 
     info = Path(root or HF_LEROBOT_HOME / repo_id) / "meta/info.json"
     return json.loads(info.read_text()) if info.is_file() else None
-
-
-def warn_once(text: str) -> None:
-    """Log `text` as a warning, once per process."""
-    if text not in _warned:
-        _warned.add(text)
-        log.warning("%s", text)
 
 
 @EnvConfig.register_subclass("agnostos")
@@ -139,8 +127,8 @@ class AgnostosEnvConfig(EnvConfig):
         self.cameras, self.size = ",".join(opts.cameras), opts.size
         self.state, self.rotation = opts.state, opts.rotation
         resolve_tasks(self.task or "")
-        if text := look_warning(info, opts, option="--env.renderer"):
-            warn_once(f"--env.type=agnostos: {text}")
+        # not a field: the envs' (their look warning), not part of the saved config
+        self._training_data = info
         for key, (kind, shape, policy_key) in lerobot_features(opts).items():
             self.features[key] = PolicyFeature(type=FeatureType[kind], shape=shape)
             self.features_map[key] = policy_key
@@ -162,4 +150,5 @@ class AgnostosEnvConfig(EnvConfig):
     def create_envs(self, n_envs: int, use_async_envs: bool = False) -> dict:
         """One VectorEnv of `n_envs` worlds per task.  `use_async_envs` is moot: the worlds
         of a task already run as one batch in this process (native MuJoCo's threads)."""
-        return make_suites(self.task or "", n_envs, **self.gym_kwargs)
+        return make_suites(self.task or "", n_envs, getattr(self, "_training_data", None),
+                           "--env.renderer", **self.gym_kwargs)
