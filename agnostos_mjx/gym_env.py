@@ -291,10 +291,10 @@ def render_route(opts: EnvOptions) -> str:
 
 
 def look_warning(dataset_meta: Mapping[str, Any] | None, opts: EnvOptions,
-                 option: str = "renderer") -> str | None:
+                 renderer_flag: str = "renderer") -> str | None:
     """One line when the training data (its meta/info.json as a dict) was rendered by
     another renderer or scene version than this env renders with (data/look.py's
-    check_look), naming the `option` that renders as the data did; None when they agree
+    check_look), naming the `renderer_flag` that renders as the data did; None when they agree
     or the data records none."""
     from agnostos_mjx.data.look import LOOK_KEY, check_look
 
@@ -304,7 +304,7 @@ def look_warning(dataset_meta: Mapping[str, Any] | None, opts: EnvOptions,
     route = render_route(opts)
     text = check_look(dataset_meta, route)
     if text and record.get("renderer") in RENDERERS and record["renderer"] != route:
-        text += f"; {option}={record['renderer']} renders as the data was"
+        text += f"; {renderer_flag}={record['renderer']} renders as the data was"
     return text
 
 

@@ -99,5 +99,5 @@ def test_env_look_warning_names_the_renderer_option() -> None:
     assert look_warning(info, EnvOptions(renderer="cpu")) is None
     assert look_warning(None, EnvOptions(renderer="warp")) is None
     assert look_warning({"features": {}}, EnvOptions(renderer="warp")) is None
-    text = look_warning(info, EnvOptions(renderer="warp"), option="--env.renderer")
+    text = look_warning(info, EnvOptions(renderer="warp"), renderer_flag="--env.renderer")
     assert text.endswith("; --env.renderer=cpu renders as the data was") and "\n" not in text
