@@ -47,6 +47,15 @@ ended one's in ``info["final_obs"]`` and its info in ``info["final_info"]``, as 
 own ``create_envs`` asks of gymnasium).  A reset world starts the next episode of its seed
 sequence: g + num_envs.
 
+``renderer``: where the images render (auto: MJX-Warp's ray tracer wherever a GPU with
+warp-lang is, else MuJoCo's OpenGL on the CPU; cpu; warp), as the evaluator's
+``--renderer``.  The export renders on the CPU; its datasets record that and the scene
+version (data/look.py).  An env given its policy's ``training_data`` (the dataset's
+meta/info.json as a dict; the plug-in passes it) logs one warning line, once per process,
+at its first reset when it renders otherwise (:func:`look_warning`; ``renderer="cpu"``
+renders as the export did).  Not before: resolving ``auto`` starts JAX, whose GPU memory
+pool would then be taken before LeRobot loads its policy.
+
 ``call(name)`` / ``get_attr(name)`` return one value per world, as gymnasium's vector envs
 do: ``task_description`` (each world's instruction, what lerobot-eval gives the policy as
 ``task``), ``task`` (the task's name), ``_max_episode_steps``, ``render``.  ``render()``:
@@ -55,6 +64,7 @@ each world's frame of ``render_camera`` (uint8 H x W x 3; lerobot-eval's videos)
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -77,6 +87,7 @@ from agnostos_mjx.data.lerobot_layout import (
 from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation
 from agnostos_mjx.evaluation.config import VARIATION_MODES
 from agnostos_mjx.observation import CAMERAS
+from agnostos_mjx.physics import RENDERERS
 from agnostos_mjx.tasks.base import KeyActions, Split
 
 # LeRobot-facing suite names -> our splits (--env.task=level1 runs every level-1 task).
@@ -89,6 +100,8 @@ ROTATION_BOUNDS = {"quat": 1.0, "euler": np.pi, "axis_angle": np.pi, "rot6d": 1.
 # rollout (for its FreezeAfterEpisodeEnd wrapper; ignored here).
 KNOWN_OPTIONS = {"episode_keys", "variations", "lerobot_new_rollout"}
 STATE_KEY = "observation.state"  # the export's (and LeRobot's) state feature
+log = logging.getLogger(__name__)
+_warned: set[str] = set()  # look warnings already logged by this process
 
 
 @dataclass(frozen=True)
@@ -109,6 +122,7 @@ class EnvOptions:
     render_camera: str = "front"
     render_size: int | None = None  # default: size
     autoreset_mode: str = "next_step"
+    renderer: str = "auto"  # as the evaluator's --renderer (physics.RENDERERS)
 
     def __post_init__(self) -> None:
         names = self.cameras.split(",") if isinstance(self.cameras, str) else self.cameras
@@ -144,6 +158,9 @@ class EnvOptions:
                              f"variation number, got {self.variations!r}")
         if not isinstance(self.protocol_seed, int) or self.protocol_seed < 0:
             raise ValueError(f"protocol_seed must be an integer >= 0, got {self.protocol_seed!r}")
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"unknown renderer {self.renderer!r}; choose from "
+                             f"{', '.join(RENDERERS)}")
 
     @property
     def action_dim(self) -> int:
@@ -261,6 +278,36 @@ def options_for_policy(features: Mapping[str, Sequence[int]] | None,
     return opts
 
 
+def render_route(opts: EnvOptions) -> str:
+    """"cpu" or "warp": what the env's images render with on this machine (its
+    ``renderer``, auto resolved as the evaluator resolves it).  Sets JAX up first, as the
+    env does: this may be the process's first use of JAX."""
+    from agnostos_mjx.physics import resolve_renderer
+    from agnostos_mjx.settings import configure_jax
+
+    if opts.renderer == "auto":
+        configure_jax()
+    return resolve_renderer(opts.renderer, opts.backend)
+
+
+def look_warning(dataset_meta: Mapping[str, Any] | None, opts: EnvOptions,
+                 renderer_flag: str = "renderer") -> str | None:
+    """One line when the training data (its meta/info.json as a dict) was rendered by
+    another renderer or scene version than this env renders with (data/look.py's
+    check_look), naming the `renderer_flag` that renders as the data did; None when they agree
+    or the data records none."""
+    from agnostos_mjx.data.look import LOOK_KEY, check_look
+
+    record = (dataset_meta or {}).get(LOOK_KEY)
+    if not isinstance(record, Mapping):
+        return None  # no record: nothing to compare (and no need to resolve the route)
+    route = render_route(opts)
+    text = check_look(dataset_meta, route)
+    if text and record.get("renderer") in RENDERERS and record["renderer"] != route:
+        text += f"; {renderer_flag}={record['renderer']} renders as the data was"
+    return text
+
+
 def resolve_tasks(spec: str) -> dict[str, list[str]]:
     """``--env.task``: a suite (seen, level1, level2, unseen = both levels), task names,
     or a comma-separated mix -> {suite: [task names]} in the order named (a suite in
@@ -290,12 +337,17 @@ def resolve_tasks(spec: str) -> dict[str, list[str]]:
     return out
 
 
-def make_suites(task: str, num_envs: int, **options: Any) -> dict[str, dict[int, AgnostosVectorEnv]]:
+def make_suites(task: str, num_envs: int, training_data: Mapping[str, Any] | None = None,
+                renderer_flag: str = "renderer", **options: Any
+                ) -> dict[str, dict[int, AgnostosVectorEnv]]:
     """``{suite: {task_id: VectorEnv}}`` (what LeRobot's ``EnvConfig.create_envs``
     returns): one env of `num_envs` worlds per task; each builds its scene at first use,
-    so naming a whole suite costs nothing until it runs."""
+    so naming a whole suite costs nothing until it runs.  `training_data`,
+    `renderer_flag`: AgnostosVectorEnv's."""
     opts = EnvOptions(**options)
-    return {suite: {i: AgnostosVectorEnv(name, num_envs, opts) for i, name in enumerate(names)}
+    return {suite: {i: AgnostosVectorEnv(name, num_envs, opts, training_data=training_data,
+                                         renderer_flag=renderer_flag)
+                    for i, name in enumerate(names)}
             for suite, names in resolve_tasks(task).items()}
 
 
@@ -314,7 +366,11 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
     """`num_envs` worlds of one task (module docstring)."""
 
     def __init__(self, task: str, num_envs: int = 1, options: EnvOptions | None = None,
-                 **kwargs: Any) -> None:
+                 training_data: Mapping[str, Any] | None = None,
+                 renderer_flag: str = "renderer", **kwargs: Any) -> None:
+        """`training_data`: the policy's dataset's meta/info.json, to warn at the first
+        reset when it was rendered otherwise (module docstring); `renderer_flag`: how the
+        warning names the option that renders as the data did."""
         from agnostos_mjx.settings import configure_jax
         from agnostos_mjx.tasks import get_task
 
@@ -360,6 +416,8 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         self._needs_reset = np.zeros(num_envs, bool)
         self._instructions: tuple[str, ...] = ("",) * num_envs
         self._last_obs: dict | None = None
+        self._look: tuple[Mapping[str, Any], str] | None = (
+            None if training_data is None else (training_data, renderer_flag))
 
     # ---- what lerobot-eval reads ----------------------------------------------------------
     @property
@@ -423,6 +481,13 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
                 len(seed) != self.num_envs:
             raise ValueError(f"seed: one integer or {self.num_envs} integers, got {len(seed)}")
         super().reset(seed=None if seed is None else int(np.ravel(seed)[0]))
+        if self._look is not None:  # the training data's look, checked once
+            data, flag = self._look
+            self._look = None
+            text = look_warning(data, self.options, flag)
+            if text and text not in _warned:
+                _warned.add(text)
+                log.warning("%s", text)
         if "episode_keys" in options:
             keys = np.asarray(options["episode_keys"], np.uint32)
             if keys.shape != (self.num_envs, 2):
@@ -553,7 +618,8 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         from agnostos_mjx.observation import ObservationSpec
 
         opts = self.options
-        spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size)
+        spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size,
+                               renderer=opts.renderer)
         obs = self.runner.observe(self._state, spec)
         state = state_vector(opts.state, np.asarray(obs.gripper_pose, np.float32),
                              np.asarray(obs.gripper_open, np.float32),

@@ -13,6 +13,7 @@ from agnostos_mjx.data import export as ex
 from agnostos_mjx.data import rlbench_demo
 from agnostos_mjx.data import rlbench_format as fmt
 from agnostos_mjx.data.expert_frames import frame_every
+from agnostos_mjx.data.look import look_record
 from agnostos_mjx.settings import usable_cores
 
 
@@ -141,6 +142,7 @@ def test_export_two_tasks_two_demos(tmp_path, capsys) -> None:
                           cameras=("front", "wrist"), size=32, batch=2)
     manifest = ex.export(cfg)
     assert "GB" in capsys.readouterr().out  # the estimate comes first
+    assert manifest["agnostos"] == look_record("cpu")  # what rendered the images
     for task in cfg.tasks:
         assert manifest["tasks"][task]["episodes"] == 2
         assert manifest["tasks"][task]["labels"]["objects"]

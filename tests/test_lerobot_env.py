@@ -407,14 +407,18 @@ from lerobot.utils.constants import HF_LEROBOT_HOME
 
 class LeRobotDatasetMetadata:
     def __init__(self, repo_id, root=None, revision=None):
-        root = Path(root) if root else HF_LEROBOT_HOME / repo_id
-        self.features = json.loads((root / "meta/info.json").read_text())["features"]
+        self.root = Path(root) if root else HF_LEROBOT_HOME / repo_id
+        self.features = json.loads((self.root / "meta/info.json").read_text())["features"]
 """,
 }
 CONFIG_RUN = """
 import json, sys
 from lerobot_env_agnostos.configuration_agnostos import AgnostosEnvConfig
 cfg = AgnostosEnvConfig(task="lamp_on", **json.loads(sys.argv[1]))
+if "--reset" in sys.argv:  # the envs' first reset (where a look warning is logged)
+    for env in cfg.create_envs(1)["level1"].values():
+        env.reset(seed=0)
+        env.close()
 print(json.dumps({"cameras": cfg.cameras, "size": cfg.size, "state": cfg.state,
                   "rotation": cfg.rotation,
                   "features": {k: list(f.shape) for k, f in cfg.features.items()}}))
@@ -458,14 +462,17 @@ def _policy_dir(path: Path, features: dict, dataset: dict | None = None) -> Path
     return path
 
 
-def _dataset(root: Path, cameras, size: int, state: str, rotation: str) -> Path:
-    """A dataset's meta/info.json as the export writes it (data/lerobot.py: features)."""
+def _dataset(root: Path, cameras, size: int, state: str, rotation: str,
+             look: dict | None = None) -> Path:
+    """A dataset's meta/info.json as the export writes it (data/lerobot.py: features;
+    `look`: its "agnostos" record, data/look.py)."""
     import json
 
     (root / "meta").mkdir(parents=True)
     feats = layout.features(cameras, size, size, state, rotation)
     (root / "meta/info.json").write_text(json.dumps({"codebase_version": "v3.0",
-                                                    "features": feats}))
+                                                    "features": feats,
+                                                    **({"agnostos": look} if look else {})}))
     return root
 
 
@@ -545,7 +552,46 @@ def test_plugin_config_takes_the_training_datas_inputs(plugin_config, tmp_path) 
     assert run.returncode == 0 and json.loads(run.stdout)["state"] == "libero", run.stderr
 
 
+def test_plugin_envs_warn_once_on_another_look(plugin_config, tmp_path) -> None:
+    """Training data rendered otherwise than the env renders: the plug-in's envs log one
+    warning line at their first reset, naming the flag that renders as the data did."""
+    from agnostos_mjx.data.look import look_record
+
+    data = _dataset(tmp_path / "warp_seen", ("front",), 32, "rlbench", "quat",
+                    look={**look_record("cpu"), "renderer": "warp"})
+    run = plugin_config({"renderer": "cpu"}, "--env.type=agnostos",
+                        "--dataset.repo_id=local/warp_seen", f"--dataset.root={data}", "--reset")
+    assert run.returncode == 0, run.stderr[-3000:]
+    lines = [x for x in run.stderr.splitlines() if "training data was rendered" in x]
+    assert len(lines) == 1, run.stderr
+    assert "renderer warp (here cpu)" in lines[0] and lines[0].endswith(
+        "; --env.renderer=warp renders as the data was"), lines[0]
+
+
+def test_env_warns_once_on_another_look(caplog) -> None:
+    """The env's first reset compares the training data's look with its own, once per
+    process and message; data rendered as the env renders, or with no record: silence."""
+    import logging
+
+    from agnostos_mjx.data.look import look_record
+
+    look = look_record("cpu")
+    cases = {"same": {"agnostos": look}, "none": {"features": {}},
+             "other": {"agnostos": {**look, "scene_version": "0123456789ab"}}}
+    with caplog.at_level(logging.WARNING, logger="agnostos_mjx.gym_env"):
+        for name in ("same", "none", "other", "other"):
+            env = AgnostosVectorEnv("lamp_on", 1, EnvOptions(**SMALL, renderer="cpu"),
+                                    training_data=cases[name])
+            env.reset(seed=0)
+            env.reset(seed=1)
+            env.close()
+    texts = [r.getMessage() for r in caplog.records if r.name == "agnostos_mjx.gym_env"]
+    assert len(texts) == 1 and "scene version 0123456789ab" in texts[0], texts
+    assert "renderer=" not in texts[0]  # the renderers agree
+
+
 @pytest.mark.parametrize("call,match", [
+    (lambda: EnvOptions(renderer="gl"), "unknown renderer"),
     (lambda: AgnostosVectorEnv("no_such_task", 1), "unknown task 'no_such_task'"),
     (lambda: resolve_tasks("level3"), "unknown task or suite 'level3'.*level1"),
     (lambda: make_suites("", 1), "must name a task or a suite"),

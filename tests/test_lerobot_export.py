@@ -17,6 +17,7 @@ from agnostos_mjx.data import export as ex  # noqa: E402
 from agnostos_mjx.data import lerobot as lr  # noqa: E402
 from agnostos_mjx.data import lerobot_layout as lay  # noqa: E402
 from agnostos_mjx.data import rotations as rot  # noqa: E402
+from agnostos_mjx.data.look import LOOK_KEY, look_record  # noqa: E402
 
 TASKS = ("open_drawer", "push_buttons")
 
@@ -252,6 +253,26 @@ def test_dense_actions_and_fps(tmp_path) -> None:
         lr.assemble(tmp_path / "ds", staging, TASKS, 1, lr.Layout())
 
 
+@pytest.mark.parametrize("version", lr.VERSIONS)
+def test_info_json_records_the_look(tmp_path, version) -> None:
+    """The images' renderer and scene version go into info.json under "agnostos" (a key
+    LeRobot ignores); another record assembles again, the same one does not."""
+    from agnostos_mjx.data.look import check_look
+
+    staging = tmp_path / "staging"
+    staged = [_stage(staging, "open_drawer", 0, 3)]
+    out = tmp_path / "ds"
+    look = look_record("cpu")
+    assert not lr.assemble(out, staging, TASKS, 1, lr.Layout(version), look=look)["skipped"]
+    data = _check_dataset(out, staged, lr.Layout(version))  # our reader takes the key
+    assert data["info"][LOOK_KEY] == look and check_look(data["info"], "cpu") is None
+    assert lr.assemble(out, staging, TASKS, 1, lr.Layout(version), look=look)["skipped"]
+    other = {**look, "scene_version": "0123456789ab"}
+    assert not lr.assemble(out, staging, TASKS, 1, lr.Layout(version), look=other)["skipped"]
+    info = json.loads((out / "meta/info.json").read_text())
+    assert info[LOOK_KEY] == other and "scene version 0123456789ab" in check_look(info, "cpu")
+
+
 def test_interrupted_writes_leave_no_partial_files(tmp_path, monkeypatch) -> None:
     import pyarrow.parquet as pq
 
@@ -359,6 +380,9 @@ def test_export_two_tasks_two_demos(tmp_path, monkeypatch, capsys) -> None:
                           format="lerobot")
     manifest = ex.export(cfg)
     assert manifest["lerobot"]["episodes"] == 4 and "GB" in capsys.readouterr().out
+    look = look_record("cpu")  # what rendered the images, in info.json and the staging's manifest
+    assert manifest[LOOK_KEY] == look
+    assert json.loads((out / "meta/info.json").read_text())[LOOK_KEY] == look
     staged = [captured[(t, i)] for t in TASKS for i in range(2)]
     for s in staged:
         assert s["info"]["instruction"] and s["frames"][0]["front_rgb"].shape == (32, 32, 3)

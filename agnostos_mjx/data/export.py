@@ -30,7 +30,9 @@ writes them, read as they are by ``rlbench.utils.get_stored_demos`` (PerAct, and
                                   list of str, an int)
         SHA256SUMS                checksums of every file above (written last: the marker
                                   that the episode is complete)
-    <out>/manifest.json           settings, segmentation names per task, episode counts
+    <out>/manifest.json           settings, segmentation names per task, episode counts,
+                                  and under "agnostos" the renderer and scene version that
+                                  made the images (data/look.py)
 
 Cameras: RLBench's five by default; ``get_stored_demos`` lists the rgb and depth folders of
 all five even when its ObservationConfig asks for fewer, so a ``--cameras`` subset is only
@@ -112,6 +114,7 @@ import numpy as np
 from agnostos_mjx.data.episode_files import read_episode, verify_episode, write_episode
 from agnostos_mjx.data.expert_frames import episode_observations, frame_every
 from agnostos_mjx.data.lerobot_layout import STATE_LAYOUTS
+from agnostos_mjx.data.look import LOOK_KEY
 from agnostos_mjx.data.rlbench_format import (
     FORMAT,
     RLBENCH_CAMERAS,
@@ -127,6 +130,9 @@ __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export
            "verify_episode", "write_episode"]
 
 log = logging.getLogger("agnostos_mjx.data.export")
+# Exports render on the CPU (MuJoCo's OpenGL), whatever the machine: the record of the
+# images' look (data/look.py) names it, for a run rendering otherwise to be told.
+EXPORT_RENDERER = "cpu"
 FORMATS = ("rlbench", "lerobot")
 DEFAULT_SIZE = {"rlbench": 128, "lerobot": 224}
 # A LeRobot export renders RGB only: bytes per camera-frame measured at 224 px (one RGB PNG;
@@ -233,7 +239,8 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     every = frame_every(cfg.every, episodes.dt)
     lerobot = cfg.format == "lerobot"
     spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
-                           modalities=("rgb",) if lerobot else MODALITIES, renderer="cpu")
+                           modalities=("rgb",) if lerobot else MODALITIES,
+                           renderer=EXPORT_RENDERER)
     stats["every_steps"] = every
     stats["labels"] = {"geom_names": list(scene_labels(episodes.scene).geom_names),
                        "objects": {k: list(v) for k, v in
@@ -320,6 +327,22 @@ def estimate(cfg: ExportConfig, frames: float | None = None, workers: int = 1
                + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels
                * (LEROBOT_TIME_SHARE if rgb_only else 1.0))
     return size, seconds / parallel_tasks(cfg, workers)
+
+
+def _look(manifest: dict, home: Path) -> dict:
+    """This run's look record; one that differs in renderer or scene version from the
+    record of the episodes already in `home` is a ValueError, as other settings are: the
+    episodes of one export look alike."""
+    from agnostos_mjx.data.look import look_record
+
+    look = look_record(EXPORT_RENDERER)
+    old = manifest.get(LOOK_KEY)
+    keys = ("renderer", "scene_version")
+    if old and manifest.get("tasks") and any(old.get(k) != look[k] for k in keys):
+        raise ValueError(f"{home} was rendered with {', '.join(f'{k} {old.get(k)}' for k in keys)}"
+                         f", not {', '.join(f'{k} {look[k]}' for k in keys)}: export to "
+                         f"another --out")
+    return look
 
 
 def _run_task(cfg: ExportConfig, name: str, threads: int | None = None) -> dict:
@@ -415,6 +438,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
     if manifest.get("config", config) != config:
         raise ValueError(f"{home} was exported with {manifest['config']}, not {config}")
     manifest["config"] = config
+    manifest[LOOK_KEY] = _look(manifest, home)
     manifest.pop("failed_tasks", None)
     manifest.pop("lerobot", None)
     order = list(manifest.get("tasks", {})) + [t for t in cfg.tasks
@@ -489,7 +513,8 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
             from agnostos_mjx.data.lerobot import assemble
 
             t1 = time.perf_counter()
-            done_ = assemble(cfg.out, home, cfg.tasks, cfg.demos, cfg.layout())
+            done_ = assemble(cfg.out, home, cfg.tasks, cfg.demos, cfg.layout(),
+                             look=manifest[LOOK_KEY])
             verb = "already assembled" if done_["skipped"] else "assembled"
             print(f"export: LeRobot {cfg.lerobot_version} dataset {cfg.out} {verb}: "
                   f"{done_['episodes']} episodes, {done_['frames']} frames, {done_['tasks']} "

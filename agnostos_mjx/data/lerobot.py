@@ -18,7 +18,10 @@ write_table_one_row_group_per_episode), compute_stats.py (DEFAULT_QUANTILES), da
     meta/info.json                codebase_version "v3.0", fps, features, totals, chunks_size
                                   1000, data_files_size_in_mb 100, video_files_size_in_mb 200,
                                   data_path, video_path (null without --video), robot_type,
-                                  splits {"train": "0:N"}
+                                  splits {"train": "0:N"}, and ours: "agnostos", the
+                                  renderer and scene version of the images (data/look.py;
+                                  lerobot >= 0.6 ignores the key with one logged warning,
+                                  "Unknown fields in DatasetInfo", and drops it on a rewrite)
     meta/stats.json               per feature: min max mean std count q01 q10 q50 q90 q99
     meta/tasks.parquet            index "task" (the instruction), column task_index
     meta/episodes/chunk-000/file-000.parquet
@@ -42,7 +45,7 @@ lerobot_dataset.py (LeRobotDatasetMetadata.save_episode, load_hf_dataset: ``load
     meta/info.json                codebase_version "v2.1", robot_type, totals, total_videos,
                                   total_chunks, chunks_size 1000, fps, splits, data_path
                                   data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet,
-                                  video_path, features
+                                  video_path, features, "agnostos" (as v3.0's)
     meta/episodes.jsonl           {"episode_index", "tasks": [str], "length"}
     meta/tasks.jsonl              {"task_index", "task"}
     meta/episodes_stats.jsonl     {"episode_index", "stats": {feature: {min,max,mean,std,count,
@@ -124,6 +127,7 @@ from agnostos_mjx.data.lerobot_video import (
     require_av,
     video_info,
 )
+from agnostos_mjx.data.look import LOOK_KEY
 from agnostos_mjx.data.rotations import check_rotation
 
 __all__ = ["Layout", "LeRobotFormatError", "assemble", "read_lerobot", "stage_episode",
@@ -345,12 +349,12 @@ def select_staged(staging: Path, tasks: Sequence[str], demos: int) -> list[tuple
             if is_staged(staged_path(staging, t, i))]
 
 
-def _fingerprint(chosen, layout: Layout) -> dict:
+def _fingerprint(chosen, layout: Layout, look: dict | None = None) -> dict:
     eps = []
     for task, i, path in chosen:
         st = path.stat()
         eps.append([task, i, st.st_size, st.st_mtime_ns])
-    return {"layout": asdict(layout), "episodes": eps}
+    return {"layout": asdict(layout), "episodes": eps, **({"look": look} if look else {})}
 
 
 def check_out(out: Path) -> None:
@@ -365,16 +369,18 @@ def check_out(out: Path) -> None:
 
 
 def assemble(out: Path, staging: Path, tasks: Sequence[str], demos: int,
-             layout: Layout) -> dict:
+             layout: Layout, look: dict | None = None) -> dict:
     """Write the LeRobot dataset `out` from the staged demos of `tasks` x `demos`; returns
-    {"episodes", "frames", "tasks", "skipped": True when already assembled as asked}."""
+    {"episodes", "frames", "tasks", "skipped": True when already assembled as asked}.
+    `look`: the staged images' renderer and scene version (data/look.py), recorded in
+    info.json under "agnostos"."""
     import pyarrow.parquet as pq
 
     out, staging = Path(out), Path(staging)
     chosen = select_staged(staging, tasks, demos)
     if not chosen:
         raise ValueError(f"no staged demos of {', '.join(tasks)} in {staging}")
-    fingerprint = _fingerprint(chosen, layout)
+    fingerprint = _fingerprint(chosen, layout, look)
     prov = out / PROVENANCE
     if (out / "meta/info.json").exists() and prov.exists():
         old = json.loads(prov.read_text())
@@ -491,6 +497,8 @@ def assemble(out: Path, staging: Path, tasks: Sequence[str], demos: int,
                 "fps": fps, "splits": {"train": f"0:{len(episodes)}"},
                 "data_path": V21_DATA_PATH, "video_path": V21_VIDEO_PATH if layout.video else None,
                 "features": feats}
+    if look:
+        info[LOOK_KEY] = look
     frames_doc = ("keyframes" if infos[0].get("frame_period_s") is None else
                   f"dense: every {infos[0].get('every_steps')} physics steps")
     _write_json(build / PROVENANCE, {
