@@ -80,7 +80,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         argv = default_processes(cfg, argv)
     # What every process of a run would compile alike, once per machine and before them.
     default_selection = cfg.policy in ("auto", "retrieval", "xicm") and cfg.selection == "auto"
-    if cfg.backend == "warp" and cfg.num_processes == 1:
+    if warmup.builds_kernels(cfg.backend) and cfg.num_processes == 1:
         setup_logging(cfg.quiet)
         warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner, selection=default_selection,
                                    one_gpu=cfg.local_processes > 1)

@@ -39,6 +39,7 @@ from pathlib import Path
 
 from agnostos_mjx.cli import HelpFormatter, prog
 from agnostos_mjx.evaluation.config import positive_int
+from agnostos_mjx.physics import CAPABILITIES
 from agnostos_mjx.settings import cache_root, configure_jax, gpu_plugin_installed, usable_cores
 
 log = logging.getLogger("agnostos_mjx.warmup")
@@ -112,7 +113,7 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dic
     first = jax.tree.map(lambda x: x[:, 0], episodes.expert_actions(env))
     env, _ = episodes.step(env, first)
     t2 = time.perf_counter()
-    if episodes.backend_name == "warp":
+    if episodes.capabilities.renderer is not None:  # the renderer beside the physics
         episodes.observe(env, ObservationSpec(cameras=("front",), width=64, height=64))
     t3 = time.perf_counter()
     episodes.close()
@@ -272,6 +273,12 @@ def _write_marker(marker: Path, content: dict) -> None:
     os.replace(tmp, marker)
 
 
+def builds_kernels(backend: str) -> bool:
+    """Whether a run on `backend` has per-scene kernels to build first (Capabilities.kernels;
+    "auto" is not resolved here: its run builds what it needs as it goes)."""
+    return backend in CAPABILITIES and CAPABILITIES[backend].kernels
+
+
 def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False,
                         one_gpu: bool = False) -> int | None:
     """Before a warp run: this command's kernel step (Warp's kernels of `tasks` in parallel
@@ -320,7 +327,7 @@ def kernels_and_shared_programs(args: argparse.Namespace, selection: bool) -> li
                   if device_planner_possible(args.planner) else [])
         if selection:
             shared.append(pool.submit(_worker, SELECTION_WORKER, args))
-        if args.backend == "warp":
+        if builds_kernels(args.backend):
             results.append(build_kernels_in_parallel(args, pool))
             log.info("warmup: %s", results[-1])
         for future in shared:
@@ -341,7 +348,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--tasks", default="unseen",
                    help="task names and/or splits (seen, unseen, unseen_level1, unseen_level2, "
                         "all), as eval takes them")
-    p.add_argument("--backend", default="warp", choices=("native", "jax", "warp"),
+    p.add_argument("--backend", default="warp", choices=tuple(CAPABILITIES),
                    help="the backend the run will use (native has no kernels to build: only "
                         "JAX's reset and planner programs are cached)")
     p.add_argument("--batch", type=positive_int, default=75,
@@ -391,9 +398,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     runs = args.task_runs if args.task_runs != "auto" else (
-        "none" if args.backend == "warp" else "per-size")
+        "none" if builds_kernels(args.backend) else "per-size")
     try:  # the planner and the selection are the same for every task: no names needed
-        names = _task_names(args.tasks) if runs != "none" or args.backend == "warp" else []
+        names = _task_names(args.tasks) if runs != "none" or builds_kernels(args.backend) else []
     except (KeyError, ValueError) as err:
         print(f"warmup: {err.args[0] if err.args else err}", file=sys.stderr)
         return 2

@@ -124,6 +124,7 @@ def test_warp_steps_run_with_the_garbage_collector_paused(monkeypatch):
     backends leave gc alone."""
     import gc
 
+    from agnostos_mjx.physics import CAPABILITIES
     from agnostos_mjx.physics.mjx_backend import MjxBackend, gc_paused
 
     ep = native_episodes()
@@ -138,7 +139,7 @@ def test_warp_steps_run_with_the_garbage_collector_paused(monkeypatch):
     monkeypatch.setattr(backend, "_runner", lambda batch, nstep: fake_runner)
     ctrl = np.zeros((1, 2, ep.scene.model.nu))
     backend.run(env.physics, ctrl)
-    backend.impl = "warp"
+    backend.capabilities = CAPABILITIES["warp"]  # a backend that captures CUDA graphs
     backend.run(env.physics, ctrl)
     assert seen == [True, False] and gc.isenabled()
     with pytest.raises(RuntimeError), gc_paused():  # restored after an error too

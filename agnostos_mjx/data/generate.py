@@ -70,6 +70,7 @@ from agnostos_mjx.data.bank import (
     write_shard,
 )
 from agnostos_mjx.keyframes import discover_keyframes, merge_repeated_keyframes
+from agnostos_mjx.physics import BACKENDS
 from agnostos_mjx.settings import configure_jax, usable_cores
 from agnostos_mjx.textualise import encode_action
 
@@ -403,13 +404,14 @@ def _worker_run(cfg: GenerateConfig, chunk: Chunk) -> ChunkResult:
 
 
 def resolve_workers(cfg: GenerateConfig) -> int:
-    """--workers 0 means one process per core for the native backend, else 1."""
-    from agnostos_mjx.physics import resolve_backend
+    """--workers 0 means one process per core for a host backend (native), else 1."""
+    from agnostos_mjx.physics import CAPABILITIES, resolve_backend
 
     backend = resolve_backend(cfg.backend)
+    on_device = CAPABILITIES[backend].on_device
     if cfg.workers == 0:
-        return usable_cores() if backend == "native" else 1
-    if cfg.workers > 1 and backend != "native":
+        return 1 if on_device else usable_cores()
+    if cfg.workers > 1 and on_device:
         raise ValueError(f"--workers {cfg.workers} needs --backend native (one {backend} "
                          "process drives the whole accelerator)")
     return cfg.workers
@@ -507,7 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated task names and/or split names (seen, unseen, all)")
     p.add_argument("--demos", type=int, default=200, help="successful demos per task")
     p.add_argument("--seed", type=int, default=0, help="bank seed (scenes derive from it)")
-    p.add_argument("--backend", default="auto", choices=("auto", "native", "jax", "warp"),
+    p.add_argument("--backend", default="auto", choices=BACKENDS,
                    help="physics backend (auto: MJX-warp on a CUDA GPU for batches of >= 4096 "
                         "worlds, else native MuJoCo, which is faster below that)")
     p.add_argument("--batch", type=int, default=100, help="worlds simulated at once")

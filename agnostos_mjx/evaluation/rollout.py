@@ -79,8 +79,8 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
              runner.backend_name, time.perf_counter() - t0)
     chunk = min(cfg.batch, len(pending))
     batches = -(-len(pending) // chunk)
-    # MJX recompiles for every new batch shape: pad the last chunk there.
-    pad = runner.backend_name != "native"
+    # A backend that compiles per batch shape (MJX) gets its last chunk padded.
+    pad = runner.capabilities.padded_batch
     out: list[dict] = []
     for b, start in enumerate(range(0, len(pending), chunk)):
         part = pending[start:start + chunk]
@@ -88,7 +88,7 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
         label = f"{task.name} batch {b + 1}/{batches}"
         out += yield from batch_steps(task, policy, runner, part, chunk if pad else len(part),
                                       cfg, on_records, tick, len(out), label, videos, split,
-                                      physics_pool if runner.backend_name == "native" else None)
+                                      physics_pool if runner.capabilities.threaded else None)
         rate = 100.0 * np.mean([r["success"] for r in out[-len(part):]])
         log.info("%s: batch of %d done in %.1f s, success %.0f%%", task.name, len(part),
                  time.perf_counter() - t_batch, rate)

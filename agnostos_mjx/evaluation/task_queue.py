@@ -29,6 +29,7 @@ from typing import TypeVar
 
 from agnostos_mjx.evaluation.config import UsageError
 from agnostos_mjx.evaluation.records import EPISODES_FILE, load_records
+from agnostos_mjx.physics import CAPABILITIES
 
 T = TypeVar("T")
 
@@ -56,10 +57,10 @@ def unit_task(unit: str) -> tuple[str, int | None]:
 
 
 def expected_s(names: Sequence[str], backend: str = "native") -> list[float]:
-    """`expected_costs` of each name on `backend` (MJX-jax counts as warp); the backend's
-    median for a task not listed.  A task split into units of one seed (`split_by_seed`)
-    is shared equally by its units in `names`."""
-    table = expected_costs()["native" if backend == "native" else "warp"]
+    """`expected_costs` of each name on `backend` (a device backend counts as warp, a host
+    one as native); the backend's median for a task not listed.  A task split into units of
+    one seed (`split_by_seed`) is shared equally by its units in `names`."""
+    table = expected_costs()["warp" if CAPABILITIES[backend].on_device else "native"]
     median = statistics.median(table.values())
     tasks = [unit_task(name)[0] for name in names]
     units = Counter(tasks)

@@ -8,11 +8,14 @@ MJX-jax and MJX-warp backends are interchangeable.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+if TYPE_CHECKING:
+    from agnostos_mjx.physics import Capabilities
 
 # MuJoCo Warp's dense constraint Jacobian stops at this many degrees of freedom.
 WARP_DENSE_MAX_NV = 60
@@ -117,6 +120,7 @@ jax.tree_util.register_dataclass(StepData, data_fields=[f.name for f in fields(S
 
 class Backend(Protocol):
     name: str
+    capabilities: Capabilities  # what the layers above may rely on (physics.CAPABILITIES)
 
     def run(self, state: PhysicsState, ctrl: np.ndarray, steps: np.ndarray | None = None
             ) -> tuple[PhysicsState, np.ndarray]:

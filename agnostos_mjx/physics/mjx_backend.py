@@ -27,6 +27,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx import sharding
+from agnostos_mjx.physics import CAPABILITIES
 from agnostos_mjx.physics.base import (
     STATE_FIELDS,
     PhysicsState,
@@ -86,6 +87,7 @@ class MjxBackend:
                  graph_mode: str = "WARP"):
         self.name = f"mjx-{impl}"
         self.impl = impl
+        self.capabilities = CAPABILITIES[impl]
         self.model = for_warp(model) if impl == "warp" else model
         model = self.model
         options = {}
@@ -98,7 +100,7 @@ class MjxBackend:
         self.mx = mjx.put_model(model, impl=impl, **options)
         self.contacts_per_world = contacts_per_world
         self.constraints_per_world = constraints_per_world
-        mesh = sharding.mesh() if impl == "jax" else None
+        mesh = sharding.mesh() if self.capabilities.sharded else None
         self.mesh = mesh if mesh is not None and sharding.device_count(mesh) > 1 else None
 
     @functools.lru_cache(maxsize=16)
@@ -206,7 +208,7 @@ class MjxBackend:
         if self.mesh is not None:  # padded worlds repeat the last one; cut from the results
             (state, ctrl, steps), n = sharding.shard((state, ctrl, steps), self.mesh)
         runner = self._runner(state.batch, int(ctrl.shape[1]))
-        if self.impl != "warp":
+        if not self.capabilities.captures_graphs:
             return sharding.unpad(runner(state, ctrl, steps), n)
         with gc_paused():
             return jax.block_until_ready(runner(state, ctrl, steps))

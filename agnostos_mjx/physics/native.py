@@ -9,6 +9,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
+from agnostos_mjx.physics import CAPABILITIES
 from agnostos_mjx.physics.base import PhysicsState, check_steps
 from agnostos_mjx.settings import usable_cores
 
@@ -54,6 +55,7 @@ _POOL_LOCK = threading.Lock()
 
 class NativeBackend:
     name = "native"
+    capabilities = CAPABILITIES["native"]
 
     def __init__(self, model: mujoco.MjModel, nthread: int | None = None):
         self.model = model

@@ -82,6 +82,7 @@ class Episodes:
         self.scene: SceneModel = build_scene(task)
         self.backend_name = resolve_backend(backend)
         self.backend = make_backend(self.backend_name, self.scene.model, threads)
+        self.capabilities = self.backend.capabilities
         self.kin = PandaKinematics.from_model(self.scene.model)
         self.dt = float(self.scene.model.opt.timestep)
         self.nu = self.scene.model.nu
@@ -102,7 +103,6 @@ class Episodes:
         # by every task of a run (control.jit_for_robot) wherever there is an accelerator,
         # for native MuJoCo too; on a CPU-only machine it is plain numpy (float64), which
         # is faster there and what the recorded results were made with (see resolve_planner).
-        self.on_mjx = self.backend_name != "native"
         self.planner = resolve_planner(planner)
         on_device = self.planner == "device"
         self._device_plan = control.jit_for_robot(control.plan_arm, self.kin)
@@ -197,7 +197,7 @@ class Episodes:
     def _padded_rows(self, idx: np.ndarray, batch: int) -> np.ndarray:
         """Rows to settle again: `idx` itself on native MuJoCo (any batch size runs
         there without compiling), repeated up to the full batch on MJX."""
-        return idx if self.backend_name == "native" else np.resize(idx, batch)
+        return np.resize(idx, batch) if self.capabilities.padded_batch else idx
 
     def _settle(self, sampled, variations) -> tuple[EnvState, KeyActions]:
         """The settled scenes of `sampled` placements, and their experts' key actions (one
@@ -288,7 +288,7 @@ class Episodes:
         `record=True` (the per-step sensor data of every phase, for demonstrations)
         and native MuJoCo run the same key action on the host, with `plan` (from
         `plan_request`) when the caller has it."""
-        if self.on_mjx and not record:
+        if self.capabilities.on_device and not record:
             return self.step_on_device(state, actions), ()
         plan_fn = self._plan if plan is None else (lambda *_: plan)
         return self._run_on_host(state, actions, plan_fn,
@@ -299,7 +299,7 @@ class Episodes:
         """The plan of `step` on the host as a request that gathers with other tasks' (one
         device planner call for the worlds of every task waiting: runtime/plan_rows.py);
         None where `step` plans by itself (the host planner, the MJX backends)."""
-        if self.on_mjx or self.planner != "device":
+        if self.capabilities.on_device or self.planner != "device":
             return None
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
         return GatheredPlanner.for_robot(self.kin).submit(q0, actions.pos, actions.quat,
@@ -348,7 +348,7 @@ class Episodes:
         # The plan is its own program, shared by every task (control.jit_for_robot): the
         # IK is most of the compile time, and the robot is the same in every scene.
         plan = plan_fn(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
-        with gc_paused() if self.backend_name == "warp" else contextlib.nullcontext():
+        with gc_paused() if self.capabilities.captures_graphs else contextlib.nullcontext():
             new = jax.block_until_ready(program(dev, acts, plan))
         return sharding.unpad(new, n).to_host()
 
@@ -373,7 +373,7 @@ class Episodes:
         pos (B, 3) tip position, quat (B, 4) wxyz, gripper (B,) open amount, valid (B,).
         On the MJX backends one device program (unless `record`); native MuJoCo and
         `record=True` run the same step on the host."""
-        if self.on_mjx and not record:
+        if self.capabilities.on_device and not record:
             return self.dense_on_device(state, targets, ctl), ()
         return self._run_on_host(state, targets, self._dense_plan,
                                  lambda *args: dense_action(self.spec, *args, ctl),

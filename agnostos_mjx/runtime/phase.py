@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from agnostos_mjx.physics import CAPABILITIES
 from agnostos_mjx.physics.base import STATE_FIELDS, Backend, PhysicsState, freeze, keep_rows
 from agnostos_mjx.runtime.outcome import phase_end
 from agnostos_mjx.runtime.state import EnvState, StepResult
@@ -157,11 +158,9 @@ class HostPhases:
         return xpos, xquat
 
 
-WARP_STEPS_PER_ITERATION = 16
-
-
 def steps_per_iteration(backend_name: str) -> int:
-    """Physics steps per iteration of a device phase's while loop: 16 on warp, else 1.
+    """Physics steps per iteration of a device phase's while loop, as the backend declares
+    (Capabilities.steps_per_iteration): 16 on warp, else 1.
 
     Each iteration ends with the host reading the loop's condition from the device.  With
     K > 1 an iteration is one physics call of K steps (`DevicePhysics.run_steps`: on warp
@@ -171,7 +170,7 @@ def steps_per_iteration(backend_name: str) -> int:
     per step.  K = 16, 32 and 64 cost the same at 75 worlds, in one process and in the
     8-process main job (docs/performance.md); a finished world idles at most K - 1
     steps.  On MJX-jax (CPU tests) one step per iteration keeps the program small."""
-    return WARP_STEPS_PER_ITERATION if backend_name == "warp" else 1
+    return CAPABILITIES[backend_name].steps_per_iteration
 
 
 class DevicePhases:
