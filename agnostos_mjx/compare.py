@@ -7,7 +7,7 @@ difference, how many episodes only one run solved (the discordant pairs that a p
 looks at) and how many episodes ended identically (same outcome, key-action count and
 simulation steps: a reproducibility check, which native MuJoCo passes bit for bit).
 
-A statistics section follows (agnostos_mjx.stats): per task both success rates with Wilson 95 %
+A statistics section follows (agnostos_mjx.infra.stats): per task both success rates with Wilson 95 %
 intervals, and McNemar's exact p on the discordant pairs (* marks p < 0.05, uncorrected); per
 group (Level-1, Level-2, All (unseen), Seen) the difference B - A with a 95 % interval from a
 bootstrap that resamples episodes within tasks.  A task is compared paired over the episodes
@@ -29,11 +29,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx.cli import HelpFormatter, atomic_write, prog
 from agnostos_mjx.evaluation.protocol import GROUPS, group_label
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import aggregate
-from agnostos_mjx.stats import (
+from agnostos_mjx.infra.cli import HelpFormatter, atomic_write, prog
+from agnostos_mjx.infra.stats import (
     Pairing,
     bootstrap_difference,
     mcnemar_exact,

@@ -44,8 +44,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx import settings, warmup
-from agnostos_mjx.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
+from agnostos_mjx import warmup
 from agnostos_mjx.evaluation import processes
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
 from agnostos_mjx.evaluation.records import default_out, interrupted_message
@@ -55,6 +54,8 @@ from agnostos_mjx.evaluation.summary import (
     policy_error_summary,
     request_summaries,
 )
+from agnostos_mjx.infra import settings
+from agnostos_mjx.infra.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
 from agnostos_mjx.tasks.catalog import parse_task_names
 
 log = logging.getLogger("agnostos_mjx.eval")
@@ -159,7 +160,7 @@ def default_processes(cfg: EvalConfig, argv: list[str]) -> list[str]:
 def start_devices(cfg: EvalConfig, spec: str) -> None:
     """Cap JAX's GPU memory (before JAX starts its backend) and join the JAX cluster of
     --coordinator (before anything touches a device)."""
-    from agnostos_mjx.gpu import apply_memory_limit
+    from agnostos_mjx.infra.gpu import apply_memory_limit
 
     served = cfg.policy_url or settings.POLICY_URL.get()
     servers = {"remote": served, "openvla": served, "xicm": cfg.llm_url or settings.LLM_URL.get()}

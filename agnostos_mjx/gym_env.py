@@ -74,7 +74,6 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from agnostos_mjx.control import ACTION_BOUNDS
 from agnostos_mjx.data.lerobot import KEYFRAME_FPS  # the export's nominal rate; videos play at it
 from agnostos_mjx.data.lerobot_layout import (
     IMAGE_PREFIX,
@@ -86,8 +85,9 @@ from agnostos_mjx.data.lerobot_layout import (
 )
 from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation
 from agnostos_mjx.evaluation.config import VARIATION_MODES
-from agnostos_mjx.observation import CAMERAS
 from agnostos_mjx.physics import RENDERERS
+from agnostos_mjx.sim.control import ACTION_BOUNDS
+from agnostos_mjx.sim.observation import CAMERAS
 from agnostos_mjx.tasks.base import KeyActions, Split
 
 # LeRobot-facing suite names -> our splits (--env.task=level1 runs every level-1 task).
@@ -282,8 +282,8 @@ def render_route(opts: EnvOptions) -> str:
     """"cpu" or "warp": what the env's images render with on this machine (its
     ``renderer``, auto resolved as the evaluator resolves it).  Sets JAX up first, as the
     env does: this may be the process's first use of JAX."""
+    from agnostos_mjx.infra.settings import configure_jax
     from agnostos_mjx.physics import resolve_renderer
-    from agnostos_mjx.settings import configure_jax
 
     if opts.renderer == "auto":
         configure_jax()
@@ -371,7 +371,7 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         """`training_data`: the policy's dataset's meta/info.json, to warn at the first
         reset when it was rendered otherwise (module docstring); `renderer_flag`: how the
         warning names the option that renders as the data did."""
-        from agnostos_mjx.settings import configure_jax
+        from agnostos_mjx.infra.settings import configure_jax
         from agnostos_mjx.tasks import get_task
 
         # The env is an entry point (lerobot-eval, a gymnasium script): JAX is set up as the
@@ -615,7 +615,7 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
 
     # ---- observation ---------------------------------------------------------------------
     def _observe(self) -> dict:
-        from agnostos_mjx.observation import ObservationSpec
+        from agnostos_mjx.sim.observation import ObservationSpec
 
         opts = self.options
         spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size,

@@ -13,8 +13,8 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from agnostos_mjx.cli import HelpFormatter, setup_logging
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.cli import HelpFormatter, setup_logging
+from agnostos_mjx.infra.settings import configure_jax
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,7 +39,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     configure_jax()
     args = build_parser().parse_args(argv)
     setup_logging(args.quiet)
-    from agnostos_mjx.gpu import apply_memory_limit
+    from agnostos_mjx.infra.gpu import apply_memory_limit
 
     apply_memory_limit(args.gpu_mem_fraction)  # before JAX starts
     from agnostos_mjx.policies import make_policy

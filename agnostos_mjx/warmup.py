@@ -6,7 +6,7 @@ On a fresh GPU machine the first MuJoCo Warp step of a scene builds Warp's CUDA 
 one module after another (minutes for the first scene, more for each further size;
 docs/performance.md), and every process of a `--local-processes` run would build the same kernels
 at once.  Warp keeps built kernels on disk and JAX keeps compiled programs in its
-persistent cache (agnostos_mjx.settings.configure_jax), so this command does each build
+persistent cache (agnostos_mjx.infra.settings.configure_jax), so this command does each build
 once, two things at the same time:
 - on warp, every kernel module of the tasks' scenes, found by a dry run and built by
   `--kernel-jobs` processes, each its share (physics/warp_build.py);
@@ -37,10 +37,15 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from agnostos_mjx.cli import HelpFormatter, prog
 from agnostos_mjx.evaluation.config import positive_int
+from agnostos_mjx.infra.cli import HelpFormatter, prog
+from agnostos_mjx.infra.settings import (
+    cache_root,
+    configure_jax,
+    gpu_plugin_installed,
+    usable_cores,
+)
 from agnostos_mjx.physics import CAPABILITIES
-from agnostos_mjx.settings import cache_root, configure_jax, gpu_plugin_installed, usable_cores
 
 log = logging.getLogger("agnostos_mjx.warmup")
 
@@ -72,10 +77,10 @@ def warm_planner(batch: int, planner: str = "auto") -> dict:
     (numpy) has nothing to compile."""
     import numpy as np
 
-    from agnostos_mjx import control
     from agnostos_mjx.runtime.env import REACH_STEPS, resolve_planner
+    from agnostos_mjx.sim import control
+    from agnostos_mjx.sim.world import HOME_QPOS, build_scene
     from agnostos_mjx.tasks import get_task, list_tasks
-    from agnostos_mjx.world import HOME_QPOS, build_scene
 
     if resolve_planner(planner) != "device":
         return {"programs": 0}
@@ -101,8 +106,8 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dic
     import jax
     import numpy as np
 
-    from agnostos_mjx.observation import ObservationSpec
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.sim.observation import ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     t0 = time.perf_counter()
@@ -127,8 +132,8 @@ def build_kernels(names: list[str], batch: int, part: int = 0, parts: int = 1) -
     (physics/warp_build.py; one process per part).  Returns its timings."""
     from agnostos_mjx.physics.mjx_backend import CONSTRAINTS_PER_WORLD, CONTACTS_PER_WORLD
     from agnostos_mjx.physics.warp_build import build_scenes
+    from agnostos_mjx.sim.world import build_scene
     from agnostos_mjx.tasks import get_task
-    from agnostos_mjx.world import build_scene
 
     t0 = time.perf_counter()
     models = [build_scene(get_task(name)).model for name in names]
@@ -140,8 +145,8 @@ def build_kernels(names: list[str], batch: int, part: int = 0, parts: int = 1) -
 def one_per_size(names: list[str]) -> list[str]:
     """The first task of each distinct scene size (`nv`): `--task-runs per-size` runs these,
     a sample of the programs the run's tasks compile (programs specialise on sizes)."""
+    from agnostos_mjx.sim.world import build_scene
     from agnostos_mjx.tasks import get_task
-    from agnostos_mjx.world import build_scene
 
     seen: dict[int, str] = {}
     for name in names:
@@ -205,7 +210,7 @@ def shared_marker(batch: int, selection: bool) -> Path:
     `batch` shares (the device planner's; with `selection`, the demo selection's networks)
     into JAX's persistent cache (keyed by the jax and agnostos-mjx versions and the cache's
     folder; a wiped cache only makes the processes compile again as they go)."""
-    from agnostos_mjx.settings import JAX_CACHE
+    from agnostos_mjx.infra.settings import JAX_CACHE
 
     # "one GPU": the warm-up sees one GPU (one_gpu_env); a marker of a warm-up that saw
     # several names programs the processes do not find.
@@ -243,7 +248,7 @@ def one_gpu_env(environ: Mapping[str, str]) -> dict[str, str]:
     of the devices JAX sees, so a program compiled where 2 GPUs were visible is not found
     by a process that sees 1 (every process would compile the selection again:
     docs/performance.md)."""
-    from agnostos_mjx import mps
+    from agnostos_mjx.infra import mps
 
     gpus, _ = mps.visible_gpus(environ)
     return {**environ, "CUDA_VISIBLE_DEVICES": gpus[0]} if len(gpus) > 1 else dict(environ)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 # As every command does before JAX starts: XLA's lowered CPU optimisation level (the tests'
 # small kernels run ~100x faster) and the persistent compile cache.

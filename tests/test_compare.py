@@ -84,7 +84,7 @@ def test_bad_folders_are_clear_errors(runs, tmp_path, capsys):
 
 
 # ---------------------------------------------------------------------------------------
-# Statistics section (agnostos_mjx.stats)
+# Statistics section (agnostos_mjx.infra.stats)
 # ---------------------------------------------------------------------------------------
 LEVEL1 = ("lamp_on", "lamp_off", "close_fridge")
 LEVEL2 = ("water_plants", "turn_oven_on")

@@ -14,8 +14,8 @@ import jax
 import numpy as np
 import pytest
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.sim.actions import KeyActions
 from agnostos_mjx.tasks import get_task
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
@@ -65,7 +65,7 @@ def test_batch_composition_compiles_nothing_new():
 def test_ik_programs_are_shared_by_every_task():
     """The robot is the same in every scene, so the jitted planner and reachability check
     (most of a key action's compile time) are one program per run, not one per task."""
-    from agnostos_mjx import control
+    from agnostos_mjx.sim import control
 
     kins = [Episodes(get_task(name), "native").kin for name in ("lamp_on", "stack_blocks")]
     assert kins[0] is not kins[1] and kins[0].fingerprint == kins[1].fingerprint

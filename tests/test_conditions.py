@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.conditions import (
+from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.conditions import (
     AllOf,
     AnyOf,
     Detected,
@@ -17,9 +18,8 @@ from agnostos_mjx.conditions import (
     NothingGrasped,
     all_of,
 )
-from agnostos_mjx.math3d import yaw_quat
-from agnostos_mjx.observables import Layout, Observation
-from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.math3d import yaw_quat
+from agnostos_mjx.sim.observables import Layout, Observation
 from agnostos_mjx.tasks import get_task, list_tasks
 from tests.conftest import episodes_for, task_params
 

@@ -6,8 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx import control, cuda_graphs
-from agnostos_mjx.cuda_graphs import GPU_GRAPH_OPTIONS, graph_jit
+from agnostos_mjx.infra import cuda_graphs
+from agnostos_mjx.infra.cuda_graphs import GPU_GRAPH_OPTIONS, graph_jit
+from agnostos_mjx.sim import control
 
 
 def _doubling(x: jax.Array, n: int) -> jax.Array:

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.data import BankError, DemoBank
 from agnostos_mjx.data import generate as gen
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.actions import KeyActions
 from agnostos_mjx.tasks import get_task
 from tests.conftest import TASKS, tiny_bank_config
 

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import eval as ev
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.evaluation.config import UsageError
 from agnostos_mjx.evaluation.dense import DenseDriver, PolicyAnswerError, as_chunk, check_answer
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
 from agnostos_mjx.runtime.dense import DenseControl
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.actions import KeyActions
 from tests.conftest import episodes_for
 
 TASK = "turn_tap"  # a seen task with a short demo (3 key actions, about 90 control steps)
@@ -173,7 +173,7 @@ def test_dense_ik_clips_targets_into_the_bounds_and_gets_off_joint_limits() -> N
     leave the box by fractions of a millimetre); a target the plain step stalls on at a
     joint limit (a reach_and_drag demo frame, 5.4 mm off) is solved by the limit-aware
     step from the same warm start."""
-    from agnostos_mjx import control
+    from agnostos_mjx.sim import control
 
     kin = episodes_for(TASK).kin
     q0 = np.array([[0.06066866, -0.07606204, 0.08721349, -2.73897765, -1.67886055,
@@ -231,7 +231,7 @@ def test_the_replay_acts_on_the_export_frames() -> None:
     """The replay's frames are the export's (data/expert_frames.py): the proprioception of
     the rendered frames, bit for bit, at every K physics steps."""
     from agnostos_mjx.data.expert_frames import episode_observations, proprio_frames
-    from agnostos_mjx.observation import ObservationSpec
+    from agnostos_mjx.sim.observation import ObservationSpec
 
     ep, env = _reset(1)
     spec = ObservationSpec(cameras=("front",), height=8, width=8, renderer="cpu")

@@ -479,7 +479,7 @@ def test_map_chunks_runs_one_shape():
 def test_row_batcher_shares_calls_between_requests_and_returns_each_its_rows():
     import threading
 
-    from agnostos_mjx.gather import RowBatcher, allow_gathering, flush, send_alone, then
+    from agnostos_mjx.infra.gather import RowBatcher, allow_gathering, flush, send_alone, then
 
     gate, calls = threading.Event(), []
 
@@ -550,7 +550,7 @@ def test_tasks_waiting_on_gathered_rows_are_released_together_in_key_order():
     import time
 
     from agnostos_mjx.evaluation import scheduler
-    from agnostos_mjx.gather import RowBatcher, then
+    from agnostos_mjx.infra.gather import RowBatcher, then
     from agnostos_mjx.policies.base import run_blocking
 
     calls = []

@@ -256,7 +256,7 @@ def test_cli_errors_are_one_line_and_leave_no_folder(case: str, expected: str, t
 
 
 def test_remove_empty_dirs_keeps_anything_with_files(tmp_path: Path) -> None:
-    from agnostos_mjx.cli import remove_empty_dirs
+    from agnostos_mjx.infra.cli import remove_empty_dirs
 
     (tmp_path / "empty" / "llm_cache" / "ab").mkdir(parents=True)
     remove_empty_dirs(tmp_path / "empty")
@@ -309,8 +309,8 @@ def test_the_command_line_is_generated_from_eval_config() -> None:
 
 
 def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:
-    from agnostos_mjx.paper import published
-    from agnostos_mjx.report_plot import plot_summary
+    from agnostos_mjx.evaluation.paper import published
+    from agnostos_mjx.evaluation.report_plot import plot_summary
 
     recs = (_records("lamp_on", "unseen_level1", 0, [True, False])
             + _records("beat_the_buzz", "unseen_level2", 0, [False, False]))
@@ -362,7 +362,7 @@ def test_run_interleaved_runs_others_while_one_waits():
 def test_progress_moves_with_rounds_and_prints_at_once() -> None:
     import io
 
-    from agnostos_mjx.cli import Progress
+    from agnostos_mjx.infra.cli import Progress
 
     stream = io.StringIO()
     bar = Progress(10, stream=stream)
@@ -432,7 +432,7 @@ def test_sigint_keeps_finished_episodes_and_the_printed_command_completes_the_ru
 
 _STUCK = """
 import sys, time
-from agnostos_mjx.cli import InterruptGuard, hard_exit
+from agnostos_mjx.infra.cli import InterruptGuard, hard_exit
 with InterruptGuard(grace_s=float(sys.argv[1])) as guard:
     guard.message = "resume with: x"
     ready = False
@@ -524,7 +524,7 @@ UNBATCHED_POLICY = '''
 import numpy as np
 
 from agnostos_mjx.policies import Policy
-from agnostos_mjx.actions import KeyActions
+from agnostos_mjx.sim.actions import KeyActions
 
 
 class Unbatched(Policy):
@@ -615,7 +615,7 @@ def test_tasks_at_once_share_the_device_planners_calls(tmp_path: Path, monkeypat
     calls (runtime/plan_rows.py), gathered in an order that timing cannot change: a rerun
     makes the same calls and records the same episodes.  A process fed by a task queue
     plans each task's worlds alone."""
-    from agnostos_mjx import gather
+    from agnostos_mjx.infra import gather
     from agnostos_mjx.runtime import plan_rows
     from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 

@@ -14,7 +14,7 @@ from agnostos_mjx.data import rlbench_demo
 from agnostos_mjx.data import rlbench_format as fmt
 from agnostos_mjx.data.expert_frames import frame_every
 from agnostos_mjx.data.look import look_record
-from agnostos_mjx.settings import usable_cores
+from agnostos_mjx.infra.settings import usable_cores
 
 
 def test_encodings_round_trip() -> None:

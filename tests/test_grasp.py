@@ -9,10 +9,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from agnostos_mjx.conditions import never
-from agnostos_mjx.math3d import euler_xyz_quat
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.conditions import never
+from agnostos_mjx.sim.math3d import euler_xyz_quat
 from agnostos_mjx.tasks.base import TABLE_Z, KeyActions, Placement, Split, Task, key_actions
 from agnostos_mjx.tasks.builders import panel
 

@@ -9,10 +9,10 @@ import jax
 import numpy as np
 import pytest
 
-from agnostos_mjx import control
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.runtime.env import SETTLE_STEPS, Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim import control
+from agnostos_mjx.sim.actions import KeyActions
 from agnostos_mjx.tasks import get_task
 
 POS_TOL = 0.01  # m: tip and object frames after the episode
@@ -194,7 +194,7 @@ def test_planner_choice():
     np.testing.assert_allclose(np.asarray(device[0]), host[0], atol=1e-4)
     # Gathered (runtime/plan_rows.py): a task alone gets the call of its own rows, bit for
     # bit (tasks sharing calls: tests/test_eval.py, slow).
-    from agnostos_mjx.gather import send_alone
+    from agnostos_mjx.infra.gather import send_alone
 
     alone = ep.plan_request(start, first)
     send_alone(alone)
@@ -213,7 +213,7 @@ def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
     calls of the run's --batch rows, padded, and get the plans they get in one batch of all
     seeds: a world's float32 plan moves with its program's shape (on a GPU), not with the
     rows beside it.  The reset's reachability check is padded alike."""
-    from agnostos_mjx.gather import send_alone
+    from agnostos_mjx.infra.gather import send_alone
     from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 
     whole = 6

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agnostos_mjx.keyframes import discover_keyframes
+from agnostos_mjx.sim.keyframes import discover_keyframes
 
 MOVING = 0.5
 

@@ -12,7 +12,7 @@ import pytest
 
 from agnostos_mjx.data import export as ex
 from agnostos_mjx.data.look import LOOK_KEY, check_look, look_record, scene_version
-from agnostos_mjx.world import scenes_dir
+from agnostos_mjx.sim.world import scenes_dir
 
 
 def _scenes(tmp_path: Path, old: str = "", new: str = "") -> Path:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from agnostos_mjx import mps
 from agnostos_mjx.evaluation import processes
+from agnostos_mjx.infra import mps
 
 REPO = Path(__file__).resolve().parents[1]
 KEYS = ("CUDA_VISIBLE_DEVICES", "CUDA_MPS_PIPE_DIRECTORY", "CUDA_MPS_LOG_DIRECTORY")
@@ -304,7 +304,7 @@ def test_interrupt_stops_the_daemons(sig: int, machine, tmp_path: Path) -> None:
     script = textwrap.dedent(f"""
         import sys
         from pathlib import Path
-        from agnostos_mjx import mps
+        from agnostos_mjx.infra import mps
         from agnostos_mjx.evaluation import processes
         mps.PROBE = "pass"
         mps.DEFAULT_PIPE = {str(tmp_path / "none")!r}
@@ -353,9 +353,9 @@ def test_default_process_count_follows_the_gpus_and_cores(tmp_path: Path,
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     """--local-processes by default: 8 per GPU, at most 16 and half the cores; 1 without a
     GPU and for a process of a larger run."""
-    from agnostos_mjx import settings
     from agnostos_mjx.evaluation import processes
     from agnostos_mjx.evaluation.config import EvalConfig
+    from agnostos_mjx.infra import settings
 
     monkeypatch.setattr(mps, "DEV", tmp_path)  # no /dev/nvidia*
     bare = {"PATH": ""}

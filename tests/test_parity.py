@@ -12,12 +12,12 @@ import jax
 import numpy as np
 import pytest
 
-from agnostos_mjx import control
 from agnostos_mjx.physics import make_backend
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim import control
+from agnostos_mjx.sim.world import FINGER_OPEN
 from agnostos_mjx.tasks import get_task
-from agnostos_mjx.world import FINGER_OPEN
 
 NSTEP = 40
 OBJECT_TOL = 1e-4  # m, and per quaternion component

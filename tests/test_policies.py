@@ -13,12 +13,12 @@ import pytest
 from agnostos_mjx.tasks import get_task
 
 # isort: split
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.eval import main
 from agnostos_mjx.policies import Policy, Round, make_policy, no_actions
 from agnostos_mjx.policies.oracle import OraclePolicy
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.actions import KeyActions
 
 
 class InvalidPolicy(Policy):
@@ -127,7 +127,7 @@ class FullPolicy(Policy):
     name = "full"
 
     def __init__(self, log: dict) -> None:
-        from agnostos_mjx.observation import ObservationSpec
+        from agnostos_mjx.sim.observation import ObservationSpec
 
         self.log = log
         self.observation_spec = ObservationSpec(cameras=("front",), height=16, width=16,
@@ -245,7 +245,7 @@ def test_the_evaluator_uses_every_optional_part(tmp_path: Path) -> None:
     assert results["llm"]["calls"] >= 1
 
 
-@pytest.mark.parametrize("module", ["agnostos_mjx.actions", "agnostos_mjx.policies"])
+@pytest.mark.parametrize("module", ["agnostos_mjx.sim.actions", "agnostos_mjx.policies"])
 def test_the_policy_contract_imports_neither_jax_nor_mujoco(module: str) -> None:
     """A policy (or a client of a served one) writes its `act` against the contract and
     `KeyActions` without loading the simulator's libraries."""

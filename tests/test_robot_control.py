@@ -12,8 +12,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from agnostos_mjx.actions import KeyActions
-from agnostos_mjx.control import (
+from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.sim.control import (
     ACTION_BOUNDS,
     IK_POS_TOL,
     IK_ROT_TOL,
@@ -22,11 +24,9 @@ from agnostos_mjx.control import (
     plan_arm,
     solve_ik,
 )
-from agnostos_mjx.math3d import quat_conj, quat_mul
-from agnostos_mjx.runtime.env import Episodes
-from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.math3d import quat_conj, quat_mul
+from agnostos_mjx.sim.world import ARM_JOINTS, HOME_QPOS, build_scene
 from agnostos_mjx.tasks import get_task
-from agnostos_mjx.world import ARM_JOINTS, HOME_QPOS, build_scene
 
 RLBENCH_TIP_POS = np.array([0.2785, -0.0082, 1.4719])
 RLBENCH_TIP_QUAT = np.array([0.1209, 0.0, 0.9927, 0.0])  # (w, x, y, z)
@@ -65,7 +65,7 @@ def mujoco_tip(scene, q):
 @pytest.mark.slow
 def test_module_imports_standalone():
     """Each runtime module imports on its own in a fresh interpreter."""
-    for module in ("agnostos_mjx.world", "agnostos_mjx.control", "agnostos_mjx.runtime.env",
+    for module in ("agnostos_mjx.sim.world", "agnostos_mjx.sim.control", "agnostos_mjx.runtime.env",
                    "agnostos_mjx.runtime.key_action"):
         result = subprocess.run([sys.executable, "-c", f"import {module}"],
                                 capture_output=True, text=True, timeout=120)
@@ -185,7 +185,7 @@ def test_ik_stops_early_on_easy_targets(kin):
 
 
 def test_ik_spread_seeds_are_deterministic_and_in_limits(kin):
-    from agnostos_mjx.control import SPREAD_SEEDS, _spread_seeds
+    from agnostos_mjx.sim.control import SPREAD_SEEDS, _spread_seeds
 
     seeds = _spread_seeds(kin)
     assert seeds.shape == (SPREAD_SEEDS, 7)

@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 PLACEMENT = """
 import jax, numpy as np
-from agnostos_mjx import sharding
+from agnostos_mjx.infra import sharding
 assert len(jax.devices()) == 4
 tree = {"a": np.arange(5.0), "b": np.arange(10).reshape(5, 2)}
 placed, n = sharding.shard(tree)
@@ -39,7 +39,7 @@ FEATURES = """
 from dataclasses import replace
 import numpy as np
 from flax import nnx
-from agnostos_mjx import sharding
+from agnostos_mjx.infra import sharding
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.config import AE_QUICK, DIFFUSION_QUICK, TEXT_QUICK, UNET_QUICK
 from agnostos_mjx.dynamics.data import synthetic
@@ -65,7 +65,7 @@ for part, value in features[1].items():
 
 MJX = """
 import jax, numpy as np
-from agnostos_mjx import sharding
+from agnostos_mjx.infra import sharding
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.physics.mjx_backend import MjxBackend
 from agnostos_mjx.tasks import get_task
@@ -91,7 +91,7 @@ for a, b in zip(jax.tree.leaves(out[1]), jax.tree.leaves(out[4])):
 
 KEY_ACTION = """
 import jax, numpy as np
-from agnostos_mjx import sharding
+from agnostos_mjx.infra import sharding
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.tasks import get_task
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.runtime.env import Episodes
-from agnostos_mjx.scene_text import object_voxels, query_texts
+from agnostos_mjx.sim.scene_text import object_voxels, query_texts
+from agnostos_mjx.sim.textualise import voxel_to_point
 from agnostos_mjx.tasks import get_task
-from agnostos_mjx.textualise import voxel_to_point
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_render_front_camera_differs_between_scenes(lamp):
 
 def test_xicm_integer_actions_execute(lamp):
     from agnostos_mjx.runtime.outcome import Outcome
-    from agnostos_mjx.textualise import xicm_actions
+    from agnostos_mjx.sim.textualise import xicm_actions
 
     ep, env = lamp
     ints = np.array([[57, 49, 87, 0, 39, 0, 1], [57, 49, 87, 0, 99, 0, 1]])  # second: bad bin

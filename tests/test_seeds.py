@@ -7,9 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from agnostos_mjx.observables import Observation
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
+from agnostos_mjx.sim.observables import Observation
 from agnostos_mjx.tasks import get_task, list_tasks
 from tests.conftest import episodes_for, task_params
 

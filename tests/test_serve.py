@@ -13,14 +13,14 @@ pytest.importorskip("websockets")  # the `serve` extra
 pytest.importorskip("msgpack")
 
 from agnostos_mjx import eval as ev  # noqa: E402
-from agnostos_mjx.gpu import memory_env  # noqa: E402
-from agnostos_mjx.math3d import xyzw_to_axis_angle_f32  # noqa: E402
+from agnostos_mjx.infra.gpu import memory_env  # noqa: E402
 from agnostos_mjx.remote import wire  # noqa: E402
 from agnostos_mjx.remote.adapter import (  # noqa: E402
     BadAnswer,
     make_adapter,
     parse_action,
 )
+from agnostos_mjx.sim.math3d import xyzw_to_axis_angle_f32  # noqa: E402
 
 TASKS = "lamp_on,phone_on_base"  # a button and a pick-and-place (grasp state travels)
 SAME = ("task", "seed", "episode", "variation", "success", "outcome", "key_actions",
@@ -181,7 +181,7 @@ def test_unreachable_server_is_a_usage_error(tmp_path: Path, capsys) -> None:
 
 
 def test_eval_caps_gpu_memory_for_a_local_server(monkeypatch, tmp_path: Path) -> None:
-    import agnostos_mjx.gpu as gpu
+    import agnostos_mjx.infra.gpu as gpu
 
     calls = []
     monkeypatch.setattr(gpu, "apply_memory_limit", lambda f, urls: calls.append((f, urls)))

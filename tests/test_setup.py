@@ -1,5 +1,5 @@
 """Process set-up: importing the package changes nothing, every command sets up JAX itself
-(agnostos_mjx.settings.configure_jax), the environment variables are the documented ones,
+(agnostos_mjx.infra.settings.configure_jax), the environment variables are the documented ones,
 and the console scripts resolve."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from agnostos_mjx import settings
+from agnostos_mjx.infra import settings
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "agnostos_mjx"
@@ -28,7 +28,7 @@ COMMANDS = (
     "agnostos_mjx.eval", "agnostos_mjx.warmup", "agnostos_mjx.data.export",
     "agnostos_mjx.data.generate", "agnostos_mjx.serve", "agnostos_mjx.bench.backends",
     "agnostos_mjx.bench.observation", "agnostos_mjx.bench.dynamics", "agnostos_mjx.bench.remote_policy",
-    "agnostos_mjx.experts_check", "agnostos_mjx.xicm.build_memory", "agnostos_mjx.train.vla",
+    "agnostos_mjx.evaluation.experts_check", "agnostos_mjx.xicm.build_memory", "agnostos_mjx.train.vla",
     "agnostos_mjx.train.vla_data", "agnostos_mjx.train.autoencoder", "agnostos_mjx.train.dynamics",
     "agnostos_mjx.train.evaluate", "agnostos_mjx.train.export", "agnostos_mjx.train.sampling_steps",
 )
@@ -92,7 +92,7 @@ def test_configure_jax_before_jax_imports_no_jax(tmp_path: Path) -> None:
     launcher of --local-processes, which runs no JAX, starts its processes sooner."""
     out = _child("""
         import json, sys
-        from agnostos_mjx import settings
+        from agnostos_mjx.infra import settings
         settings.configure_jax()
         imported = "jax" in sys.modules
         import jax
@@ -105,7 +105,7 @@ def test_configure_jax_before_jax_imports_no_jax(tmp_path: Path) -> None:
     off = _child("""
         import json, os
         os.environ.update(AGNOSTOS_JAX_CACHE="off", JAX_COMPILATION_CACHE_DIR="/elsewhere")
-        from agnostos_mjx import settings
+        from agnostos_mjx.infra import settings
         settings.configure_jax()
         import jax
         print(json.dumps({"cache": jax.config.jax_compilation_cache_dir}))
@@ -182,7 +182,7 @@ def test_usage_and_errors_name_the_command_typed(script: str, monkeypatch: pytes
                                                  capsys: pytest.CaptureFixture) -> None:
     """A console script's usage and error lines name the script; run as ``python -m`` (its
     file in sys.argv[0]), the module."""
-    from agnostos_mjx.cli import prog
+    from agnostos_mjx.infra.cli import prog
 
     module = SCRIPTS[script].split(":")[0]
     main = next(iter(entry_points(group="console_scripts", name=script))).load()

@@ -1,4 +1,4 @@
-"""agnostos_mjx.stats: Wilson intervals, exact McNemar, the stratified bootstrap, pairing.
+"""agnostos_mjx.infra.stats: Wilson intervals, exact McNemar, the stratified bootstrap, pairing.
 
 scipy (a dev dependency only) cross-checks the numbers; the package itself does not need it."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agnostos_mjx import stats
+from agnostos_mjx.infra import stats
 
 scipy_stats = pytest.importorskip("scipy.stats")
 Z95 = float(scipy_stats.norm.ppf(0.975))  # scipy's z; the default 1.96 differs in the 4th digit
@@ -132,7 +132,7 @@ def test_summary_reports_wilson_intervals_per_task_and_group(tmp_path):
     """results.csv/.md carry the Wilson 95 % interval of each task's and group's pooled
     episodes (a group pools its tasks' episodes)."""
     from agnostos_mjx.evaluation.summary import aggregate, csv_rows, format_markdown
-    from agnostos_mjx.stats import wilson_interval
+    from agnostos_mjx.infra.stats import wilson_interval
 
     records = [{"task": t, "split": "unseen_level1", "seed": s, "episode": e,
                 "success": e < k, "outcome": "success" if e < k else "max_steps",

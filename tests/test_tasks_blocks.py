@@ -12,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.observables import Observation
+from agnostos_mjx.sim.observables import Observation
+from agnostos_mjx.sim.world import build_scene
 from agnostos_mjx.tasks import get_task, is_implemented
-from agnostos_mjx.world import build_scene
 
 
 def task_or_skip(name: str):
@@ -257,7 +257,7 @@ def test_sweep_to_dustpan_needs_all_dirt_in_the_chosen_pan():
     (1, (-0.039, 0.126), (0.138, 0.269)),  # short pan footprint
 ])
 def test_sweep_to_dustpan_volume_sits_on_the_chosen_pan(variation, x_range, y_range):
-    from agnostos_mjx.math3d import quat_conj, quat_rotate
+    from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
 
     task = task_or_skip("sweep_to_dustpan_of_size")
     bodies = task.sample(jax.random.PRNGKey(5), jnp.int32(variation)).bodies
@@ -268,6 +268,6 @@ def test_sweep_to_dustpan_volume_sits_on_the_chosen_pan(variation, x_range, y_ra
 
 def quat_y(q: np.ndarray) -> np.ndarray:
     """The y axis of a frame given by its quaternion (w, x, y, z)."""
-    from agnostos_mjx.math3d import quat_rotate
+    from agnostos_mjx.sim.math3d import quat_rotate
 
     return np.asarray(quat_rotate(jnp.asarray(q), jnp.array([0.0, 1.0, 0.0])))

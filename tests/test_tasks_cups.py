@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.observables import Observation
 from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.sim.observables import Observation
 from agnostos_mjx.tasks import get_task, is_implemented
 from tests.conftest import episodes_for
 
@@ -127,7 +127,7 @@ def test_close_jar_target_colour_and_distinct_other_colour():
     variations = np.array([4, 7, 4, 7])
     env = ep.reset(jax.random.split(jax.random.PRNGKey(2), 4), variations)
     model = ep.scene.model
-    from agnostos_mjx.colors import COLORS
+    from agnostos_mjx.sim.colors import COLORS
 
     for w, v in enumerate(variations):
         target, other = v % 2, 1 - v % 2
@@ -173,7 +173,7 @@ def test_stack_cups_needs_both_cups_inside_the_base_cup():
 @pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 @needs("stack_cups")
 def test_stack_cups_base_cup_takes_the_variation_colour():
-    from agnostos_mjx.colors import COLORS
+    from agnostos_mjx.sim.colors import COLORS
 
     ep = episodes("stack_cups")
     env = ep.reset(jax.random.split(jax.random.PRNGKey(4), 2), np.array([6, 18]))

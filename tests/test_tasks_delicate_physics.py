@@ -169,13 +169,13 @@ def test_water_stays_in_the_can_until_it_is_tilted():
 
 def mujoco_data(ep, env, world: int):
     """An MjData holding one world's state, kinematics computed."""
-    from agnostos_mjx.world import posed_data
+    from agnostos_mjx.sim.world import posed_data
 
     return posed_data(ep.scene.model, env.physics, world)
 
 
 def _root_axis(env, frame: str, axis: int) -> np.ndarray:
     """World direction of a frame's x, y or z axis, per world."""
-    from agnostos_mjx.math3d import quat_rotate
+    from agnostos_mjx.sim.math3d import quat_rotate
 
     return np.asarray(quat_rotate(np.asarray(env.obs.quat(frame), np.float64), np.eye(3)[axis]))

@@ -11,9 +11,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from agnostos_mjx.observables import Observation
+from agnostos_mjx.sim.observables import Observation
+from agnostos_mjx.sim.world import build_scene
 from agnostos_mjx.tasks import get_task, is_implemented
-from agnostos_mjx.world import build_scene
 
 # name -> (variations, {variation: verbatim descriptions (spec)})
 LANGUAGE = {

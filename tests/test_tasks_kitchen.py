@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.observables import Observation
 from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.sim.observables import Observation
 from agnostos_mjx.tasks import get_task
 
 
@@ -90,7 +90,7 @@ def test_saucepan_lid_must_be_held_in_the_volume():
 
 @pytest.mark.slow  # one per mechanism in the default suite; this task's compile in the slow group
 def test_charger_held_by_its_pins_and_detected_once_pulled_out():
-    from agnostos_mjx.math3d import quat_conj, quat_rotate
+    from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
     from agnostos_mjx.tasks.unplug_charger import CHARGER_POS
 
     name = "unplug_charger"
@@ -116,7 +116,7 @@ def test_usb_must_leave_the_port_and_be_released():
 @pytest.mark.parametrize("variation, color, rows", [(0, "black", (0, 1)), (1, "red", (2, 3)),
                                                     (2, "purple", (4, 5))])
 def test_plate_stands_between_the_named_rods(variation, color, rows):
-    from agnostos_mjx.math3d import quat_conj, quat_rotate
+    from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
 
     name = "take_plate_off_colored_dish_rack"
     task = get_task(name)

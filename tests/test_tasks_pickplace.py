@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from agnostos_mjx.observables import Observation
 from agnostos_mjx.runtime.env import Episodes
+from agnostos_mjx.sim.observables import Observation
 from agnostos_mjx.tasks import get_task
 
 
@@ -116,7 +116,7 @@ def test_toilet_roll_and_stand_sampled_on_their_own_planes():
     obs = env.initial_obs
 
     def local_y(o, frame):
-        from agnostos_mjx.math3d import quat_conj, quat_rotate
+        from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
         return quat_rotate(quat_conj(o.quat("roll_root")), o.pos(frame) - o.pos("roll_root"))[1]
 
     assert (np.asarray(jax.vmap(lambda o: local_y(o, "toilet_roll_box"))(obs)) > 0.02).all()
@@ -139,7 +139,7 @@ def test_umbrella_descriptions_split_the_run_together_strings():
 def test_umbrella_rests_level_across_the_stand():
     """The umbrella must lie still on the rim at reset: the expert plans from that pose."""
     env = reset("put_umbrella_in_umbrella_stand")
-    from agnostos_mjx.math3d import quat_rotate
+    from agnostos_mjx.sim.math3d import quat_rotate
 
     axis = np.asarray(quat_rotate(env.initial_obs.quat("umbrella"), jnp.array([0.0, 0.0, 1.0])))
     assert np.abs(axis[:, 2]).max() < 0.02

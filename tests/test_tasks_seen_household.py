@@ -10,12 +10,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from agnostos_mjx.conditions import JointMoved, Select
-from agnostos_mjx.math3d import axis_angle_quat, quat_mul, quat_rotate, yaw_quat
-from agnostos_mjx.observables import Layout, Observation
+from agnostos_mjx.sim.conditions import JointMoved, Select
+from agnostos_mjx.sim.math3d import axis_angle_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.observables import Layout, Observation
+from agnostos_mjx.sim.world import build_scene
 from agnostos_mjx.tasks import get_task, is_implemented
 from agnostos_mjx.tasks.base import TABLE_Z
-from agnostos_mjx.world import build_scene
 
 ROOT_POS = np.array([0.25, 0.0, TABLE_Z])
 FAR = (0.5, 0.5, 0.05)  # a root-frame spot on the table away from every task's scene

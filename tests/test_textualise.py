@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from agnostos_mjx import textualise as tx
+from agnostos_mjx.sim import textualise as tx
 
 HOME_ACTION = [57, 49, 87, 0, 39, 0, 1]
 

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from agnostos_mjx import eval as ev
-from agnostos_mjx import math3d
 from agnostos_mjx.remote import json_wire
 from agnostos_mjx.remote.adapter import (
     BadAnswer,
@@ -25,6 +24,7 @@ from agnostos_mjx.remote.adapter import (
     parse_action,
     parse_rows,
 )
+from agnostos_mjx.sim import math3d
 
 Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
 

@@ -23,7 +23,7 @@ def _probe(path) -> tuple[int, float, tuple[int, int]]:
 def test_eval_writes_selected_episode_videos(tmp_path) -> None:
     from agnostos_mjx.evaluation.config import EvalConfig
     from agnostos_mjx.evaluation.run import evaluate
-    from agnostos_mjx.video import VideoSpec
+    from agnostos_mjx.evaluation.video import VideoSpec
 
     cfg = EvalConfig(policy="oracle", tasks="lamp_on,close_microwave", seeds=[0], episodes=4,
                      batch=4, backend="native", out=str(tmp_path), quiet=True,
@@ -45,7 +45,7 @@ def test_eval_writes_selected_episode_videos(tmp_path) -> None:
 
 
 def test_video_spec_parsing_and_llm_text(tmp_path) -> None:
-    from agnostos_mjx.video import VideoSpec, _llm_text, write_mp4
+    from agnostos_mjx.evaluation.video import VideoSpec, _llm_text, write_mp4
 
     assert VideoSpec.parse("failures:5").failures_only and VideoSpec.parse("failures").first is None
     assert VideoSpec.parse("first:2", "front").cameras == ("front",)

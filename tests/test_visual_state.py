@@ -8,13 +8,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from agnostos_mjx.conditions import JointMoved
 from agnostos_mjx.evaluation.protocol import episode_keys
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.state import EnvState
+from agnostos_mjx.sim.conditions import JointMoved
+from agnostos_mjx.sim.visual_state import StateColor, paint
 from agnostos_mjx.tasks import get_task
 from agnostos_mjx.tasks.push_buttons import PushButtons
-from agnostos_mjx.visual_state import StateColor, paint
 
 SIZE = 96
 BLACK, WHITE, RED, GREEN = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)

@@ -26,7 +26,7 @@ def test_one_per_size_and_bad_task(capsys):
 
 FIRST_KEY_ACTION = """
 import logging, jax, numpy as np
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 configure_jax()
 hits = []
 class Hits(logging.Handler):
@@ -199,7 +199,7 @@ def test_the_shared_programs_compile_where_one_gpu_is_visible(tmp_path, monkeypa
     import subprocess
     import types
 
-    from agnostos_mjx import mps
+    from agnostos_mjx.infra import mps
 
     monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
     envs = []

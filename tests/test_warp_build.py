@@ -109,8 +109,8 @@ def test_warp_model_leaves_dense_jacobians_to_auto_only_above_warps_limit() -> N
     import mujoco
 
     from agnostos_mjx.physics.base import WARP_DENSE_MAX_NV, for_warp
+    from agnostos_mjx.sim.world import build_scene
     from agnostos_mjx.tasks import get_task
-    from agnostos_mjx.world import build_scene
 
     rope = build_scene(get_task("straighten_rope")).model
     assert rope.nv > WARP_DENSE_MAX_NV and rope.opt.jacobian == mujoco.mjtJacobian.mjJAC_DENSE

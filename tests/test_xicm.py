@@ -227,14 +227,14 @@ def test_build_memory_extend_replaces_rerecorded_tasks(memory, bank_dir, tmp_pat
 
 @pytest.mark.slow  # two retrieval runs of 3 tasks with the selection's network
 def test_tasks_gathering_their_selection_rows_record_what_sharing_records(tmp_path, monkeypatch):
-    """The GPU's way (agnostos_mjx/gather.py) through the whole evaluation, forced on the
+    """The GPU's way (agnostos_mjx/infra/gather.py) through the whole evaluation, forced on the
     CPU: the rows of the tasks waiting at once go out together once all wait, and since a
     CPU row's result does not depend on its place, the records are those of rows shared as
     they come (the CPU's way)."""
     import json
 
     from agnostos_mjx import eval as ev
-    from agnostos_mjx.gather import RowBatcher
+    from agnostos_mjx.infra.gather import RowBatcher
     from agnostos_mjx.xicm import dynamics_selector
 
     calls: list[int] = []

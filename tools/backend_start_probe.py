@@ -30,7 +30,7 @@ def speed_while(target: Callable[[], object]) -> float:
 
 
 def main() -> None:
-    from agnostos_mjx.settings import configure_jax
+    from agnostos_mjx.infra.settings import configure_jax
 
     configure_jax()
     alone = speed_while(lambda: time.sleep(1.0))  # a thread that holds no GIL

@@ -24,7 +24,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.xicm.dynamics_selector import (
     QUERY_SAMPLE_STEPS,
     default_checkpoint_path,

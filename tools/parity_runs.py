@@ -31,7 +31,7 @@ def first_object_answer(messages: list[dict]) -> str:
 
 
 def main(argv: list[str]) -> int:
-    from agnostos_mjx.settings import configure_jax
+    from agnostos_mjx.infra.settings import configure_jax
 
     configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)

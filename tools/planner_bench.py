@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 TASKS = "put_knife_on_chopping_board,close_microwave,lamp_on"
 
@@ -35,8 +35,8 @@ def main() -> None:
     configure_jax()
     import jax
 
-    from agnostos_mjx import control
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.sim import control
     from agnostos_mjx.tasks import get_task
 
     rows = {}

@@ -99,8 +99,8 @@ def render_both(task_name: str, size: int, worlds: int, cameras: Sequence[str],
     and the scene's geom_bodyid."""
     import jax
 
-    from agnostos_mjx.observation import ObservationSpec
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.sim.observation import ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     runner = Episodes(get_task(task_name), "native")
@@ -158,7 +158,7 @@ def table(rows: Sequence[Parity], bounds: dict[str, float]) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agnostos_mjx.cli import HelpFormatter
+    from agnostos_mjx.infra.cli import HelpFormatter
 
     p = argparse.ArgumentParser(
         prog="python tools/renderer_parity.py", description=__doc__.split("\n\n")[0],
@@ -216,7 +216,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = parse_args(argv)
-    from agnostos_mjx.settings import configure_jax
+    from agnostos_mjx.infra.settings import configure_jax
 
     configure_jax()
     import jax

@@ -22,8 +22,8 @@ def _stepper(task: str, nthread: int, seconds: float, results) -> None:
     import mujoco
     from mujoco import rollout
 
+    from agnostos_mjx.sim.world import build_scene
     from agnostos_mjx.tasks import get_task
-    from agnostos_mjx.world import build_scene
 
     scene = build_scene(get_task(task))
     model, data = scene.model, mujoco.MjData(scene.model)

@@ -8,7 +8,7 @@ GPU, 4 on the CPU) and again with the rows rotated by 5/8 of the call; the devic
 (`control.plan_arm`) runs a reset batch of 75 worlds alone and repeated in calls of 150,
 600 and 1,800 rows.  Prints the largest change of a row's result for each.  Where a
 program's rows move with their place, calls may mix the rows of several tasks only in an
-order that timing cannot change (agnostos_mjx/gather.py).  eval/reports/main_job_h100_native
+order that timing cannot change (agnostos_mjx/infra/gather.py).  eval/reports/main_job_h100_native
 has a GPU's table.
 """
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 
 def moved(fn, n: int) -> dict:
@@ -76,8 +76,8 @@ def selection_rows() -> dict:
 def planner_rows(sizes=(150, 600, 1800)) -> dict:
     import jax
 
-    from agnostos_mjx import control
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.sim import control
     from agnostos_mjx.tasks import get_task
 
     ep = Episodes(get_task("put_knife_on_chopping_board"), "native", planner="host")

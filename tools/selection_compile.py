@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 
 def main(label: str, out: Path) -> dict:

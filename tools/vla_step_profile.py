@@ -38,7 +38,7 @@ def best_of(fn, iters: int) -> float:
 
 
 def main() -> None:
-    from agnostos_mjx.settings import configure_jax
+    from agnostos_mjx.infra.settings import configure_jax
 
     configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__,

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 log = logging.getLogger("agnostos_mjx.bench.backends")
 
@@ -46,7 +46,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agnostos_mjx.cli import HelpFormatter
+    from agnostos_mjx.infra.cli import HelpFormatter
 
     p = argparse.ArgumentParser(
         prog="python -m agnostos_mjx.bench.backends",
@@ -189,7 +189,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from agnostos_mjx.tasks import parse_tasks
 
     # isort: split
-    from agnostos_mjx.cli import atomic_write, versions
+    from agnostos_mjx.infra.cli import atomic_write, versions
     from agnostos_mjx.physics import BACKENDS, warp_available
     from agnostos_mjx.runtime.env import Episodes
 

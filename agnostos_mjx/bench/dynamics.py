@@ -42,7 +42,6 @@ import numpy as np
 from flax import nnx
 
 from agnostos_mjx.bench.backends import seconds_per_call
-from agnostos_mjx.cli import HelpFormatter, atomic_write
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.config import FEATURE_DIM, LATENT_CHANNELS, LATENT_SIZE, PRESETS
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, diffusion_loss
@@ -50,7 +49,8 @@ from agnostos_mjx.dynamics.features import extract
 from agnostos_mjx.dynamics.layers import GroupNorm, create
 from agnostos_mjx.dynamics.pipeline import Pipeline
 from agnostos_mjx.dynamics.text import tokenize
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.cli import HelpFormatter, atomic_write
+from agnostos_mjx.infra.settings import configure_jax
 
 TARGET_STEPS_PER_S = 20.0
 TARGET_QUERIES_PER_S = 75.0

@@ -15,7 +15,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from agnostos_mjx.cli import HelpFormatter
+from agnostos_mjx.infra.cli import HelpFormatter
 from agnostos_mjx.llm.client import ChatClient, LLMConfig
 from agnostos_mjx.llm.testing import ScriptedLLMServer
 

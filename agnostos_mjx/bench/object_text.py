@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.cli import atomic_write
+from agnostos_mjx.infra.cli import atomic_write
 
 
 def compare_texts(truth: list[dict[str, list[int]]], segmented: list[dict[str, list[int]]]
@@ -51,7 +51,7 @@ def task_row(name: str, seeds: list[int], episodes: int) -> dict[str, Any]:
     from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
     from agnostos_mjx.policies.xicm import SEGMENTED_SPEC
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.scene_text import object_voxels, segmented_object_voxels
+    from agnostos_mjx.sim.scene_text import object_voxels, segmented_object_voxels
     from agnostos_mjx.tasks import get_task
 
     task = get_task(name)
@@ -81,7 +81,7 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agnostos_mjx.cli import setup_logging
+    from agnostos_mjx.infra.cli import setup_logging
     from agnostos_mjx.tasks import parse_tasks
 
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.object_text",

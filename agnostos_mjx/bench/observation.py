@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 log = logging.getLogger("agnostos_mjx.bench.observation")
 PERACT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
@@ -45,7 +45,7 @@ TASKS = ("lamp_on", "stack_blocks", "close_fridge")
 
 def build_parser() -> argparse.ArgumentParser:
     from agnostos_mjx.bench.backends import _int_list
-    from agnostos_mjx.cli import HelpFormatter
+    from agnostos_mjx.infra.cli import HelpFormatter
 
     p = argparse.ArgumentParser(prog="python -m agnostos_mjx.bench.observation",
                                 description=__doc__.split("\n\n")[0],
@@ -134,8 +134,8 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
     """Rows for one task and batch: reset `batch` worlds, then time each renderer."""
     import jax
 
-    from agnostos_mjx.observation import MODALITIES, ObservationSpec
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.sim.observation import MODALITIES, ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)
@@ -177,7 +177,7 @@ def _gpu() -> bool:
 
 def main(argv: Sequence[str] | None = None) -> int:
     configure_jax()
-    from agnostos_mjx.cli import setup_logging, versions
+    from agnostos_mjx.infra.cli import setup_logging, versions
 
     a = build_parser().parse_args(argv)
     setup_logging(False)

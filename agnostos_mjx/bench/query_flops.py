@@ -29,10 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from agnostos_mjx.cli import HelpFormatter, atomic_write
 from agnostos_mjx.dynamics.config import LATENT_CHANNELS, LATENT_SIZE
 from agnostos_mjx.dynamics.pipeline import Pipeline
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.cli import HelpFormatter, atomic_write
+from agnostos_mjx.infra.settings import configure_jax
 
 
 def unet_call_flops(pipeline: Pipeline, rows: int) -> float:

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 
 def run_batch(runner, policy, batch: int, seed: int) -> tuple[float, int, int, np.ndarray]:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.cli import atomic_write
+from agnostos_mjx.infra.cli import atomic_write
 
 
 def task_histogram(name: str, selector: Any, memory: Any, scenes: int, k: int) -> dict[str, Any]:

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.cli import atomic_write
-from agnostos_mjx.textualise import format_demo, point_to_voxel
+from agnostos_mjx.infra.cli import atomic_write
+from agnostos_mjx.sim.textualise import format_demo, point_to_voxel
 
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"

@@ -79,7 +79,7 @@ def expert_frames(episodes, env, snapshot, every: int | None = None, qpos: bool 
     would paint them had the phase ended there."""
     import jax
 
-    from agnostos_mjx.observables import Observation
+    from agnostos_mjx.sim.observables import Observation
 
     n = len(env.variation)
     frames: list[list[dict]] = [[] for _ in range(n)]

@@ -122,7 +122,7 @@ from agnostos_mjx.data.rlbench_format import (
     is_complete,
 )
 from agnostos_mjx.data.rotations import ROTATIONS
-from agnostos_mjx.settings import configure_jax, usable_cores
+from agnostos_mjx.infra.settings import configure_jax, usable_cores
 
 # The episode format's API, importable from here as before the split (README, reports):
 __all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export",
@@ -225,9 +225,9 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     """Export one task's missing demos; returns counts.  `threads`: the native physics'
     threads (default: all cores)."""
     from agnostos_mjx.data.generate import demo_keys
-    from agnostos_mjx.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.outcome import Outcome
+    from agnostos_mjx.sim.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)
@@ -447,7 +447,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
     done = 0
 
     def write() -> None:
-        from agnostos_mjx.cli import atomic_write
+        from agnostos_mjx.infra.cli import atomic_write
 
         tasks = manifest.get("tasks", {})
         manifest["tasks"] = {t: tasks[t] for t in order if t in tasks}  # cfg's order
@@ -529,7 +529,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     configure_jax()
-    from agnostos_mjx.cli import HelpFormatter, prog, setup_logging
+    from agnostos_mjx.infra.cli import HelpFormatter, prog, setup_logging
     from agnostos_mjx.tasks import parse_tasks
 
     p = argparse.ArgumentParser(prog=prog("agnostos_mjx.data.export"),

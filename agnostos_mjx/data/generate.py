@@ -51,13 +51,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from agnostos_mjx.cli import (
-    HelpFormatter,
-    check_writable_dir,
-    progress_bar,
-    setup_logging,
-    versions,
-)
 from agnostos_mjx.data.bank import (
     FORMAT_VERSION,
     MANIFEST,
@@ -69,10 +62,17 @@ from agnostos_mjx.data.bank import (
     write_manifest,
     write_shard,
 )
-from agnostos_mjx.keyframes import discover_keyframes, merge_repeated_keyframes
+from agnostos_mjx.infra.cli import (
+    HelpFormatter,
+    check_writable_dir,
+    progress_bar,
+    setup_logging,
+    versions,
+)
+from agnostos_mjx.infra.settings import configure_jax, usable_cores
 from agnostos_mjx.physics import BACKENDS
-from agnostos_mjx.settings import configure_jax, usable_cores
-from agnostos_mjx.textualise import encode_action
+from agnostos_mjx.sim.keyframes import discover_keyframes, merge_repeated_keyframes
+from agnostos_mjx.sim.textualise import encode_action
 
 log = logging.getLogger("agnostos_mjx.data")
 
@@ -121,7 +121,7 @@ def _padded(a: np.ndarray, value=0) -> np.ndarray:
 
 def _demo_arrays(episodes, env, record, frames: dict, indices, attempts, ok, stride):
     """Arrays (see bank.py) of the successful worlds of one batch."""
-    from agnostos_mjx.world import FINGER_OPEN
+    from agnostos_mjx.sim.world import FINGER_OPEN
 
     task, layout = episodes.task, episodes.scene.layout
     names = list(task.objects)
@@ -458,7 +458,7 @@ def generate(cfg: GenerateConfig) -> dict:
               "demos": sum(s.have for s in stores.values()), "backend": cfg.backend,
               "tasks": {name: manifest["tasks"][name] for name in tasks}}
     report["markdown"] = format_report(report)
-    from agnostos_mjx.cli import atomic_write
+    from agnostos_mjx.infra.cli import atomic_write
 
     atomic_write(cfg.out / "report.json", json.dumps(report, indent=1) + "\n")
     atomic_write(cfg.out / "report.md", report["markdown"])
@@ -469,7 +469,7 @@ def _scene_checks(cfg: GenerateConfig, tasks: dict, names: set[str]) -> dict[str
     """Check the cameras exist and return each task's recording interval, from the scene
     models alone (cheap: no runner is built)."""
     from agnostos_mjx.render import camera_names
-    from agnostos_mjx.world import build_scene
+    from agnostos_mjx.sim.world import build_scene
 
     frame_dt = {}
     for name in sorted(names):

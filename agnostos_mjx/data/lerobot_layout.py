@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation, from_quat
-from agnostos_mjx.math3d import xyzw_to_axis_angle_f32
+from agnostos_mjx.sim.math3d import xyzw_to_axis_angle_f32
 
 STATE_LAYOUTS = ("rlbench", "libero", "xicm")
 STATE_NAMES: dict[str, tuple[str, ...]] = {

@@ -63,8 +63,8 @@ def scene_version(scenes: Path | None = None) -> str:
     stores a field in another float width gives the same digest."""
     import mujoco
 
-    from agnostos_mjx.colors import COLORS
-    from agnostos_mjx.world import scenes_dir
+    from agnostos_mjx.sim.colors import COLORS
+    from agnostos_mjx.sim.world import scenes_dir
 
     model = mujoco.MjModel.from_xml_path(str(Path(scenes or scenes_dir()) / "world.xml"))
     h = hashlib.sha256()

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.math3d import (
+from agnostos_mjx.sim.math3d import (
     euler_xyz_to_quat,
     mat_to_quat,
     mat_to_rot6d,

@@ -14,8 +14,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx.cli import HelpFormatter
 from agnostos_mjx.data.bank import BankError, DemoBank
+from agnostos_mjx.infra.cli import HelpFormatter
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,9 +8,9 @@ it does not change with the row's place in a call or the rows beside it, so the 
 come without changing any task's records.  On a GPU it can change with the place (on a
 GPU, 64-row calls: the sampler's latents of 18 of 64 rows moved by up to 1e-2 when the rows were
 rotated by 40 places, the scores by 7e-5; the encoder and the similarity did not move:
-`python tools/row_place_probe.py`), so there the batcher gathers (agnostos_mjx/gather.py).
+`python tools/row_place_probe.py`), so there the batcher gathers (agnostos_mjx/infra/gather.py).
 
-With several local devices (agnostos_mjx.sharding) each chunk, rounded up to a multiple of
+With several local devices (agnostos_mjx.infra.sharding) each chunk, rounded up to a multiple of
 the device count, is split over them; rows are independent, so results do not change."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from agnostos_mjx import sharding
+from agnostos_mjx.infra import sharding
 
 
 def map_chunks(fn: Callable[..., jax.Array], *arrays: np.ndarray, size: int) -> np.ndarray:

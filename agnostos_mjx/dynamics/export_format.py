@@ -31,7 +31,6 @@ import jax
 import numpy as np
 from flax import nnx
 
-from agnostos_mjx.cli import atomic_write
 from agnostos_mjx.dynamics.autoencoder import Autoencoder
 from agnostos_mjx.dynamics.checkpoint import CheckpointError, unflatten
 from agnostos_mjx.dynamics.config import (
@@ -44,7 +43,8 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.diffusion import DynamicsModel
 from agnostos_mjx.dynamics.layers import abstract
-from agnostos_mjx.settings import cache_root
+from agnostos_mjx.infra.cli import atomic_write
+from agnostos_mjx.infra.settings import cache_root
 
 FORMAT = "agnostos_mjx.dynamics.export"
 VERSION = 1

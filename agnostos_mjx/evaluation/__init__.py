@@ -9,5 +9,8 @@ Imports point one way: run -> rollout, scheduler, records, summary -> protocol, 
 * records: episodes.jsonl (load, repair, append) and resuming a run;
 * summary: aggregation, results.json/.csv/.md/.png, merging processes' runs;
 * processes: one run as several processes on this machine (--local-processes);
-* run: `evaluate(cfg)` and its output folder.
+* run: `evaluate(cfg)` and its output folder;
+* video, report_plot, paper: episode videos, the results' plot, the published numbers;
+* experts_check: the experts on every variation (``python -m
+  agnostos_mjx.evaluation.experts_check``).
 """

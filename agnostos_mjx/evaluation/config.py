@@ -15,11 +15,11 @@ from dataclasses import MISSING, Field, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx import settings
-from agnostos_mjx.cli import HelpFormatter, prog
+from agnostos_mjx.infra import settings
+from agnostos_mjx.infra.cli import HelpFormatter, prog
+from agnostos_mjx.infra.mps import MODES as MPS_MODES
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
-from agnostos_mjx.mps import MODES as MPS_MODES
 from agnostos_mjx.physics import BACKENDS, RENDERERS
 
 VARIATION_MODES = ("protocol", "all", "zero")
@@ -120,7 +120,7 @@ class EvalConfig:
     gpu_mem_fraction: float | None = option(
         None, "cap JAX's GPU memory pool at F of the card, 0: no preallocation (default "
               "$AGNOSTOS_GPU_MEM_FRACTION; 0.35 when the policy or LLM server is on this "
-              "machine; else JAX's 75%%); see agnostos_mjx/gpu.py", type=float, metavar="F")
+              "machine; else JAX's 75%%); see agnostos_mjx/infra/gpu.py", type=float, metavar="F")
     tasks: str = option(
         "unseen", "comma-separated task names and/or split names (seen, unseen, "
                   "unseen_level1, unseen_level2, all)")
@@ -178,7 +178,7 @@ class EvalConfig:
         False, "no progress bar, warnings-only logging (the table is still printed)")
     video: str | None = option(
         None, "MP4 per episode in <out>/videos for episodes 0..N-1 of each task and seed, or "
-              "the failures (see agnostos_mjx/video.py; needs PyAV)",
+              "the failures (see agnostos_mjx/evaluation/video.py; needs PyAV)",
         metavar="first:N|failures[:N]")
     video_cameras: str | None = option(
         None, "comma-separated cameras side by side (default front,overhead,wrist)")

@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError
-from agnostos_mjx.math3d import apply_delta
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.sim.math3d import apply_delta
 
 if TYPE_CHECKING:
     import concurrent.futures

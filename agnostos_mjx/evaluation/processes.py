@@ -18,7 +18,7 @@ CUDA_VISIBLE_DEVICES is that one entry, so CUDA_VISIBLE_DEVICES=0,1,2,3 and N = 
 processes 0..5 on GPUs 0, 1, 2, 3, 0, 1.  With one GPU or none the processes keep this
 process's environment, as before.
 
-CUDA MPS (``--mps``, agnostos_mjx/mps.py): processes sharing a GPU without MPS time-slice
+CUDA MPS (``--mps``, agnostos_mjx/infra/mps.py): processes sharing a GPU without MPS time-slice
 it (8 processes together ran slower than one; under MPS several times faster:
 docs/performance.md).  For each GPU that two or more processes share, ``auto`` (the default)
 and ``on`` start a private MPS control daemon for the run (pipe and log folders
@@ -46,13 +46,13 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx import mps, report_plot
-from agnostos_mjx.cli import process_age_s
-from agnostos_mjx.evaluation import task_queue
+from agnostos_mjx.evaluation import report_plot, task_queue
 from agnostos_mjx.evaluation.config import EvalConfig
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import merge_main
-from agnostos_mjx.settings import GPU_MEM_FRACTION
+from agnostos_mjx.infra import mps
+from agnostos_mjx.infra.cli import process_age_s
+from agnostos_mjx.infra.settings import GPU_MEM_FRACTION
 
 log = logging.getLogger("agnostos_mjx.eval")
 JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
@@ -91,7 +91,7 @@ def default_count(cfg: EvalConfig, environ: dict[str, str] | None = None) -> tup
     MAX_DEFAULT_PROCESSES, half the usable cores and one per (task, seed) of the run; one
     process without a GPU, for a process of a larger run, and for --resume without --out.
     Returns (count, why)."""
-    from agnostos_mjx.settings import usable_cores
+    from agnostos_mjx.infra.settings import usable_cores
     from agnostos_mjx.tasks.catalog import parse_task_names
 
     if cfg.num_processes > 1 or cfg.coordinator or (cfg.resume and cfg.out is None):

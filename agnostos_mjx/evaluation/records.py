@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
-from agnostos_mjx.cli import atomic_write
+from agnostos_mjx.infra.cli import atomic_write
 
 log = logging.getLogger("agnostos_mjx.eval")
 

@@ -17,21 +17,21 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agnostos_mjx.cli import Progress, process_age_s
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError
 from agnostos_mjx.evaluation.dense import DenseDriver, check_answer, dense_control
 from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations, policy_seed
 from agnostos_mjx.evaluation.timings import MEASURED
+from agnostos_mjx.infra.cli import Progress, process_age_s
 from agnostos_mjx.policies.base import Policy, Round
 
 if TYPE_CHECKING:
     import concurrent.futures
     from concurrent.futures import Executor
 
+    from agnostos_mjx.evaluation.video import EpisodeVideos
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
     from agnostos_mjx.tasks.base import Task
-    from agnostos_mjx.video import EpisodeVideos
 
 log = logging.getLogger("agnostos_mjx.eval")
 
@@ -66,8 +66,8 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
     With `physics_pool` the resets and key actions of native MuJoCo (whose rollouts release
     the GIL) run there and are yielded as futures too: tasks running at once overlap their
     physics with each other and with the policy.  The device backends keep this thread."""
+    from agnostos_mjx.evaluation.video import EpisodeVideos
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.video import EpisodeVideos
 
     t0, started = time.perf_counter(), process_age_s()
     split = TimeSplit()

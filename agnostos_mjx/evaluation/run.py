@@ -18,13 +18,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx.cli import (
-    atomic_write,
-    check_writable_dir,
-    process_age_s,
-    progress_bar,
-    versions,
-)
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
 from agnostos_mjx.evaluation.dense import check_action_mode
 from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, select_tasks
@@ -47,6 +40,13 @@ from agnostos_mjx.evaluation.task_queue import (
     unit_task,
 )
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
+from agnostos_mjx.infra.cli import (
+    atomic_write,
+    check_writable_dir,
+    process_age_s,
+    progress_bar,
+    versions,
+)
 from agnostos_mjx.policies.base import Policy
 
 log = logging.getLogger("agnostos_mjx.eval")
@@ -86,7 +86,7 @@ def resolve_out(cfg: EvalConfig, spec: str) -> Path:
 # ---- checks and loading ------------------------------------------------------------------
 def _check_video(cfg: EvalConfig) -> None:
     if cfg.video:
-        from agnostos_mjx.video import VideoSpec
+        from agnostos_mjx.evaluation.video import VideoSpec
 
         try:
             VideoSpec.parse(cfg.video, cfg.video_cameras)
@@ -96,7 +96,7 @@ def _check_video(cfg: EvalConfig) -> None:
 
 def _check_compare(cfg: EvalConfig) -> None:
     if cfg.compare:
-        from agnostos_mjx.paper import published
+        from agnostos_mjx.evaluation.paper import published
 
         try:
             published(cfg.compare)
@@ -150,7 +150,7 @@ def _steps_of(name: str, *args: Any) -> Steps:
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Run the evaluation described by `cfg`, write the outputs, return results.json's dict."""
-    from agnostos_mjx import gather, sharding
+    from agnostos_mjx.infra import gather, sharding
     from agnostos_mjx.physics import resolve_backend
 
     startup = {"imports_s": process_age_s()}  # where a process's start-up goes (timings)
@@ -163,7 +163,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     backend = resolve_backend(cfg.backend, cfg.batch)
     queue = None
     # Tasks from a shared queue run beside whichever others this process got first: their
-    # requests then go alone (agnostos_mjx/gather.py).
+    # requests then go alone (agnostos_mjx/infra/gather.py).
     gather.allow_gathering(cfg.task_queue is None)
     if cfg.task_queue is not None:  # its balanced share first (claim_order, below)
         queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)

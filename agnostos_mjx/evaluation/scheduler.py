@@ -1,6 +1,6 @@
 """Tasks side by side: while one task's policy waits (an LLM batch, a policy server's
 answers), another task simulates.  Each task's episodes run in their own order on their
-own policy copy.  A request that gathers (agnostos_mjx/gather.py: the demo selection on a
+own policy copy.  A request that gathers (agnostos_mjx/infra/gather.py: the demo selection on a
 GPU, the device planner's plans) is released once every running task waits on one, so
 the tasks' rows go out together in an order that timing cannot change: on the CPU results
 do not depend on the overlap, on a GPU they do only through those shared calls' rounding,

@@ -36,11 +36,11 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.cli import atomic_write
 from agnostos_mjx.evaluation.config import EvalConfig, UsageError
 from agnostos_mjx.evaluation.protocol import GROUPS, group_label
 from agnostos_mjx.evaluation.records import EPISODES_FILE, jsonl, load_records, record_key
-from agnostos_mjx.stats import wilson_interval
+from agnostos_mjx.infra.cli import atomic_write
+from agnostos_mjx.infra.stats import wilson_interval
 
 log = logging.getLogger("agnostos_mjx.eval")
 
@@ -213,13 +213,13 @@ def write_outputs(out_dir: Path, meta: dict, records: Sequence[dict], tasks: Seq
              f"{','.join(map(str, cfg.seeds))}, {cfg.episodes} episodes per seed")
     compare = None
     if cfg.compare:
-        from agnostos_mjx.paper import published
+        from agnostos_mjx.evaluation.paper import published
 
         compare = published(cfg.compare)
     results["markdown"] = format_markdown(summary, title, compare, cfg.compare or "")
     atomic_write(out_dir / "results.md", results["markdown"])
     if final and plot:
-        from agnostos_mjx.report_plot import plot_summary
+        from agnostos_mjx.evaluation.report_plot import plot_summary
 
         plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")
     return results

@@ -15,7 +15,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx.cli import atomic_write
+from agnostos_mjx.infra.cli import atomic_write
 
 log = logging.getLogger("agnostos_mjx.llm")
 

@@ -29,7 +29,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from agnostos_mjx import settings
+from agnostos_mjx.infra import settings
 from agnostos_mjx.llm import server as srv
 from agnostos_mjx.llm.cache import ResponseCache
 from agnostos_mjx.llm.http import (

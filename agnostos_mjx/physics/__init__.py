@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # light at import: the launcher of --local-processes reads BACKENDS only
@@ -13,38 +12,8 @@ if TYPE_CHECKING:  # light at import: the launcher of --local-processes reads BA
     from agnostos_mjx.physics.base import Backend
 
 
-@dataclass(frozen=True)
-class Capabilities:
-    """What a backend offers the layers above, so that they read it here instead of
-    comparing its name (adding a backend adds its entry to CAPABILITIES)."""
+from agnostos_mjx.physics.capabilities import CAPABILITIES, Capabilities
 
-    # Key actions run as one device program (Episodes.step_on_device), else on the host.
-    on_device: bool
-    # Batches are padded to one shape: the backend compiles a program per batch shape.
-    padded_batch: bool
-    # Physics steps per iteration of a device phase's loop (runtime/phase.steps_per_iteration).
-    steps_per_iteration: int = 1
-    # Its rollouts release the GIL: tasks running at once step on a thread pool.
-    threaded: bool = False
-    # The renderer that sits next to it (its worlds' state already there), else None.
-    renderer: str | None = None
-    # Its device programs capture CUDA graphs: Python's collector stays off while they run.
-    captures_graphs: bool = False
-    # Its worlds split over the local devices (sharding.py).
-    sharded: bool = False
-    # Per-scene kernels that warmup builds ahead in parallel processes, once per machine.
-    kernels: bool = False
-
-
-# Warp's K-step chunks (one FFI call per K steps); see runtime/phase.steps_per_iteration.
-WARP_STEPS_PER_ITERATION = 16
-CAPABILITIES: dict[str, Capabilities] = {
-    "native": Capabilities(on_device=False, padded_batch=False, threaded=True),
-    "jax": Capabilities(on_device=True, padded_batch=True, sharded=True),
-    "warp": Capabilities(on_device=True, padded_batch=True,
-                         steps_per_iteration=WARP_STEPS_PER_ITERATION, renderer="warp",
-                         captures_graphs=True, kernels=True),
-}
 BACKENDS = ("auto", *CAPABILITIES)
 # Where observations are rendered: MuJoCo's OpenGL renderer on CPU threads, or MJX-Warp's
 # batch ray tracer on the GPU (beside any physics backend: the worlds' state goes to it).

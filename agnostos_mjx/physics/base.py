@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 if TYPE_CHECKING:
-    from agnostos_mjx.physics import Capabilities
+    from agnostos_mjx.physics.capabilities import Capabilities
 
 # MuJoCo Warp's dense constraint Jacobian stops at this many degrees of freedom.
 WARP_DENSE_MAX_NV = 60

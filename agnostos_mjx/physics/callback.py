@@ -18,7 +18,7 @@ import numpy as np
 from agnostos_mjx.physics.base import PhysicsState, StepData
 from agnostos_mjx.physics.mjx_backend import DevicePhysics
 from agnostos_mjx.physics.native import NativeBackend
-from agnostos_mjx.world import posed_data
+from agnostos_mjx.sim.world import posed_data
 
 
 def callback_physics(model: mujoco.MjModel, batch: int) -> DevicePhysics:

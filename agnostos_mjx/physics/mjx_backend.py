@@ -5,7 +5,7 @@ The mjx.Model is closed over by the jitted step function, never passed as a
 jit argument (passing it made every call slow: docs/performance.md).  The per-world grasp weld data
 is the one batched model field.
 
-With several local devices (agnostos_mjx.sharding, ``--devices``) MJX-jax places the
+With several local devices (agnostos_mjx.infra.sharding, ``--devices``) MJX-jax places the
 runner's inputs with their world axis split over a mesh, and jit partitions the vmapped
 step: worlds are independent, so each device steps its share with no communication.
 MJX-warp is not sharded yet: its FFI step needs per-device contact buffers (shard_map),
@@ -26,8 +26,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx import sharding
-from agnostos_mjx.physics import CAPABILITIES
+from agnostos_mjx.infra import sharding
 from agnostos_mjx.physics.base import (
     STATE_FIELDS,
     PhysicsState,
@@ -37,6 +36,7 @@ from agnostos_mjx.physics.base import (
     freeze,
     keep_rows,
 )
+from agnostos_mjx.physics.capabilities import CAPABILITIES
 from agnostos_mjx.physics.quiet_mjx import mjx
 
 log = logging.getLogger(__name__)

@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from agnostos_mjx.physics import CAPABILITIES
+from agnostos_mjx.infra.settings import usable_cores
 from agnostos_mjx.physics.base import PhysicsState, check_steps
-from agnostos_mjx.settings import usable_cores
+from agnostos_mjx.physics.capabilities import CAPABILITIES
 
 _STATE_FIELDS = {
     mujoco.mjtState.mjSTATE_TIME: "time",

@@ -57,13 +57,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
-from agnostos_mjx.gather import send_alone
+from agnostos_mjx.infra.gather import send_alone
+from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
-    from agnostos_mjx.observation import ObservationSpec, RLBenchObservation
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
+    from agnostos_mjx.sim.observation import ObservationSpec, RLBenchObservation
 
 ActSteps = Generator[concurrent.futures.Future, Any, KeyActions]
 
@@ -160,7 +160,7 @@ def run_blocking(steps: Generator[concurrent.futures.Future, Any, Any]) -> Any:
     try:
         future = next(steps)
         while True:
-            send_alone(future)  # a gathered request (agnostos_mjx/gather.py), alone
+            send_alone(future)  # a gathered request (agnostos_mjx/infra/gather.py), alone
             concurrent.futures.wait([future])
             future = steps.send(None)
     except StopIteration as stop:

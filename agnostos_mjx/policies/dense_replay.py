@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.data.expert_frames import frame_every, next_frame_actions, proprio_frames
-from agnostos_mjx.math3d import pose_delta
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.sim.math3d import pose_delta
 
 
 class DenseReplayPolicy(Policy):

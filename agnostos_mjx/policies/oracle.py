@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.sim.actions import KeyActions
 
 
 class OraclePolicy(Policy):

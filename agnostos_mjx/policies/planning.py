@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.policies.base import Policy, Round, run_blocking
+from agnostos_mjx.sim.actions import KeyActions
 
 
 class PlanResult:

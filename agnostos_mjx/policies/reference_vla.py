@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
-from agnostos_mjx.observation import ObservationSpec
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.sim.observation import ObservationSpec
 
 
 class ReferenceVLAPolicy(Policy):
@@ -77,7 +77,7 @@ class ReferenceVLAPolicy(Policy):
         self.steps = np.zeros(view.batch, np.int32)
 
     def act(self, view: Round) -> KeyActions:
-        from agnostos_mjx.textualise import euler_bins_to_quat
+        from agnostos_mjx.sim.textualise import euler_bins_to_quat
 
         observation = view.observation
         b = observation.batch

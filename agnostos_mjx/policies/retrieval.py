@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.control import ACTION_BOUNDS
 from agnostos_mjx.policies.base import Round
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.policies.xicm import queries_for
+from agnostos_mjx.sim.control import ACTION_BOUNDS
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.selection import make_selector, resolve_selection
 

@@ -43,8 +43,7 @@ from urllib.parse import urlparse
 
 import numpy as np
 
-from agnostos_mjx import settings
-from agnostos_mjx.actions import KeyActions
+from agnostos_mjx.infra import settings
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.remote import json_wire
 from agnostos_mjx.remote.adapter import (
@@ -56,9 +55,10 @@ from agnostos_mjx.remote.adapter import (
     request,
 )
 from agnostos_mjx.remote.adapter import sim_state as world_sim_state
+from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:
-    from agnostos_mjx.observation import RLBenchObservation
+    from agnostos_mjx.sim.observation import RLBenchObservation
 
 DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
 SCHEMES = ("ws", "wss", "http", "https")

@@ -14,9 +14,9 @@ from typing import Any, Self
 import mujoco
 import numpy as np
 
+from agnostos_mjx.infra.settings import RENDER_THREADS, usable_cores
 from agnostos_mjx.render.common import CameraImages, camera_names, clip_planes, unknown_camera
 from agnostos_mjx.render.cpu import CpuRenderer
-from agnostos_mjx.settings import RENDER_THREADS, usable_cores
 
 RENDER_THREADS_ENV = RENDER_THREADS.name
 MAX_RENDER_THREADS = 8

@@ -25,8 +25,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from agnostos_mjx import control
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.runtime.key_action import (
     Phases,
     StepSpec,
@@ -37,6 +35,8 @@ from agnostos_mjx.runtime.key_action import (
 )
 from agnostos_mjx.runtime.outcome import is_done
 from agnostos_mjx.runtime.state import EnvState, StepResult
+from agnostos_mjx.sim import control
+from agnostos_mjx.sim.actions import KeyActions
 
 log = logging.getLogger(__name__)
 

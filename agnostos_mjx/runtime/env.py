@@ -14,10 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx import control, sharding
-from agnostos_mjx.control import PandaKinematics
-from agnostos_mjx.math3d import quat_conj, quat_rotate
-from agnostos_mjx.observables import Observation
+from agnostos_mjx.infra import sharding
 from agnostos_mjx.physics import make_backend, resolve_backend
 from agnostos_mjx.physics.base import PhysicsState
 from agnostos_mjx.runtime.dense import DenseControl, dense_action
@@ -34,9 +31,13 @@ from agnostos_mjx.runtime.phase import (
 )
 from agnostos_mjx.runtime.plan_rows import GatheredPlanner
 from agnostos_mjx.runtime.state import EnvState, StepResult
+from agnostos_mjx.sim import control
+from agnostos_mjx.sim.control import PandaKinematics
+from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
+from agnostos_mjx.sim.observables import Observation
+from agnostos_mjx.sim.visual_state import StateColors
+from agnostos_mjx.sim.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
 from agnostos_mjx.tasks.base import KeyActions, Task
-from agnostos_mjx.visual_state import StateColors
-from agnostos_mjx.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
 
 log = logging.getLogger(__name__)
 SETTLE_STEPS = 10  # RLBench runs 10 physics steps after placing the scene
@@ -412,7 +413,7 @@ class Episodes:
 
     def observe(self, state: EnvState, spec):
         """RLBench-style observation (cameras per `spec`, an observation.ObservationSpec,
-        plus proprioception) of every world; see agnostos_mjx/observation.py."""
+        plus proprioception) of every world; see agnostos_mjx/sim/observation.py."""
         return self.observer.observe(state, spec)
 
     def close(self) -> None:

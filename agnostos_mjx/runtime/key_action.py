@@ -23,11 +23,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from agnostos_mjx import control
-from agnostos_mjx.actions import KeyActions
-from agnostos_mjx.math3d import quat_conj, quat_mul, quat_rotate
 from agnostos_mjx.runtime.outcome import STATUS_OUTCOME, Outcome, is_done, phase_end
 from agnostos_mjx.runtime.state import EnvState, StepResult
+from agnostos_mjx.sim import control
+from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.sim.math3d import quat_conj, quat_mul, quat_rotate
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.observation import (
+from agnostos_mjx.runtime.state import EnvState
+from agnostos_mjx.sim.observation import (
     CAMERA_ARRAYS,
     CameraObservation,
     ObservationSpec,
@@ -23,9 +24,8 @@ from agnostos_mjx.observation import (
     camera_observation,
     scene_labels,
 )
-from agnostos_mjx.runtime.state import EnvState
+from agnostos_mjx.sim.world import FINGER_OPEN, SceneModel
 from agnostos_mjx.tasks.base import Task
-from agnostos_mjx.world import FINGER_OPEN, SceneModel
 
 GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 
-from agnostos_mjx.control import Status
+from agnostos_mjx.sim.control import Status
 
 
 class Outcome(enum.IntEnum):

@@ -29,7 +29,7 @@ from agnostos_mjx.physics import CAPABILITIES
 from agnostos_mjx.physics.base import STATE_FIELDS, Backend, PhysicsState, freeze, keep_rows
 from agnostos_mjx.runtime.outcome import phase_end
 from agnostos_mjx.runtime.state import EnvState, StepResult
-from agnostos_mjx.world import posed_data
+from agnostos_mjx.sim.world import posed_data
 
 if TYPE_CHECKING:  # native physics never imports MJX (and its scipy, trimesh)
     from agnostos_mjx.physics.mjx_backend import DevicePhysics

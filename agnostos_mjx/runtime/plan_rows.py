@@ -5,7 +5,7 @@ Every scene has the same robot, so one program plans the key actions of any task
 worlds (control.jit_for_robot).  On a GPU a task's key action was one `plan_arm` call, and
 one process's 23 tasks queued hundreds of them on its one stream, where one call of all
 their rows costs not much more than one task's (docs/performance.md).  A world's plan moves
-with the rows beside it (slightly; docs/performance.md), so the requests gather (agnostos_mjx/gather.py): they
+with the rows beside it (slightly; docs/performance.md), so the requests gather (agnostos_mjx/infra/gather.py): they
 go out together, ordered by content, once every running task waits on one, and a task run
 alone gets the one call of its own rows it got before.
 """
@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agnostos_mjx import control
-from agnostos_mjx.gather import RowBatcher, content_key, then
+from agnostos_mjx.infra.gather import RowBatcher, content_key, then
+from agnostos_mjx.sim import control
 
 if TYPE_CHECKING:
     import concurrent.futures

@@ -12,9 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.observables import Layout, Observation
 from agnostos_mjx.physics.base import PhysicsState
 from agnostos_mjx.runtime.outcome import is_done
+from agnostos_mjx.sim.observables import Layout, Observation
 
 
 @dataclass(frozen=True)

@@ -14,12 +14,12 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.actions import KeyActions  # defined there without JAX; re-exported here
-from agnostos_mjx.conditions import Condition, never
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
-from agnostos_mjx.observables import Observation
+from agnostos_mjx.sim.actions import KeyActions  # defined there without JAX; re-exported here
+from agnostos_mjx.sim.conditions import Condition, never
+from agnostos_mjx.sim.math3d import quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.observables import Observation
+from agnostos_mjx.sim.visual_state import StateColor
 from agnostos_mjx.tasks.catalog import Split
-from agnostos_mjx.visual_state import StateColor
 
 TABLE_Z = 0.752
 # Centre and extent of RLBench's `workspace` plane.  The centre (0.25, 0) is

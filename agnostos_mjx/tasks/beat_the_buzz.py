@@ -6,8 +6,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.conditions import AnyOf, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import axis_angle_quat, quat_mul, quat_rotate
+from agnostos_mjx.sim.conditions import AnyOf, Detected, NothingGrasped, all_of
+from agnostos_mjx.sim.math3d import axis_angle_quat, quat_mul, quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

@@ -7,8 +7,8 @@ import math
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import euler_xyz_quat, quat_conj, quat_rotate
+from agnostos_mjx.sim.conditions import JointMoved
+from agnostos_mjx.sim.math3d import euler_xyz_quat, quat_conj, quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

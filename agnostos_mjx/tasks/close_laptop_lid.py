@@ -6,7 +6,7 @@ import math
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import JointMoved
+from agnostos_mjx.sim.conditions import JointMoved
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

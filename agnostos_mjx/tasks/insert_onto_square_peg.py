@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.colors import COLORS
-from agnostos_mjx.conditions import Detected, all_of
+from agnostos_mjx.sim.colors import COLORS
+from agnostos_mjx.sim.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.blocks import peg_board, square_grasp_yaw, square_ring
 from agnostos_mjx.tasks.builders.common import (

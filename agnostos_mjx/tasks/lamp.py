@@ -5,11 +5,11 @@ from __future__ import annotations
 import jax.numpy as jnp
 import mujoco
 
-from agnostos_mjx.conditions import JointMoved
+from agnostos_mjx.sim.conditions import JointMoved
+from agnostos_mjx.sim.visual_state import StateColor
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
 from agnostos_mjx.tasks.builders import disc, panel, push_button, rod
 from agnostos_mjx.tasks.builders.common import DOWN
-from agnostos_mjx.visual_state import StateColor
 
 # Model bounding box of the lamp scene in the root frame: x[-0.138, 0.167],
 # y[-0.183, 0.311].

@@ -6,8 +6,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.colors import COLORS
-from agnostos_mjx.conditions import NothingGrasped, all_of
+from agnostos_mjx.sim.colors import COLORS
+from agnostos_mjx.sim.conditions import NothingGrasped, all_of
 from agnostos_mjx.tasks.base import TABLE_Z, Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import mujoco
 
-from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
+from agnostos_mjx.sim.conditions import Detected, NothingGrasped, Select, all_of
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import JointMoved
-from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate
+from agnostos_mjx.sim.conditions import JointMoved
+from agnostos_mjx.sim.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.appliances import (
     GRILL_BOUNDARY_CENTER,

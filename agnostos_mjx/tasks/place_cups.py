@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.conditions import AnyOf, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import quat_rotate, yaw_quat
+from agnostos_mjx.sim.conditions import AnyOf, Detected, NothingGrasped, all_of
+from agnostos_mjx.sim.math3d import quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, Select
+from agnostos_mjx.sim.conditions import Detected, Select
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

@@ -7,8 +7,8 @@ import itertools
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.colors import COLORS
-from agnostos_mjx.conditions import JointMoved, all_of
+from agnostos_mjx.sim.colors import COLORS
+from agnostos_mjx.sim.conditions import JointMoved, all_of
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, all_of
+from agnostos_mjx.sim.conditions import Detected, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,

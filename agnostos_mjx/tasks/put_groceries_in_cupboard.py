@@ -8,7 +8,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, NothingGrasped, Select, all_of
+from agnostos_mjx.sim.conditions import Detected, NothingGrasped, Select, all_of
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     Placement,

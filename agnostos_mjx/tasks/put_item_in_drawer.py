@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, Select
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate, yaw_quat
+from agnostos_mjx.sim.conditions import Detected, Select
+from agnostos_mjx.sim.math3d import euler_xyz_quat, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     Placement,

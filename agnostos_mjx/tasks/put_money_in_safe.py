@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.conditions import NothingGrasped, all_of
-from agnostos_mjx.math3d import yaw_quat
+from agnostos_mjx.sim.conditions import NothingGrasped, all_of
+from agnostos_mjx.sim.math3d import yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, sample_on_plane
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,

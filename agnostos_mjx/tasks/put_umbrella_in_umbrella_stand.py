@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.math3d import euler_xyz_quat, quat_rotate
+from agnostos_mjx.sim.math3d import euler_xyz_quat, quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, in_frame, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import (
     down_grasp,

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.colors import COLORS
-from agnostos_mjx.conditions import Detected
-from agnostos_mjx.math3d import axis_angle_quat, quat_conj, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.colors import COLORS
+from agnostos_mjx.sim.conditions import Detected
+from agnostos_mjx.sim.math3d import axis_angle_quat, quat_conj, quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.blocks import flat_patch, rotation_between, stick
 from agnostos_mjx.tasks.builders.common import (

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, Grasped, all_of
-from agnostos_mjx.math3d import quat_rotate
+from agnostos_mjx.sim.conditions import Detected, Grasped, all_of
+from agnostos_mjx.sim.math3d import quat_rotate
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

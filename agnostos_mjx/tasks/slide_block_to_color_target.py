@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected
-from agnostos_mjx.math3d import quat_rotate
+from agnostos_mjx.sim.conditions import Detected
+from agnostos_mjx.sim.math3d import quat_rotate
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.blocks import flat_patch
 from agnostos_mjx.tasks.builders.common import (

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from agnostos_mjx.colors import COLORS
-from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import yaw_quat
+from agnostos_mjx.sim.colors import COLORS
+from agnostos_mjx.sim.conditions import Condition, Detected, NothingGrasped, all_of
+from agnostos_mjx.sim.math3d import yaw_quat
 from agnostos_mjx.tasks.base import (
     TABLE_Z,
     WORKSPACE_CENTER,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, Grasped, all_of
+from agnostos_mjx.sim.conditions import Detected, Grasped, all_of
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import DOWN, pose_in_root, sensor_volume
 from agnostos_mjx.tasks.builders.kitchen import LID_HALF_THICKNESS, saucepan

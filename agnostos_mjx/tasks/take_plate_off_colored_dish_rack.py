@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import AnyOf, Detected, NothingGrasped, all_of
+from agnostos_mjx.sim.conditions import AnyOf, Detected, NothingGrasped, all_of
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import JointMoved
+from agnostos_mjx.sim.conditions import JointMoved
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import down_grasp, natural_yaw, nearest_yaw, yaw_of
 from agnostos_mjx.tasks.builders.furniture import two_handle_tap

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected
+from agnostos_mjx.sim.conditions import Detected
 from agnostos_mjx.tasks.base import (
     Placement,
     Split,

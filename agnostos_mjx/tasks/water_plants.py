@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from agnostos_mjx.conditions import Detected, all_of
-from agnostos_mjx.math3d import axis_angle_quat, mat_to_quat, quat_mul, quat_rotate, quat_to_mat
+from agnostos_mjx.sim.conditions import Detected, all_of
+from agnostos_mjx.sim.math3d import axis_angle_quat, mat_to_quat, quat_mul, quat_rotate, quat_to_mat
 from agnostos_mjx.tasks.base import Placement, Split, Task, key_actions, place_root
 from agnostos_mjx.tasks.builders.common import grasp_site, sensor_volume
 from agnostos_mjx.tasks.builders.props import plant_pot, water_drops, watering_can

@@ -27,7 +27,7 @@ from agnostos_mjx.dynamics.config import (
 )
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.pipeline import autoencoder_meta
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.train.common import (
     add_data_flags,
     load_data,

@@ -35,7 +35,7 @@ from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.diffusion import DynamicsModel, diffusion_loss
 from agnostos_mjx.dynamics.pipeline import Pipeline, dynamics_meta, load_autoencoder
 from agnostos_mjx.dynamics.text import tokenize
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.train.common import (
     add_data_flags,
     load_data,

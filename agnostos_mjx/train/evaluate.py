@@ -29,7 +29,7 @@ from agnostos_mjx.dynamics.features import (
     leave_one_out_same_task,
 )
 from agnostos_mjx.dynamics.pipeline import Pipeline
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.train.common import add_data_flags, load_data
 
 TARGET_REDUCTION = 0.30

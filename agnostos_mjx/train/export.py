@@ -18,7 +18,7 @@ from typing import Any
 from agnostos_mjx.dynamics.checkpoint import CheckpointError
 from agnostos_mjx.dynamics.export import export, load_export
 from agnostos_mjx.dynamics.export_format import PARAMS_FILE
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.xicm.dynamics_selector import default_checkpoint_path
 
 

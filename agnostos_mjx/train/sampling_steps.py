@@ -28,7 +28,7 @@ import numpy as np
 from agnostos_mjx.dynamics.data import FramePairs
 from agnostos_mjx.dynamics.features import DEFAULT_K, FeatureIndex, extract, similarity
 from agnostos_mjx.dynamics.pipeline import Pipeline
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.train.common import add_data_flags, load_data
 
 MODE = "lang+vis.out"

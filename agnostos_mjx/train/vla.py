@@ -30,8 +30,8 @@ from flax import nnx
 
 from agnostos_mjx.dynamics.config import TrainConfig, add_flags, apply_flags
 from agnostos_mjx.dynamics.text import tokenize
-from agnostos_mjx.settings import configure_jax
-from agnostos_mjx.textualise import quat_to_euler_bins
+from agnostos_mjx.infra.settings import configure_jax
+from agnostos_mjx.sim.textualise import quat_to_euler_bins
 from agnostos_mjx.train.common import run_parser, train
 from agnostos_mjx.vla.checkpoint import run_meta
 from agnostos_mjx.vla.model import (

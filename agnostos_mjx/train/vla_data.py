@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 
 DEFAULT_CAMERAS = ("front", "left_shoulder", "right_shoulder", "wrist")
 FORMAT = "agnostos-vla-keyframes-1"
@@ -48,7 +48,7 @@ class DataConfig:
     max_attempts: int = 10
 
     def __post_init__(self) -> None:
-        from agnostos_mjx.observation import CAMERAS
+        from agnostos_mjx.sim.observation import CAMERAS
 
         bad = [c for c in self.cameras if c not in CAMERAS]
         if bad or not self.cameras:
@@ -98,8 +98,8 @@ def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
     """Run the expert on demos start..stop-1 of one task and save their keyframe samples."""
     from agnostos_mjx.data.expert_frames import episode_observations
     from agnostos_mjx.data.generate import demo_keys
-    from agnostos_mjx.observation import ObservationSpec
     from agnostos_mjx.runtime.outcome import Outcome
+    from agnostos_mjx.sim.observation import ObservationSpec
 
     t0 = time.perf_counter()
     path = cfg.chunk_path(task_name, start)
@@ -159,7 +159,7 @@ def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
 def generate(cfg: DataConfig, workers: int = 1) -> dict:
     """Every chunk of `cfg`, `workers` at once (spawned processes, as the export's)."""
     from agnostos_mjx.data.export import _worker_env, _worker_init
-    from agnostos_mjx.settings import usable_cores
+    from agnostos_mjx.infra.settings import usable_cores
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     manifest_path = cfg.out / "manifest.json"

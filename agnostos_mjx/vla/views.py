@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.textualise import SCENE_BOUNDS
+from agnostos_mjx.sim.textualise import SCENE_BOUNDS
 
 VIEWS = ("top", "front", "side")
 CHANNELS = 9

@@ -17,9 +17,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agnostos_mjx.cli import HelpFormatter, setup_logging
 from agnostos_mjx.data.bank import BankError, DemoBank
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.cli import HelpFormatter, setup_logging
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.xicm.memory import DemoMemory, MemoryFileError, default_memory_path
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from agnostos_mjx.dynamics.batching import rows_share_calls
-from agnostos_mjx.gather import RowBatcher, content_key, send_alone, then
+from agnostos_mjx.infra.gather import RowBatcher, content_key, send_alone, then
 from agnostos_mjx.xicm.memory import DemoMemory
 from agnostos_mjx.xicm.query import Query, top_k
 
@@ -85,7 +85,7 @@ class DynamicsSelector:
         workers = CPU_WORKERS if jax.default_backend() == "cpu" else ACCELERATOR_WORKERS
         # The queries of every task waiting on this selector share its chunks (one task's
         # replanning round rarely fills one): as they come on the CPU, gathered into a
-        # deterministic order on a GPU; see agnostos_mjx/gather.py.
+        # deterministic order on a GPU; see agnostos_mjx/infra/gather.py.
         self._batcher = RowBatcher(self._similarities, self.pipeline.chunk_size, workers,
                                    gather=not rows_share_calls(), name="selection")
 

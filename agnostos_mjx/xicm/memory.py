@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agnostos_mjx.cli import atomic_write
 from agnostos_mjx.data.bank import MAX_KEYS
+from agnostos_mjx.infra.cli import atomic_write
 
 MEMORY_VERSION = 2  # 2: features stored deduplicated and int8-quantised (see _pack_feature)
 MAX_OBJECTS = 8

@@ -13,10 +13,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.builders.articulated import hinged_door
 from agnostos_mjx.tasks.builders.common import grasp_site
 from agnostos_mjx.tasks.builders.primitives import panel, rod
-from agnostos_mjx.world import SceneBuilder
 
 GRILL_RGBA = (0.25, 0.25, 0.25)
 GRILL_LID_RGBA = (0.4, 0.4, 0.4)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.builders.common import grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
-from agnostos_mjx.world import SceneBuilder
 
 
 def push_button(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, pos=(0.0, 0.0, 0.0), *,

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.math3d import axis_angle_quat, quat_conj, quat_rotate
+from agnostos_mjx.sim.math3d import axis_angle_quat, quat_conj, quat_rotate
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.base import TABLE_Z, sample_on_plane
 from agnostos_mjx.tasks.builders.common import (
     ROBOT_BASE_XY,
@@ -24,7 +25,6 @@ from agnostos_mjx.tasks.builders.common import (
     yaw_of,
 )
 from agnostos_mjx.tasks.builders.primitives import panel, rod
-from agnostos_mjx.world import SceneBuilder
 
 
 def flat_patch(parent: mujoco.MjsBody, name: str, pos, half_xy, rgba) -> mujoco.MjsGeom:

@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from agnostos_mjx.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.math3d import axis_angle_quat, euler_xyz_quat, quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.base import sample_on_plane
 from agnostos_mjx.tasks.builders.primitives import panel
-from agnostos_mjx.world import SceneBuilder
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
 # Sites of this group are hidden by the default visualisation (groups 0-2 show).

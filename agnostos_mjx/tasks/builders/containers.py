@@ -20,13 +20,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.conditions import AnyOf, Condition, Detected
-from agnostos_mjx.math3d import quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.conditions import AnyOf, Condition, Detected
+from agnostos_mjx.sim.math3d import quat_mul, quat_rotate, yaw_quat
+from agnostos_mjx.sim.world import OBJECT_COLLISION
 from agnostos_mjx.tasks.base import TABLE_Z, WORKSPACE_CENTER, WORKSPACE_HALF
 from agnostos_mjx.tasks.builders.articulated import hinged_door
 from agnostos_mjx.tasks.builders.common import grasp_site, sensor_volume
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
-from agnostos_mjx.world import OBJECT_COLLISION
 
 G = mujoco.mjtGeom
 INVISIBLE = (0.0, 0.0, 0.0, 0.0)

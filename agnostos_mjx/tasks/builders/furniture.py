@@ -12,9 +12,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, WOOD, disc, panel, rod
-from agnostos_mjx.world import SceneBuilder
 
 CHROME = (0.75, 0.75, 0.78)
 

@@ -9,11 +9,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from agnostos_mjx.conditions import Condition, Detected, NothingGrasped, all_of
-from agnostos_mjx.math3d import yaw_quat
+from agnostos_mjx.sim.conditions import Condition, Detected, NothingGrasped, all_of
+from agnostos_mjx.sim.math3d import yaw_quat
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.builders.common import IDENTITY, grasp_site
 from agnostos_mjx.tasks.builders.primitives import panel
-from agnostos_mjx.world import SceneBuilder
 
 
 # ---- scene pieces -------------------------------------------------------------------------

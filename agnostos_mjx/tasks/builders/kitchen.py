@@ -14,9 +14,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from agnostos_mjx.sim.world import SceneBuilder
 from agnostos_mjx.tasks.builders.common import free_body, grasp_site
 from agnostos_mjx.tasks.builders.primitives import WHITE, disc, panel, rod
-from agnostos_mjx.world import SceneBuilder
 
 STEEL = (0.75, 0.75, 0.75)
 GREY = (0.6, 0.6, 0.6)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import mujoco
 
-from agnostos_mjx.world import OBJECT_COLLISION, VISUAL_ONLY
+from agnostos_mjx.sim.world import OBJECT_COLLISION, VISUAL_ONLY
 
 G = mujoco.mjtGeom
 WHITE = (0.85, 0.85, 0.85)

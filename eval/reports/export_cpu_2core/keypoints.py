@@ -16,7 +16,7 @@ import numpy as np
 from test_export import keypoint_discovery  # PerAct's, copied unchanged (see tests/test_export.py)
 
 from agnostos_mjx.data import export as ex
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.tasks import parse_tasks
 
 configure_jax()  # as the commands do, before JAX starts

@@ -9,9 +9,9 @@ import time
 import numpy as np
 
 from agnostos_mjx.data.generate import demo_keys
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.runtime.env import Episodes
 from agnostos_mjx.runtime.outcome import Outcome
-from agnostos_mjx.settings import configure_jax
 from agnostos_mjx.tasks import parse_tasks
 
 configure_jax()  # as the commands do, before JAX starts

@@ -254,7 +254,7 @@ def run_side(python: str, script: Path, root: Path, dump: Path, mode: str, env: 
 
 
 def main() -> int:
-    from agnostos_mjx.settings import configure_jax
+    from agnostos_mjx.infra.settings import configure_jax
 
     configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
 from agnostos_mjx.policies.base import Round
 from agnostos_mjx.policies.oracle import OraclePolicy
-from agnostos_mjx.textualise import euler_bins_to_quat, quat_to_euler_bins
+from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.sim.textualise import euler_bins_to_quat, quat_to_euler_bins
 from agnostos_mjx.vla.views import decode_position, target_heatmaps
 
 

@@ -232,7 +232,7 @@ def read(args) -> None:
 
 # ---- driver ----------------------------------------------------------------------------------
 def main() -> int:
-    from agnostos_mjx.settings import configure_jax
+    from agnostos_mjx.infra.settings import configure_jax
 
     configure_jax()  # as the commands do, before JAX starts
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

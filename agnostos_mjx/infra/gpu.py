@@ -19,7 +19,7 @@ import sys
 from collections.abc import Iterable, Mapping
 from urllib.parse import urlparse
 
-from agnostos_mjx.settings import GPU_MEM_FRACTION
+from agnostos_mjx.infra.settings import GPU_MEM_FRACTION
 
 log = logging.getLogger(__name__)
 LOCAL_SERVER_FRACTION = 0.35

@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from agnostos_mjx.conditions import Condition
-from agnostos_mjx.math3d import array_module
-from agnostos_mjx.observables import Layout, Observation
+from agnostos_mjx.sim.conditions import Condition
+from agnostos_mjx.sim.math3d import array_module
+from agnostos_mjx.sim.observables import Layout, Observation
 
 
 @dataclass(frozen=True)

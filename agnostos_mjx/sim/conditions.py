@@ -17,8 +17,8 @@ from typing import Any
 
 import jax.numpy as jnp
 
-from agnostos_mjx.math3d import quat_conj, quat_rotate
-from agnostos_mjx.observables import Observation
+from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
+from agnostos_mjx.sim.observables import Observation
 
 
 class Condition:

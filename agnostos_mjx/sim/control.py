@@ -22,8 +22,8 @@ import jax
 import mujoco
 import numpy as np
 
-from agnostos_mjx.cuda_graphs import graph_jit
-from agnostos_mjx.math3d import (
+from agnostos_mjx.infra.cuda_graphs import graph_jit
+from agnostos_mjx.sim.math3d import (
     array_module,
     halton,
     mat_to_quat,
@@ -33,7 +33,7 @@ from agnostos_mjx.math3d import (
     slerp,
     solve_spd,
 )
-from agnostos_mjx.world import ARM_JOINTS, FINGER_OPEN, HOME_QPOS
+from agnostos_mjx.sim.world import ARM_JOINTS, FINGER_OPEN, HOME_QPOS
 
 # Valid targets for the tip: PerAct's scene bounds in x and y, and from the
 # table top up 1 m in z (the AGNOSTOS RLBench fork's boundary check).

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from agnostos_mjx.actions import KeyActions
+from agnostos_mjx.sim.actions import KeyActions
 
 SCENE_BOUNDS: tuple[float, float, float, float, float, float] = (-0.3, -0.5, 0.6, 0.7, 0.5, 1.6)
 VOXEL_SIZE: int = 100

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from agnostos_mjx.observables import Observation
+from agnostos_mjx.sim.observables import Observation
+from agnostos_mjx.sim.textualise import format_query, point_to_voxel
 from agnostos_mjx.tasks.base import Task
-from agnostos_mjx.textualise import format_query, point_to_voxel
 
 
 def object_voxels(task: Task, obs: Observation) -> list[dict[str, list[int]]]:
@@ -30,7 +30,7 @@ def segmented_object_voxels(observation, worlds=None) -> list[dict[str, list[int
     point clouds (xicm_reference.md 3.4): the mean of an object's segmented points per
     camera, averaged over the cameras that see it; objects no camera sees are omitted.
     Objects keep the task's declared order (the original sorts by CoppeliaSim handle)."""
-    from agnostos_mjx.observation import segmented_object_positions
+    from agnostos_mjx.sim.observation import segmented_object_positions
 
     worlds = range(observation.batch) if worlds is None else worlds
     out = []

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from agnostos_mjx.observables import Layout
+from agnostos_mjx.sim.observables import Layout
 
 if TYPE_CHECKING:
     from agnostos_mjx.tasks.base import Placement, Task
@@ -37,8 +37,8 @@ VISUAL_ONLY = (0, 0)
 
 def scenes_dir() -> Path:
     """MJCF folder: packaged copy when installed as a wheel, else the repo's `scenes/`."""
-    packaged = Path(__file__).parent / "_scenes"
-    return packaged if packaged.is_dir() else Path(__file__).resolve().parents[1] / "scenes"
+    packaged = Path(__file__).parents[1] / "_scenes"
+    return packaged if packaged.is_dir() else Path(__file__).resolve().parents[2] / "scenes"
 
 
 class SceneBuilder:

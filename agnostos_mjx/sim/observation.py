@@ -46,7 +46,7 @@ from agnostos_mjx.physics import RENDERERS
 
 if TYPE_CHECKING:
     from agnostos_mjx.render import CameraImages
-    from agnostos_mjx.world import SceneModel
+    from agnostos_mjx.sim.world import SceneModel
 
 CAMERAS = ("front", "left_shoulder", "right_shoulder", "overhead", "wrist")
 MODALITIES = ("rgb", "depth", "point_cloud", "segmentation")

@@ -2,8 +2,8 @@
 run on its own (``eval --policy oracle --variations N``), so that a variation
 the expert fails cannot hide behind a task's average over sampled variations.
 
-    python -m agnostos_mjx.experts_check --tasks put_money_in_safe,water_plants
-    python -m agnostos_mjx.experts_check --tasks all --resume   # long on CPU
+    python -m agnostos_mjx.evaluation.experts_check --tasks put_money_in_safe,water_plants
+    python -m agnostos_mjx.evaluation.experts_check --tasks all --resume   # long on CPU
 
 Writes ``<out>/runs/<task>/v<N>/`` (the eval outputs of each variation),
 ``<out>/results.json`` (one row per task and variation) and
@@ -21,7 +21,7 @@ from pathlib import Path
 from agnostos_mjx.evaluation.config import parse_config
 from agnostos_mjx.evaluation.records import load_records
 from agnostos_mjx.evaluation.run import evaluate
-from agnostos_mjx.settings import configure_jax
+from agnostos_mjx.infra.settings import configure_jax
 from agnostos_mjx.tasks import parse_tasks
 
 DEFAULT_OUT = Path("eval/reports/oracle_per_variation_cpu_2core")
