@@ -46,9 +46,7 @@ def _reset(name: str, n: int = 2, seed: int = 0):
 
 def _step(ep, env, actions, k, **changes):
     """Execute expert key action k, with fields replaced by `changes`."""
-    step = jax.tree.map(lambda x: np.array(x[:, k]), actions)
-    for field, value in changes.items():
-        setattr(step, field, value)
+    step = jax.tree.map(lambda x: np.array(x[:, k]), actions)._replace(**changes)
     return ep.step(env, step)[0]
 
 
