@@ -86,8 +86,8 @@ from agnostos_mjx.data.lerobot_layout import (
 from agnostos_mjx.data.rotations import ROTATION_NAMES, check_rotation
 from agnostos_mjx.evaluation.config import VARIATION_MODES
 from agnostos_mjx.physics import RENDERERS
+from agnostos_mjx.runtime.observation import CAMERAS
 from agnostos_mjx.sim.control import ACTION_BOUNDS
-from agnostos_mjx.sim.observation import CAMERAS
 from agnostos_mjx.tasks.base import KeyActions, Split
 
 # LeRobot-facing suite names -> our splits (--env.task=level1 runs every level-1 task).
@@ -615,7 +615,7 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
 
     # ---- observation ---------------------------------------------------------------------
     def _observe(self) -> dict:
-        from agnostos_mjx.sim.observation import ObservationSpec
+        from agnostos_mjx.runtime.observation import ObservationSpec
 
         opts = self.options
         spec = ObservationSpec(cameras=opts.cameras, height=opts.size, width=opts.size,

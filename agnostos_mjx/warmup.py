@@ -107,7 +107,7 @@ def warm_task(name: str, backend: str, batch: int, planner: str = "auto") -> dic
     import numpy as np
 
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.sim.observation import ObservationSpec
+    from agnostos_mjx.runtime.observation import ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     t0 = time.perf_counter()

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.policies import Policy, Round
+from agnostos_mjx.runtime.observation import ObservationSpec, RLBenchObservation
 from agnostos_mjx.sim.actions import KeyActions
-from agnostos_mjx.sim.observation import ObservationSpec, RLBenchObservation
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0], np.float32)  # w x y z: gripper pointing down
 

@@ -231,7 +231,7 @@ def test_the_replay_acts_on_the_export_frames() -> None:
     """The replay's frames are the export's (data/expert_frames.py): the proprioception of
     the rendered frames, bit for bit, at every K physics steps."""
     from agnostos_mjx.data.expert_frames import episode_observations, proprio_frames
-    from agnostos_mjx.sim.observation import ObservationSpec
+    from agnostos_mjx.runtime.observation import ObservationSpec
 
     ep, env = _reset(1)
     spec = ObservationSpec(cameras=("front",), height=8, width=8, renderer="cpu")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.policies.base import Policy
-from agnostos_mjx.sim import observation as ob
+from agnostos_mjx.runtime import observation as ob
 from agnostos_mjx.sim.world import build_scene
 from agnostos_mjx.tasks import get_task
 
@@ -272,7 +272,7 @@ def test_warp_matches_cpu(scene) -> None:
 def test_segmented_object_text_close_to_ground_truth(scene) -> None:
     """X-ICM's object voxels from segmented point clouds (the original's way) differ from
     the ground-truth frame voxels by a few 1 cm voxels at most (visible surface vs centre)."""
-    from agnostos_mjx.sim.scene_text import object_voxels, segmented_object_voxels
+    from agnostos_mjx.xicm.scene_text import object_voxels, segmented_object_voxels
 
     runner, env, obs = scene
     truth = object_voxels(runner.task, env.obs)

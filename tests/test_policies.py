@@ -127,7 +127,7 @@ class FullPolicy(Policy):
     name = "full"
 
     def __init__(self, log: dict) -> None:
-        from agnostos_mjx.sim.observation import ObservationSpec
+        from agnostos_mjx.runtime.observation import ObservationSpec
 
         self.log = log
         self.observation_spec = ObservationSpec(cameras=("front",), height=16, width=16,

@@ -14,8 +14,8 @@ import pytest
 
 from agnostos_mjx import eval as ev
 from agnostos_mjx import physics
+from agnostos_mjx.runtime import observation as ob
 from agnostos_mjx.runtime.outcome import Outcome
-from agnostos_mjx.sim import observation as ob
 
 SIZE = 32
 

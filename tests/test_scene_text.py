@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from agnostos_mjx.runtime.env import Episodes
-from agnostos_mjx.sim.scene_text import object_voxels, query_texts
 from agnostos_mjx.sim.textualise import voxel_to_point
 from agnostos_mjx.tasks import get_task
+from agnostos_mjx.xicm.scene_text import object_voxels, query_texts
 
 
 @pytest.fixture(scope="module")

@@ -99,7 +99,7 @@ def bare_renderer(args: argparse.Namespace, route: str) -> dict:
     import numpy as np
 
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.sim.observation import ObservationSpec
+    from agnostos_mjx.runtime.observation import ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     runner = Episodes(get_task(args.tasks.split(",")[0]), "native", renderer=route)

@@ -100,7 +100,7 @@ def render_both(task_name: str, size: int, worlds: int, cameras: Sequence[str],
     import jax
 
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.sim.observation import ObservationSpec
+    from agnostos_mjx.runtime.observation import ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     runner = Episodes(get_task(task_name), "native")

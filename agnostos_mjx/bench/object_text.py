@@ -51,8 +51,8 @@ def task_row(name: str, seeds: list[int], episodes: int) -> dict[str, Any]:
     from agnostos_mjx.evaluation.protocol import episode_keys, episode_variations
     from agnostos_mjx.policies.xicm import SEGMENTED_SPEC
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.sim.scene_text import object_voxels, segmented_object_voxels
     from agnostos_mjx.tasks import get_task
+    from agnostos_mjx.xicm.scene_text import object_voxels, segmented_object_voxels
 
     task = get_task(name)
     runner = Episodes(task, "native")

@@ -135,7 +135,7 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
     import jax
 
     from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.sim.observation import MODALITIES, ObservationSpec
+    from agnostos_mjx.runtime.observation import MODALITIES, ObservationSpec
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)

@@ -226,8 +226,8 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     threads (default: all cores)."""
     from agnostos_mjx.data.generate import demo_keys
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.runtime.outcome import Outcome
-    from agnostos_mjx.sim.observation import MODALITIES, ObservationSpec, scene_labels
     from agnostos_mjx.tasks import get_task
 
     task = get_task(task_name)

@@ -62,8 +62,8 @@ from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.observation import ObservationSpec, RLBenchObservation
     from agnostos_mjx.runtime.state import EnvState
-    from agnostos_mjx.sim.observation import ObservationSpec, RLBenchObservation
 
 ActSteps = Generator[concurrent.futures.Future, Any, KeyActions]
 

@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.runtime.observation import ObservationSpec
 from agnostos_mjx.sim.actions import KeyActions
-from agnostos_mjx.sim.observation import ObservationSpec
 
 
 class ReferenceVLAPolicy(Policy):

@@ -18,7 +18,7 @@ from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:
-    from agnostos_mjx.sim.observation import RLBenchObservation
+    from agnostos_mjx.runtime.observation import RLBenchObservation
 
 
 class TimingPolicy(Policy):
@@ -30,7 +30,7 @@ class TimingPolicy(Policy):
     def __init__(self, cameras: str | list[str] = "front,wrist", size: int = 128,
                  chunk: int = 1, modalities: str | list[str] = "rgb", numpy: bool = True,
                  renderer: str = "auto") -> None:
-        from agnostos_mjx.sim.observation import ObservationSpec
+        from agnostos_mjx.runtime.observation import ObservationSpec
 
         names = cameras.split(",") if isinstance(cameras, str) else list(cameras)
         kinds = modalities.split(",") if isinstance(modalities, str) else list(modalities)

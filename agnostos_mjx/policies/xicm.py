@@ -27,11 +27,11 @@ from agnostos_mjx.llm.client import (
 from agnostos_mjx.llm.server import context_advice
 from agnostos_mjx.policies.base import Round
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
-from agnostos_mjx.sim.observation import CAMERAS, ObservationSpec
-from agnostos_mjx.sim.scene_text import query_texts, segmented_object_voxels
+from agnostos_mjx.runtime.observation import CAMERAS, ObservationSpec
 from agnostos_mjx.sim.textualise import decode_action
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.prompt import messages, parse_actions
+from agnostos_mjx.xicm.scene_text import query_texts, segmented_object_voxels
 from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
 
 log = logging.getLogger("agnostos_mjx.xicm")

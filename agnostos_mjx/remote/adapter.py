@@ -5,7 +5,7 @@ Observation side: ``keys`` maps each key the server reads to one of our *sources
 * ``<camera>_rgb`` uint8 (H, W, 3), ``<camera>_depth`` float32 (H, W) metres,
   ``<camera>_point_cloud`` float32 (H, W, 3) world frame, ``<camera>_mask`` int32 (H, W)
   geom ids, for cameras front, left_shoulder, right_shoulder, overhead, wrist (RLBench's
-  names; see agnostos_mjx/sim/observation.py for the conventions);
+  names; see agnostos_mjx/runtime/observation.py for the conventions);
 * ``gripper_pose`` float32 (7,) x y z qx qy qz qw (world frame, scalar-last),
   ``gripper_open`` float32 () 1 open / 0 closed, ``gripper_closed`` its complement (DROID's
   gripper_position), ``joint_positions`` / ``joint_velocities`` float32 (7,),
@@ -62,13 +62,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agnostos_mjx.runtime.observation import CAMERAS, ObservationSpec
 from agnostos_mjx.sim import math3d
-from agnostos_mjx.sim.observation import CAMERAS, ObservationSpec
 
 if TYPE_CHECKING:
     from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.runtime.observation import RLBenchObservation
     from agnostos_mjx.runtime.state import EnvState
-    from agnostos_mjx.sim.observation import RLBenchObservation
 
 CAMERA_FIELDS = {"rgb": "rgb", "depth": "depth", "point_cloud": "point_cloud",
                  "mask": "segmentation"}

@@ -58,7 +58,7 @@ from agnostos_mjx.remote.adapter import sim_state as world_sim_state
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:
-    from agnostos_mjx.sim.observation import RLBenchObservation
+    from agnostos_mjx.runtime.observation import RLBenchObservation
 
 DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
 SCHEMES = ("ws", "wss", "http", "https")

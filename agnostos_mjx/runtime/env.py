@@ -413,7 +413,7 @@ class Episodes:
 
     def observe(self, state: EnvState, spec):
         """RLBench-style observation (cameras per `spec`, an observation.ObservationSpec,
-        plus proprioception) of every world; see agnostos_mjx/sim/observation.py."""
+        plus proprioception) of every world; see agnostos_mjx/runtime/observation.py."""
         return self.observer.observe(state, spec)
 
     def close(self) -> None:

@@ -14,8 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from agnostos_mjx.runtime.state import EnvState
-from agnostos_mjx.sim.observation import (
+from agnostos_mjx.runtime.observation import (
     CAMERA_ARRAYS,
     CameraObservation,
     ObservationSpec,
@@ -24,6 +23,7 @@ from agnostos_mjx.sim.observation import (
     camera_observation,
     scene_labels,
 )
+from agnostos_mjx.runtime.state import EnvState
 from agnostos_mjx.sim.world import FINGER_OPEN, SceneModel
 from agnostos_mjx.tasks.base import Task
 

@@ -9,17 +9,39 @@ the static description shared by the physics backends, control and tasks.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
+import jax
 import mujoco
 import numpy as np
 
 from agnostos_mjx.sim.observables import Layout
 
-if TYPE_CHECKING:
-    from agnostos_mjx.tasks.base import Placement, Task
+
+class SceneTask(Protocol):
+    """What building a scene reads of a task (tasks.base.Task has it all)."""
+
+    name: str
+    joints: tuple[str, ...]
+    graspables: tuple[str, ...]
+
+    @property
+    def observed_frames(self) -> tuple[str, ...]: ...
+
+    def build(self, scene: Any) -> None: ...
+
+
+@jax.tree_util.register_dataclass
+@dataclass
+class Placement:
+    """What a sampler returns: world poses of mocap bodies, joint positions,
+    and geom colours, all keyed by MJCF name (static keys, traced values)."""
+
+    bodies: dict[str, tuple[Any, Any]] = field(default_factory=dict)
+    joints: dict[str, Any] = field(default_factory=dict)
+    colors: dict[str, Any] = field(default_factory=dict)
 
 ARM_JOINTS = tuple(f"joint{i}" for i in range(1, 8))
 # Home configuration: the one nearest RLBench's recorded start joints
@@ -64,7 +86,7 @@ class SceneBuilder:
 class SceneModel:
     """Static description of one task's compiled scene."""
 
-    task: Task
+    task: SceneTask
     model: mujoco.MjModel
     layout: Layout
     mocap_index: dict[str, int]  # mocap body name -> row in mocap_pos
@@ -82,7 +104,7 @@ class SceneModel:
         return np.array([self.qpos_address[j] for j in ARM_JOINTS])
 
 
-def _add_sensors(spec: mujoco.MjSpec, task: Task) -> Layout:
+def _add_sensors(spec: mujoco.MjSpec, task: SceneTask) -> Layout:
     entries: list[tuple[str, int, int]] = []
     offset = 0
 
@@ -119,7 +141,7 @@ def _add_sensors(spec: mujoco.MjSpec, task: Task) -> Layout:
 
 
 @functools.cache
-def build_scene(task: Task) -> SceneModel:
+def build_scene(task: SceneTask) -> SceneModel:
     """Compile the world, the robot and `task` into one model (cached per task)."""
     spec = mujoco.MjSpec.from_file(str(scenes_dir() / "world.xml"))
     builder = SceneBuilder(spec)

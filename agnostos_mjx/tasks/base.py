@@ -8,7 +8,6 @@ runtime (agnostos_mjx/runtime/) knows nothing task-specific.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import ClassVar
 
 import jax
@@ -19,6 +18,7 @@ from agnostos_mjx.sim.conditions import Condition, never
 from agnostos_mjx.sim.math3d import quat_mul, quat_rotate, yaw_quat
 from agnostos_mjx.sim.observables import Observation
 from agnostos_mjx.sim.visual_state import StateColor
+from agnostos_mjx.sim.world import Placement  # defined with the scene it places; re-exported here
 from agnostos_mjx.tasks.catalog import Split
 
 TABLE_Z = 0.752
@@ -28,17 +28,6 @@ TABLE_Z = 0.752
 WORKSPACE_CENTER = (0.25, 0.0)
 WORKSPACE_HALF = (0.30, 0.35)
 MAX_KEY_ACTIONS = 25
-
-
-@jax.tree_util.register_dataclass
-@dataclass
-class Placement:
-    """What a sampler returns: world poses of mocap bodies, joint positions,
-    and geom colours, all keyed by MJCF name (static keys, traced values)."""
-
-    bodies: dict[str, tuple[jnp.ndarray, jnp.ndarray]] = field(default_factory=dict)
-    joints: dict[str, jnp.ndarray] = field(default_factory=dict)
-    colors: dict[str, jnp.ndarray] = field(default_factory=dict)
 
 
 def key_actions(steps: list[tuple[jnp.ndarray, jnp.ndarray, float]], valid=None) -> KeyActions:

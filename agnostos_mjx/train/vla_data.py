@@ -48,7 +48,7 @@ class DataConfig:
     max_attempts: int = 10
 
     def __post_init__(self) -> None:
-        from agnostos_mjx.sim.observation import CAMERAS
+        from agnostos_mjx.runtime.observation import CAMERAS
 
         bad = [c for c in self.cameras if c not in CAMERAS]
         if bad or not self.cameras:
@@ -98,8 +98,8 @@ def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
     """Run the expert on demos start..stop-1 of one task and save their keyframe samples."""
     from agnostos_mjx.data.expert_frames import episode_observations
     from agnostos_mjx.data.generate import demo_keys
+    from agnostos_mjx.runtime.observation import ObservationSpec
     from agnostos_mjx.runtime.outcome import Outcome
-    from agnostos_mjx.sim.observation import ObservationSpec
 
     t0 = time.perf_counter()
     path = cfg.chunk_path(task_name, start)

@@ -30,7 +30,7 @@ def segmented_object_voxels(observation, worlds=None) -> list[dict[str, list[int
     point clouds (xicm_reference.md 3.4): the mean of an object's segmented points per
     camera, averaged over the cameras that see it; objects no camera sees are omitted.
     Objects keep the task's declared order (the original sorts by CoppeliaSim handle)."""
-    from agnostos_mjx.sim.observation import segmented_object_positions
+    from agnostos_mjx.runtime.observation import segmented_object_positions
 
     worlds = range(observation.batch) if worlds is None else worlds
     out = []
