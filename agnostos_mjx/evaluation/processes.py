@@ -45,6 +45,7 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import IO
 
 from agnostos_mjx.evaluation import report_plot, task_queue
 from agnostos_mjx.evaluation.config import EvalConfig
@@ -205,7 +206,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     command = list(command or [sys.executable, "-m", "agnostos_mjx.eval"])
     daemons = mps.Daemons(env)
     procs: list[subprocess.Popen] = []
-    logs = []
+    logs: list[IO[str]] = []
     main_thread = threading.current_thread() is threading.main_thread()
     old_term = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     t0 = time.perf_counter()
@@ -215,38 +216,9 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         except mps.MpsError as e:
             print(f"error: --mps {mps_mode}: {e}", file=sys.stderr)
             return 2
-        child = _without(argv, "--local-processes", "--mps", "--task-queue")
-        queue = out / QUEUE_DIR
-        owners = task_queue.prepare(queue, out, n)  # resumed tasks stay with their process
-        if owners:
-            log.info("%d tasks stay with the processes that have episodes of them",
-                     sum(task_queue.SEED_UNIT not in unit for unit in owners))
-        child += ["--task-queue", str(queue)]
-        for stale in out.glob(f"proc-*/{task_queue.FINISHED_FILE}"):  # a resumed run's
-            stale.unlink()
-        if memory_fraction is None and GPU_MEM_FRACTION.get() is None:
-            child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
-        for i in range(n):
-            logs.append((out / f"proc-{i}.log").open("w"))
-            procs.append(subprocess.Popen(
-                [*command, *child, "--quiet", "--num-processes", str(n), "--process-id", str(i)],
-                stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
-                start_new_session=True))  # Ctrl-C reaches them once, forwarded below
-        log.info("%d processes started %.1f s after the launcher; logs in %s/proc-I.log", n,
-                 process_age_s() or 0.0, out)
-        # Imported while they run, for the merge's plot; on a thread of its own, so that no
-        # handler in matplotlib's import can swallow a Ctrl-C meant for the loop below.
-        threading.Thread(target=report_plot.pyplot, name="import-pyplot", daemon=True).start()
-        last, next_report = -1, time.perf_counter() + poll_s
-        while not all(_finished(out, i, p) for i, p in enumerate(procs)):
-            time.sleep(min(EXIT_POLL_S, poll_s))  # the merge starts as the last one finishes
-            if time.perf_counter() < next_report:
-                continue
-            next_report += poll_s
-            done = _episodes_done(out, n)
-            if not quiet and done != last:
-                log.info("%d episodes done, %.0f s", done, time.perf_counter() - t0)
-                last = done
+        child = _child_args(argv, out, n, memory_fraction, per_gpu)
+        _start(command, child, n, out, envs, procs, logs)
+        _wait(procs, out, poll_s, quiet, t0)
         # Every process has written its final results: merge while they end (their
         # interpreters' teardown), unless one ended without them.
         merged = None
@@ -255,15 +227,7 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         for p in procs:
             p.wait()
     except KeyboardInterrupt:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        daemons.stop()  # at once: eval's InterruptGuard may end this process before finally
-        for p in procs:
-            try:
-                p.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        _stop(procs, daemons)
         print(interrupted_text(out), file=sys.stderr)
         return 130
     finally:
@@ -273,6 +237,81 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         if main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if old_term is None else old_term)
     failed = [(i, p.returncode) for i, p in enumerate(procs) if p.returncode != 0]
+    _report_failures(failed, out)
+    # A process whose task failed (results.json's failed_tasks) still finished the others.
+    if failed and not all((out / f"proc-{i}" / "results.json").exists() for i, _ in failed):
+        return 1
+    return max(_merge(out, n, t0) if merged is None else merged, 1 if failed else 0)
+
+
+def _child_args(argv: Sequence[str], out: Path, n: int, memory_fraction: float | None,
+                per_gpu: int) -> list[str]:
+    """The processes' common command line: `argv` on the shared task queue (prepared here,
+    a resumed run's tasks kept by their processes), with each one's share of GPU memory."""
+    child = _without(argv, "--local-processes", "--mps", "--task-queue")
+    queue = out / QUEUE_DIR
+    owners = task_queue.prepare(queue, out, n)  # resumed tasks stay with their process
+    if owners:
+        log.info("%d tasks stay with the processes that have episodes of them",
+                 sum(task_queue.SEED_UNIT not in unit for unit in owners))
+    child += ["--task-queue", str(queue)]
+    for stale in out.glob(f"proc-*/{task_queue.FINISHED_FILE}"):  # a resumed run's
+        stale.unlink()
+    if memory_fraction is None and GPU_MEM_FRACTION.get() is None:
+        child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
+    return child
+
+
+def _start(command: list[str], child: list[str], n: int, out: Path,
+           envs: list[dict[str, str]], procs: list[subprocess.Popen],
+           logs: list[IO[str]]) -> None:
+    """Starts the N processes into `procs` (their logs into `logs`, appended one by one so
+    that the caller closes and stops whatever started before a failure)."""
+    for i in range(n):
+        logs.append((out / f"proc-{i}.log").open("w"))
+        procs.append(subprocess.Popen(
+            [*command, *child, "--quiet", "--num-processes", str(n), "--process-id", str(i)],
+            stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
+            start_new_session=True))  # Ctrl-C reaches them once, forwarded by `_stop`
+    log.info("%d processes started %.1f s after the launcher; logs in %s/proc-I.log", n,
+             process_age_s() or 0.0, out)
+    # Imported while they run, for the merge's plot; on a thread of its own, so that no
+    # handler in matplotlib's import can swallow a Ctrl-C meant for the wait's loop.
+    threading.Thread(target=report_plot.pyplot, name="import-pyplot", daemon=True).start()
+
+
+def _wait(procs: list[subprocess.Popen], out: Path, poll_s: float, quiet: bool,
+          t0: float) -> None:
+    """Until every process has ended or written its final results, logging the episodes
+    done every `poll_s` when the count has moved."""
+    n = len(procs)
+    last, next_report = -1, time.perf_counter() + poll_s
+    while not all(_finished(out, i, p) for i, p in enumerate(procs)):
+        time.sleep(min(EXIT_POLL_S, poll_s))  # the merge starts as the last one finishes
+        if time.perf_counter() < next_report:
+            continue
+        next_report += poll_s
+        done = _episodes_done(out, n)
+        if not quiet and done != last:
+            log.info("%d episodes done, %.0f s", done, time.perf_counter() - t0)
+            last = done
+
+
+def _stop(procs: list[subprocess.Popen], daemons: mps.Daemons) -> None:
+    """Ctrl-C: forwards it to the running processes, stops MPS, waits for them to save."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    daemons.stop()  # at once: eval's InterruptGuard may end this process before finally
+    for p in procs:
+        try:
+            p.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def _report_failures(failed: list[tuple[int, int]], out: Path) -> None:
+    """Each failed process's exit code and its log's last lines, a repeated tail once."""
     shown: set[str] = set()  # a usage error fails every process alike: say it once
     for i, code in failed:
         tail = "\n  ".join(
@@ -283,7 +322,3 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         shown.add(tail)
         print(f"error: process {i} exited with {code}; last lines of {out}/proc-{i}.log:\n  "
               + tail, file=sys.stderr)
-    # A process whose task failed (results.json's failed_tasks) still finished the others.
-    if failed and not all((out / f"proc-{i}" / "results.json").exists() for i, _ in failed):
-        return 1
-    return max(_merge(out, n, t0) if merged is None else merged, 1 if failed else 0)

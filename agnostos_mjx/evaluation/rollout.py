@@ -152,82 +152,16 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
     also gets the finished key-action rounds of the unfinished episodes (`partial`)."""
     from agnostos_mjx.runtime.outcome import Outcome
 
-    n = len(part)
-    run_part = part + [part[-1]] * (size - n)
-    dense = cfg.action_mode == "dense"
-    ctl = dense_control(cfg, runner) if dense else None
-    limit = ctl.max_steps if ctl is not None else task.max_key_actions
-    mode = {"action_mode": cfg.action_mode, "step_budget": limit}
-    if ctl is not None:
-        mode["control_hz"] = round(1.0 / (ctl.period_steps * runner.dt), 6)
-    t_batch = time.perf_counter()
-    keys = episode_keys(np.array([s for s, _ in run_part]), np.array([e for _, e in run_part]))
-    variations = episode_variations(keys, task.num_variations, task.split.value, cfg.variations)
-    instructions = [task.descriptions(int(v))[0] for v in variations]
-    recorded = np.zeros(n, bool)
-    out: list[dict] = []
-
-    def record(env: EnvState, outcome: np.ndarray) -> None:
-        new = (outcome[:n] != Outcome.RUNNING) & ~recorded
-        if new.any():
-            records = episode_records(task, policy, runner.backend_name, part, variations,
-                                      instructions, env, outcome, np.nonzero(new)[0],
-                                      time.perf_counter() - t_batch, len(run_part), mode)
-            recorded[new] = True
-            out.extend(records)
-            on_records(records)
-
-    unit = "control step" if dense else "key action"
-
-    def report(rounds: int) -> None:
-        if tick is not None:
-            tick(done_before + len(out), (n - recorded.sum()) * rounds / limit,
-                 f"{label} {unit} {min(rounds + 1, limit)}/{limit}")
-
+    batch = Batch(task, policy, runner, part, size, cfg, on_records, tick, done_before, label)
     split = split or TimeSplit()
-    report(0)
+    batch.report(0)
     with split.measure("reset"):
-        env = yield from on_pool(physics_pool, runner.reset, keys, variations)
+        batch.env = yield from on_pool(physics_pool, runner.reset, batch.keys,
+                                       batch.variations)
     if videos is not None:
-        videos.start(env, part)
+        videos.start(batch.env, part)
     try:
-        view = Round.for_policy(policy, runner, env, instructions,
-                                [policy_seed(s, e) for s, e in run_part])
-        with split.measure("policy"):
-            policy.reset(view)
-        driver = DenseDriver(cfg.execute, policy.relative) if ctl is not None else None
-        for rounds in range(limit):
-            if env.done.all():
-                break
-            running = env.outcome == Outcome.RUNNING
-            split.rounds += 1
-            t_policy, rendered = time.perf_counter(), runner.observer.render_s
-            view = view.at(env)
-            if driver is not None:
-                actions = yield from driver.next(policy, view, env)
-                split.policy_turn(t_policy, runner.observer.render_s - rendered)
-                with split.measure("physics"):
-                    env, _ = yield from on_pool(physics_pool, runner.step_dense, env, actions,
-                                                ctl)
-            else:
-                actions = yield from policy.act_steps(view)
-                check_answer(actions, env.batch, policy.name)
-                split.policy_turn(t_policy, runner.observer.render_s - rendered)
-                with split.measure("physics"):
-                    plan = runner.plan_request(env, actions)  # gathers with other tasks'
-                    if plan is not None:
-                        yield plan
-                        plan = plan.result()
-                    env, _ = yield from on_pool(physics_pool, runner.step, env, actions,
-                                                False, plan)
-            if videos is not None:
-                videos.capture(env)
-            # A policy may say why a world got no action (bad LLM output, LLM error).
-            reasons = policy.end_reason_codes(env.batch)
-            ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
-            env = replace(env, outcome=np.where(ended, reasons, env.outcome))
-            record(env, np.where(env.done, env.outcome, Outcome.RUNNING))
-            report(rounds + 1)
+        yield from batch.rounds(split, videos, physics_pool)
     except UsageError:  # an answer of the wrong form (dense.check_answer) stops the run
         raise
     except Exception:
@@ -235,16 +169,124 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
             raise
         log.exception("%s: the policy raised; running episodes of this batch end as "
                       "policy_error", task.name)
-        env = replace(env, outcome=np.where(env.done, env.outcome, Outcome.POLICY_ERROR))
-    record(env, np.where(env.done, env.outcome, Outcome.MAX_STEPS))
+        env = batch.env
+        batch.env = replace(env, outcome=np.where(env.done, env.outcome, Outcome.POLICY_ERROR))
+    env = batch.env
+    batch.record(np.where(env.done, env.outcome, Outcome.MAX_STEPS))
     split.world_steps += int(np.sum(env.world_steps))  # padding worlds included
-    split.live_steps += int(np.sum(env.sim_steps[:n]))
+    split.live_steps += int(np.sum(env.sim_steps[:batch.n]))
     if videos is not None:
-        by_episode = {(r["seed"], r["episode"]): r for r in out}
+        by_episode = {(r["seed"], r["episode"]): r for r in batch.out}
         videos.write([by_episode[int(s), int(e)] for s, e in part])
     if tick is not None:
-        tick(done_before + len(out))
-    return out
+        tick(done_before + len(batch.out))
+    return batch.out
+
+
+class Batch:
+    """One batch of worlds in flight: its episodes, its latest state (`env`, kept here so
+    that a policy error ends the episodes where they stand) and the records written so far."""
+
+    def __init__(self, task: Task, policy: Policy, runner: Episodes,
+                 part: list[tuple[int, int]], size: int, cfg: EvalConfig,
+                 on_records: OnRecords, tick: Tick | None, done_before: int,
+                 label: str) -> None:
+        self.task, self.policy, self.runner, self.part = task, policy, runner, part
+        self.on_records, self.tick, self.done_before, self.label = (on_records, tick,
+                                                                     done_before, label)
+        self.n = n = len(part)
+        self.run_part = part + [part[-1]] * (size - n)
+        dense = cfg.action_mode == "dense"
+        self.ctl = dense_control(cfg, runner) if dense else None
+        self.limit = self.ctl.max_steps if self.ctl is not None else task.max_key_actions
+        self.mode = {"action_mode": cfg.action_mode, "step_budget": self.limit}
+        if self.ctl is not None:
+            self.mode["control_hz"] = round(1.0 / (self.ctl.period_steps * runner.dt), 6)
+        self.execute = cfg.execute
+        self.t_batch = time.perf_counter()
+        self.keys = episode_keys(np.array([s for s, _ in self.run_part]),
+                                 np.array([e for _, e in self.run_part]))
+        self.variations = episode_variations(self.keys, task.num_variations,
+                                             task.split.value, cfg.variations)
+        self.instructions = [task.descriptions(int(v))[0] for v in self.variations]
+        self.unit = "control step" if dense else "key action"
+        self.recorded = np.zeros(n, bool)
+        self.out: list[dict] = []
+        self.env: EnvState | None = None  # set by the reset
+
+    def record(self, outcome: np.ndarray) -> None:
+        """Records of the worlds newly finished with `outcome`, out at once."""
+        from agnostos_mjx.runtime.outcome import Outcome
+
+        new = (outcome[:self.n] != Outcome.RUNNING) & ~self.recorded
+        if new.any():
+            records = episode_records(self.task, self.policy, self.runner.backend_name,
+                                      self.part, self.variations, self.instructions, self.env,
+                                      outcome, np.nonzero(new)[0],
+                                      time.perf_counter() - self.t_batch, len(self.run_part),
+                                      self.mode)
+            self.recorded[new] = True
+            self.out.extend(records)
+            self.on_records(records)
+
+    def report(self, rounds: int) -> None:
+        """Progress after `rounds` rounds, the unfinished episodes counted in part."""
+        if self.tick is not None:
+            self.tick(self.done_before + len(self.out),
+                      (self.n - self.recorded.sum()) * rounds / self.limit,
+                      f"{self.label} {self.unit} {min(rounds + 1, self.limit)}/{self.limit}")
+
+    def rounds(self, split: TimeSplit, videos: EpisodeVideos | None,
+               pool: Executor | None) -> Generator:
+        """The policy's rounds until every world is done or the budget is spent."""
+        from agnostos_mjx.runtime.outcome import Outcome
+
+        policy, runner = self.policy, self.runner
+        view = Round.for_policy(policy, runner, self.env, self.instructions,
+                                [policy_seed(s, e) for s, e in self.run_part])
+        with split.measure("policy"):
+            policy.reset(view)
+        driver = DenseDriver(self.execute, policy.relative) if self.ctl is not None else None
+        for rounds in range(self.limit):
+            if self.env.done.all():
+                break
+            running = self.env.outcome == Outcome.RUNNING
+            split.rounds += 1
+            started = time.perf_counter(), runner.observer.render_s  # the policy's turn
+            view = view.at(self.env)
+            yield from self.act(view, driver, started, split, pool)
+            env = self.env
+            if videos is not None:
+                videos.capture(env)
+            # A policy may say why a world got no action (bad LLM output, LLM error).
+            reasons = policy.end_reason_codes(env.batch)
+            ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
+            self.env = env = replace(env, outcome=np.where(ended, reasons, env.outcome))
+            self.record(np.where(env.done, env.outcome, Outcome.RUNNING))
+            self.report(rounds + 1)
+
+    def act(self, view: Round, driver: DenseDriver | None, started: tuple[float, float],
+            split: TimeSplit, pool: Executor | None) -> Generator:
+        """One round: the policy's answer for `view` (through `driver` in dense mode), then
+        the physics that carries it out; `started`: the clock and render time at its start."""
+        policy, runner = self.policy, self.runner
+        t_policy, rendered = started
+        if driver is not None:
+            actions = yield from driver.next(policy, view, self.env)
+            split.policy_turn(t_policy, runner.observer.render_s - rendered)
+            with split.measure("physics"):
+                self.env, _ = yield from on_pool(pool, runner.step_dense, self.env, actions,
+                                                 self.ctl)
+            return
+        actions = yield from policy.act_steps(view)
+        check_answer(actions, self.env.batch, policy.name)
+        split.policy_turn(t_policy, runner.observer.render_s - rendered)
+        with split.measure("physics"):
+            plan = runner.plan_request(self.env, actions)  # gathers with other tasks'
+            if plan is not None:
+                yield plan
+                plan = plan.result()
+            self.env, _ = yield from on_pool(pool, runner.step, self.env, actions, False, plan)
 
 
 def on_pool(pool: Executor | None, fn: Callable, *args) -> Generator:

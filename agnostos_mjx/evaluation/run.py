@@ -41,6 +41,7 @@ from agnostos_mjx.evaluation.task_queue import (
 )
 from agnostos_mjx.evaluation.timings import TIMINGS_FILE
 from agnostos_mjx.infra.cli import (
+    Progress,
     atomic_write,
     check_writable_dir,
     process_age_s,
@@ -150,138 +151,183 @@ def _steps_of(name: str, *args: Any) -> Steps:
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Run the evaluation described by `cfg`, write the outputs, return results.json's dict."""
-    from agnostos_mjx.infra import gather, sharding
-    from agnostos_mjx.physics import resolve_backend
+    return Run(cfg).run()
 
-    startup = {"imports_s": process_age_s()}  # where a process's start-up goes (timings)
-    tasks = select_tasks(cfg)  # names: a task's module is imported when it starts
-    all_tasks = list(tasks)
-    _check_video(cfg)
-    out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
-    episodes_path = out_dir / EPISODES_FILE
-    sharding.configure(cfg.devices)
-    backend = resolve_backend(cfg.backend, cfg.batch)
-    queue = None
-    # Tasks from a shared queue run beside whichever others this process got first: their
-    # requests then go alone (agnostos_mjx/infra/gather.py).
-    gather.allow_gathering(cfg.task_queue is None)
-    if cfg.task_queue is not None:  # its balanced share first (claim_order, below)
-        queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
-        log.info("process %d of %d: tasks from the queue %s", cfg.process_id,
-                 cfg.num_processes, cfg.task_queue)
-    else:
-        tasks = process_share(tasks, cfg)
-        if cfg.num_processes > 1:
-            log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
-                     ", ".join(tasks) or "no task")
-    _check_compare(cfg)
-    spec, note, policy = load_policy(cfg)
-    startup["policy_s"] = process_age_s()
-    check_action_mode(cfg, policy)
-    policy_class = f"{type(policy).__module__}.{type(policy).__qualname__}"
-    log.info("policy %s (%s)", policy.name, policy_class)
 
-    all_records = repair_records(episodes_path) if cfg.resume else []
-    if all_records:
-        earlier = {r.get("policy") for r in all_records} - {None}
-        if earlier and earlier != {policy.name}:
-            log.warning("%s holds episodes of policy %s; continuing with %s", out_dir,
-                        ", ".join(sorted(earlier)), policy.name)
-    recorded = {record_key(r) for r in all_records}
-    plan = {name: pending_episodes(name, cfg, recorded) for name in tasks}
-    total = sum(map(len, plan.values()))
-    skipped = len(tasks) * len(cfg.seeds) * cfg.episodes - total
-    log.info("%d tasks (%s), seeds %s, %d episodes each: %d to run%s", len(tasks),
-             ", ".join(tasks), ",".join(map(str, cfg.seeds)), cfg.episodes,
-             total, f", {skipped} already recorded" if skipped else "")
+class Run:
+    """One process's evaluation: the state its callbacks share (the folder, the records,
+    the queue, the failed tasks) in one object, so the scheduler and the rollout call
+    methods rather than closures.  Built: checked, placed, policy loaded, episodes planned;
+    `run()` runs them and writes the outputs."""
 
-    started = datetime.now().isoformat(timespec="seconds")
-    t0 = time.perf_counter()
-    renderer = observation_route(cfg, policy, backend)
-    meta = {"config": asdict(cfg), "policy": {"spec": spec, "name": policy.name, "note": note,
-                                              "class": policy_class,
-                                              "privileged": bool(policy.privileged)},
-            "backend": backend, "renderer": renderer, "versions": versions(),
-            "started": started, "tasks": all_tasks}
+    def __init__(self, cfg: EvalConfig) -> None:
+        self.cfg = cfg
+        self.startup = {"imports_s": process_age_s()}  # a process's start-up (timings)
+        self.failed: dict[str, str] = {}  # task -> its error, for a task that raised
+        self.todo: list[tuple[str, str, list[tuple[int, int]]]] = []
+        self.done: dict[str, tuple[int, float]] = {}
+        self.progress: Progress | None = None  # the bar while the tasks run
+        self._place()
+        _check_compare(cfg)
+        self.spec, self.note, self.policy = load_policy(cfg)
+        self.startup["policy_s"] = process_age_s()
+        check_action_mode(cfg, self.policy)
+        policy = self.policy
+        self.policy_class = f"{type(policy).__module__}.{type(policy).__qualname__}"
+        log.info("policy %s (%s)", policy.name, self.policy_class)
+        self._plan()
+        started = datetime.now().isoformat(timespec="seconds")
+        self.t0 = time.perf_counter()
+        renderer = observation_route(cfg, policy, self.backend)
+        self.meta = {"config": asdict(cfg),
+                     "policy": {"spec": self.spec, "name": policy.name, "note": self.note,
+                                "class": self.policy_class,
+                                "privileged": bool(policy.privileged)},
+                     "backend": self.backend, "renderer": renderer, "versions": versions(),
+                     "started": started, "tasks": self.all_tasks}
 
-    def mine() -> list[str]:  # the tasks this process runs (with a queue: has claimed)
-        if queue is None:
-            return list(tasks)
-        return list(dict.fromkeys(unit_task(unit)[0] for unit in queue.mine))
+    def _place(self) -> None:
+        """The run's tasks, folder and backend, and this process's share of the tasks."""
+        from agnostos_mjx.infra import gather, sharding
+        from agnostos_mjx.physics import resolve_backend
 
-    def selected() -> list[dict]:
-        names, seeds = set(mine()), set(cfg.seeds)
-        return [r for r in all_records if r["task"] in names and int(r["seed"]) in seeds
-                and int(r["episode"]) < cfg.episodes]
+        cfg = self.cfg
+        tasks = select_tasks(cfg)  # names: a task's module is imported when it starts
+        self.all_tasks = list(tasks)
+        _check_video(cfg)
+        self.out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
+        self.episodes_path = self.out_dir / EPISODES_FILE
+        sharding.configure(cfg.devices)
+        self.backend = resolve_backend(cfg.backend, cfg.batch)
+        self.queue: TaskQueue | None = None
+        # Tasks from a shared queue run beside whichever others this process got first:
+        # their requests then go alone (agnostos_mjx/infra/gather.py).
+        gather.allow_gathering(cfg.task_queue is None)
+        if cfg.task_queue is not None:  # its balanced share first (claim_order, `_todo`)
+            self.queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
+            log.info("process %d of %d: tasks from the queue %s", cfg.process_id,
+                     cfg.num_processes, cfg.task_queue)
+        else:
+            tasks = process_share(tasks, cfg)
+            if cfg.num_processes > 1:
+                log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
+                         ", ".join(tasks) or "no task")
+        self.tasks = tasks
 
-    failed: dict[str, str] = {}  # task -> its error, for a task that raised
+    def _plan(self) -> None:
+        """The records already written (--resume) and each task's pending episodes."""
+        cfg, tasks, name = self.cfg, self.tasks, self.policy.name
+        self.records = repair_records(self.episodes_path) if cfg.resume else []
+        if self.records:
+            earlier = {r.get("policy") for r in self.records} - {None}
+            if earlier and earlier != {name}:
+                log.warning("%s holds episodes of policy %s; continuing with %s",
+                            self.out_dir, ", ".join(sorted(earlier)), name)
+        recorded = {record_key(r) for r in self.records}
+        self.plan = {task: pending_episodes(task, cfg, recorded) for task in tasks}
+        self.total = sum(map(len, self.plan.values()))
+        skipped = len(tasks) * len(cfg.seeds) * cfg.episodes - self.total
+        log.info("%d tasks (%s), seeds %s, %d episodes each: %d to run%s", len(tasks),
+                 ", ".join(tasks), ",".join(map(str, cfg.seeds)), cfg.episodes,
+                 self.total, f", {skipped} already recorded" if skipped else "")
 
-    def write_results(final: bool) -> dict:
+    # ---- what the callbacks read and write
+    def mine(self) -> list[str]:
+        """The tasks this process runs (with a queue: has claimed)."""
+        if self.queue is None:
+            return list(self.tasks)
+        return list(dict.fromkeys(unit_task(unit)[0] for unit in self.queue.mine))
+
+    def selected(self) -> list[dict]:
+        """The records of this process's tasks, seeds and episodes."""
+        names, seeds = set(self.mine()), set(self.cfg.seeds)
+        return [r for r in self.records if r["task"] in names and int(r["seed"]) in seeds
+                and int(r["episode"]) < self.cfg.episodes]
+
+    def write_results(self, final: bool) -> dict:
+        """The outputs so far (after each task, so a stopped run keeps its tables)."""
         # policy.report(): requests, retries, failures, what was sent (LLM, policy server)
-        extra = {**policy.report(), **({"failed_tasks": failed} if failed else {})}
+        extra = {**self.policy.report(),
+                 **({"failed_tasks": self.failed} if self.failed else {})}
         # A process of a multi-process run draws no plot: the merge draws the run's.
-        return write_outputs(out_dir, meta, selected(), mine(), cfg,
-                             time.perf_counter() - t0, final, extra,
-                             plot=cfg.num_processes == 1)
+        return write_outputs(self.out_dir, self.meta, self.selected(), self.mine(), self.cfg,
+                             time.perf_counter() - self.t0, final, extra,
+                             plot=self.cfg.num_processes == 1)
 
-    def on_error(index: int, error: Exception) -> None:
+    def on_error(self, index: int, error: Exception) -> None:
+        """A task that raised: the others go on, unless the error is the run's own."""
         if isinstance(error, UsageError):  # e.g. answers of the wrong shape: the run stops
             raise error
-        name = todo[index][1]
-        failed[name] = f"{type(error).__name__}: {error}"
+        name = self.todo[index][1]
+        self.failed[name] = f"{type(error).__name__}: {error}"
         log.error("%s failed, the other tasks go on (its episodes not recorded run again "
-                  "with --resume): %s", name, failed[name], exc_info=error)
-        write_results(final=False)
+                  "with --resume): %s", name, self.failed[name], exc_info=error)
+        self.write_results(final=False)
 
-    def on_timing(split: dict) -> None:  # where each task's time went (rollout.TimeSplit)
-        with open(out_dir / TIMINGS_FILE, "a") as f:
+    def on_timing(self, split: dict) -> None:  # where each task's time went (rollout.TimeSplit)
+        with open(self.out_dir / TIMINGS_FILE, "a") as f:
             f.write(json.dumps(split) + "\n")
 
-    def on_records(records: list[dict]) -> None:
-        append_records(episodes_path, records)
-        all_records.extend(records)
+    def on_records(self, records: list[dict]) -> None:
+        """Finished episodes: to episodes.jsonl at once, so an interrupted run keeps them."""
+        append_records(self.episodes_path, records)
+        self.records.extend(records)
 
-    # One policy copy per task running at once: copies share the heavy parts (LLM client,
-    # memory, selector); reset() gives each its own per-episode state.
-    overlap = cfg.overlap_tasks if policy.interleaves() else 1
-    units = list(tasks)  # with a queue, a long task's seeds may go apart
-    if queue is not None:  # the units it holds episodes of, then its balanced share
-        units = split_by_seed(units, backend, cfg.num_processes, cfg.seeds)
-        order = [units.index(u) for u in queue.held(units)]
-        order += [i for i in claim_order(units, backend, cfg.num_processes, cfg.process_id,
-                                         overlap) if i not in order]
-        units = [units[i] for i in order]
-    todo = [(unit, task, pending) for unit in units
-            for task, seed in [unit_task(unit)]
-            if (pending := [p for p in plan[task] if seed in (None, p[0])])]
-    with progress_bar(total, enabled=not cfg.quiet) as progress:
-        done = {unit: (0, 0.0) for unit, _, _ in todo}
+    def tick(self, unit: str, n: int, partial: float = 0.0, detail: str | None = None) -> None:
+        """A unit's progress (rollout.Tick); the bar shows the sum over the units."""
+        self.done[unit] = (n, partial)
+        assert self.progress is not None  # ticks come from the tasks `run` runs
+        self.progress.update(sum(d for d, _ in self.done.values()),
+                             partial=sum(p for _, p in self.done.values()), detail=detail)
 
-        def tick(name: str, n: int, partial: float = 0.0, detail: str | None = None) -> None:
-            done[name] = (n, partial)
-            progress.update(sum(d for d, _ in done.values()),
-                            partial=sum(p for _, p in done.values()), detail=detail)
+    # ---- running
+    def _todo(self, overlap: int) -> list[tuple[str, str, list[tuple[int, int]]]]:
+        """(unit, task, its pending episodes) in the order this process runs them; a unit
+        is a task, or with a queue one seed of a long task."""
+        cfg, units = self.cfg, list(self.tasks)
+        if self.queue is not None:  # the units it holds episodes of, then its balanced share
+            units = split_by_seed(units, self.backend, cfg.num_processes, cfg.seeds)
+            order = [units.index(u) for u in self.queue.held(units)]
+            order += [i for i in claim_order(units, self.backend, cfg.num_processes,
+                                             cfg.process_id, overlap) if i not in order]
+            units = [units[i] for i in order]
+        return [(unit, task, pending) for unit in units
+                for task, seed in [unit_task(unit)]
+                if (pending := [p for p in self.plan[task] if seed in (None, p[0])])]
 
-        run_cfg = replace(cfg, backend=backend)  # every task on the resolved one
-        # The native physics of tasks running at once overlaps on threads (task_steps).
-        pool = ThreadPoolExecutor(overlap, thread_name_prefix="physics") if overlap > 1 else None
-        jobs = [_steps_of(name, policy.fork() if overlap > 1 else policy, pending, run_cfg,
-                          on_records, functools.partial(tick, unit), on_timing, pool)
-                for unit, name, pending in todo]
-        if queue is not None:
-            jobs = [queue.claimed(unit, job) for (unit, _, _), job in zip(todo, jobs)]
-        startup_s, t_tasks = process_age_s(), time.perf_counter()
-        try:
-            run_interleaved(jobs, overlap, on_done=lambda i, _: write_results(final=False),
-                            on_error=None if cfg.fail_fast else on_error)
-        finally:
-            if pool is not None:
-                pool.shutdown(cancel_futures=True)
-    if mine():  # the process's own costs beside its tasks' (timings.process_table)
-        on_timing({"process": cfg.process_id, "startup_s": startup_s,
-                   "tasks_s": round(time.perf_counter() - t_tasks, 3), "tasks": len(mine()),
-                   "startup": startup})
-    results = write_results(final=True)
-    if queue is not None:
-        atomic_write(out_dir / FINISHED_FILE, "")
-    return results
+    def run(self) -> dict:
+        """Run the pending episodes, write the outputs, return results.json's dict."""
+        cfg, policy = self.cfg, self.policy
+        # One policy copy per task running at once: copies share the heavy parts (LLM
+        # client, memory, selector); reset() gives each its own per-episode state.
+        overlap = cfg.overlap_tasks if policy.interleaves() else 1
+        self.todo = self._todo(overlap)
+        with progress_bar(self.total, enabled=not cfg.quiet) as self.progress:
+            self.done = {unit: (0, 0.0) for unit, _, _ in self.todo}
+            run_cfg = replace(cfg, backend=self.backend)  # every task on the resolved one
+            # The native physics of tasks running at once overlaps on threads (task_steps).
+            pool = (ThreadPoolExecutor(overlap, thread_name_prefix="physics")
+                    if overlap > 1 else None)
+            jobs = [_steps_of(name, policy.fork() if overlap > 1 else policy, pending,
+                              run_cfg, self.on_records, functools.partial(self.tick, unit),
+                              self.on_timing, pool)
+                    for unit, name, pending in self.todo]
+            if self.queue is not None:
+                jobs = [self.queue.claimed(unit, job)
+                        for (unit, _, _), job in zip(self.todo, jobs)]
+            startup_s, t_tasks = process_age_s(), time.perf_counter()
+            try:
+                run_interleaved(jobs, overlap,
+                                on_done=lambda i, _: self.write_results(final=False),
+                                on_error=None if cfg.fail_fast else self.on_error)
+            finally:
+                if pool is not None:
+                    pool.shutdown(cancel_futures=True)
+        if self.mine():  # the process's own costs beside its tasks' (timings.process_table)
+            self.on_timing({"process": cfg.process_id, "startup_s": startup_s,
+                            "tasks_s": round(time.perf_counter() - t_tasks, 3),
+                            "tasks": len(self.mine()), "startup": self.startup})
+        results = self.write_results(final=True)
+        if self.queue is not None:
+            atomic_write(self.out_dir / FINISHED_FILE, "")
+        return results
