@@ -1,4 +1,4 @@
-"""The gymnasium VectorEnv behind the LeRobot plug-in (agnostos_mjx/gym_env.py): gymnasium's
+"""The gymnasium VectorEnv behind the LeRobot plug-in (agnostos_mjx/gym/): gymnasium's
 own checks where they apply to a vector env, determinism, autoreset, the LeRobot export's
 keys and rows (an exported demo replays through it frame for frame), the expert's key
 actions replayed on 3 seen tasks, and clear errors.  No lerobot, no torch (the real

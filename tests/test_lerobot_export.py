@@ -14,6 +14,7 @@ pytest.importorskip("pyarrow")
 pytest.importorskip("pandas")
 
 from agnostos_mjx.data import export as ex  # noqa: E402
+from agnostos_mjx.data import export_demos  # noqa: E402
 from agnostos_mjx.data import lerobot as lr  # noqa: E402
 from agnostos_mjx.data import lerobot_layout as lay  # noqa: E402
 from agnostos_mjx.data import rotations as rot  # noqa: E402
@@ -395,7 +396,8 @@ def test_export_two_tasks_two_demos(tmp_path, monkeypatch, capsys) -> None:
             assert np.abs(a["action"][:3] - b["observation.state"][:3]).max() < 0.015
             assert abs(a["action"][3:7] @ b["observation.state"][3:7]) > 0.999
     # A rerun as v2.1 renders nothing (no expert runs) and replaces the v3.0 layout.
-    monkeypatch.setattr(ex, "episode_observations", lambda *a, **k: pytest.fail("rendered"))
+    monkeypatch.setattr(export_demos, "episode_observations",
+                        lambda *a, **k: pytest.fail("rendered"))
     stamp = lr.staged_path(cfg.staging_root(), "open_drawer", 0).stat().st_mtime_ns
     ex.export(ex.ExportConfig(**{**vars(cfg), "lerobot_version": "v2.1", "state": "libero"}))
     assert lr.staged_path(cfg.staging_root(), "open_drawer", 0).stat().st_mtime_ns == stamp

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from agnostos_mjx.data import export as ex
+from agnostos_mjx.data import export_run
 from agnostos_mjx.data.look import LOOK_KEY, check_look, look_record, scene_version
 from agnostos_mjx.sim.world import scenes_dir
 
@@ -78,7 +79,7 @@ def test_rlbench_export_records_the_look(tmp_path, monkeypatch) -> None:
     def fake_task(cfg, name, threads=None):
         return {"task": name, "skipped": 0, "written": 1, "failed": 0, "seconds": 0.0}
 
-    monkeypatch.setattr(ex, "_run_task", fake_task)
+    monkeypatch.setattr(export_run, "_run_task", fake_task)
     cfg = ex.ExportConfig(out=tmp_path, tasks=("open_drawer",), demos=1)
     assert ex.export(cfg)[LOOK_KEY] == look_record(ex.EXPORT_RENDERER)
     manifest = json.loads((tmp_path / "manifest.json").read_text())

@@ -83,7 +83,9 @@ Code: data/rlbench_format.py (the folder layout, file names, image encodings), d
 episode_files.py (writing, verifying and reading one episode folder; :func:`read_episode`
 reads every pickle with a restricted unpickler, so an episode from elsewhere cannot run
 code), data/rlbench_demo.py (the pickles), data/expert_frames.py (running the experts with
-observations); this module: the command, the estimate and the task workers.
+observations), data/export_config.py (``ExportConfig`` and the estimate), data/
+export_demos.py (one task's demos), data/export_run.py (the whole run: workers, manifest,
+LeRobot assembly); this module: the command.
 
 Examples::
 
@@ -98,114 +100,32 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
-import logging
-import os
-import signal
 import sys
-import time
-from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from agnostos_mjx.data.episode_files import read_episode, verify_episode, write_episode
-from agnostos_mjx.data.expert_frames import episode_observations, frame_every
-from agnostos_mjx.data.lerobot_layout import STATE_LAYOUTS
-from agnostos_mjx.data.look import LOOK_KEY
-from agnostos_mjx.data.rlbench_format import (
-    FORMAT,
-    RLBENCH_CAMERAS,
-    episode_dir,
-    is_complete,
+from agnostos_mjx.data.export_config import (
+    EXPORT_RENDERER,
+    FORMATS,
+    ExportConfig,
+    estimate,
+    frames_per_demo,
 )
+from agnostos_mjx.data.export_demos import export_task
+from agnostos_mjx.data.export_run import export
+from agnostos_mjx.data.lerobot_layout import STATE_LAYOUTS
+from agnostos_mjx.data.rlbench_format import RLBENCH_CAMERAS, episode_dir, is_complete
 from agnostos_mjx.data.rotations import ROTATIONS
-from agnostos_mjx.infra.settings import configure_jax, usable_cores
+from agnostos_mjx.infra.settings import configure_jax
 
-# The episode format's API, importable from here as before the split (README, reports):
-__all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate", "export",
-           "export_task", "frames_per_demo", "is_complete", "main", "read_episode",
+# The export's API and the episode format's, importable from here as before the splits
+# (README, reports):
+__all__ = ["EXPORT_RENDERER", "ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate",
+           "export", "export_task", "frames_per_demo", "is_complete", "main", "read_episode",
            "verify_episode", "write_episode"]
 
-log = logging.getLogger("agnostos_mjx.data.export")
-# Exports render on the CPU (MuJoCo's OpenGL), whatever the machine: the record of the
-# images' look (data/look.py) names it, for a run rendering otherwise to be told.
-EXPORT_RENDERER = "cpu"
-FORMATS = ("rlbench", "lerobot")
 DEFAULT_SIZE = {"rlbench": 128, "lerobot": 224}
-# A LeRobot export renders RGB only: bytes per camera-frame measured at 224 px (one RGB PNG;
-# open_drawer + stack_blocks, 2 demos each, 5 cameras: 10.2 KB) and its share of the RLBench
-# export's camera time (rough: one render pass of four; not measured separately).
-LEROBOT_BYTES_PER_CAMERA_FRAME_224 = 10_000
-LEROBOT_TIME_SHARE = 0.6
-# Measured (open_drawer, stack_blocks at 128 px): bytes per camera-frame of the 3 PNGs.
-BYTES_PER_CAMERA_FRAME_128 = 30_000
-# Seen tasks' expert demos (18 tasks x 12 demos): 7.7 key actions and 9.25 s (1,850 steps)
-# of simulation per demo; the scenes' timestep (world.xml) for the estimate.
-SEEN_KEY_ACTIONS = 7.7
-SEEN_DEMO_SECONDS = 9.25
-TIMESTEP = 0.005
-# Time on 2 shared CPU cores (docs/performance.md): per task (scene,
-# compiles), per demo (reset + expert physics, no images; seen-task mean at batch 4) and
-# rendering + PNG writing per camera-frame (4 cameras, rgb, depth, segmentation, 128 px).
-CPU_TASK_SETUP_S = 3.0
-CPU_PHYSICS_S_PER_DEMO = 0.5
-CPU_CAMERA_FRAMES_PER_S = 85.0
-
-
-@dataclass(frozen=True)
-class ExportConfig:
-    out: Path
-    tasks: tuple[str, ...]
-    demos: int = 200
-    seed: int = 0
-    cameras: tuple[str, ...] = RLBENCH_CAMERAS
-    size: int = 128
-    batch: int = 25
-    max_attempts: int = 10
-    every: int | str | None = None  # dense frames: see frame_every
-    format: str = "rlbench"
-    # --format lerobot only (data/lerobot.py): the layout, and where demos are staged
-    # (default: <out>.staging).
-    lerobot_version: str = "v3.0"
-    rotation: str = "quat"
-    state: str = "rlbench"
-    video: bool = False
-    staging: Path | None = None
-
-    def __post_init__(self) -> None:
-        if self.format not in FORMATS:
-            raise ValueError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
-        if self.format == "lerobot":
-            from agnostos_mjx.data.lerobot import require_libraries
-
-            require_libraries()
-            self.layout()  # checks version, rotation, state and --video's PyAV
-
-    def layout(self):
-        from agnostos_mjx.data.lerobot import Layout
-
-        return Layout(self.lerobot_version, self.rotation, self.state, self.video)
-
-    def staging_root(self) -> Path:
-        from agnostos_mjx.data.lerobot import staging_dir
-
-        return Path(self.staging) if self.staging is not None else staging_dir(self.out)
-
-    def episode_path(self, task: str, index: int) -> Path:
-        """Where demo `index` of `task` is written: its RLBench episode folder or its
-        LeRobot staging file."""
-        if self.format == "lerobot":
-            from agnostos_mjx.data.lerobot import staged_path
-
-            return staged_path(self.staging_root(), task, index)
-        return episode_dir(self.out, task, index)
-
-    def is_done(self, task: str, index: int) -> bool:
-        path = self.episode_path(task, index)
-        return path.is_file() if self.format == "lerobot" else is_complete(path)
 
 
 def _parse_every(text: str) -> int | str:
@@ -219,312 +139,6 @@ def _parse_every(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"a positive number of physics steps or 'rlbench', "
                                          f"not {text!r}")
     return value
-
-
-def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -> dict:
-    """Export one task's missing demos; returns counts.  `threads`: the native physics'
-    threads (default: all cores)."""
-    from agnostos_mjx.data.generate import demo_keys
-    from agnostos_mjx.runtime.env import Episodes
-    from agnostos_mjx.runtime.observation import MODALITIES, ObservationSpec, scene_labels
-    from agnostos_mjx.runtime.outcome import Outcome
-    from agnostos_mjx.tasks import get_task
-
-    task = get_task(task_name)
-    todo = [i for i in range(cfg.demos) if not cfg.is_done(task.name, i)]
-    stats = {"task": task.name, "skipped": cfg.demos - len(todo), "written": 0, "failed": 0}
-    if not todo:
-        return stats
-    episodes = Episodes(task, "native", threads=threads)
-    every = frame_every(cfg.every, episodes.dt)
-    lerobot = cfg.format == "lerobot"
-    spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
-                           modalities=("rgb",) if lerobot else MODALITIES,
-                           renderer=EXPORT_RENDERER)
-    stats["every_steps"] = every
-    stats["labels"] = {"geom_names": list(scene_labels(episodes.scene).geom_names),
-                       "objects": {k: list(v) for k, v in
-                                   scene_labels(episodes.scene).objects.items()}}
-    attempts = {i: 0 for i in todo}
-    while todo:
-        batch = np.array(todo[: cfg.batch])
-        keys = demo_keys(cfg.seed, task.name, batch, np.array([attempts[i] for i in batch]))
-        variations = (batch % task.num_variations).astype(np.int32)
-        env = episodes.reset(keys, variations, stop_at_success=False)
-        # The expert's key actions (what episode_observations runs; a pure function of
-        # the scene after reset), for the LeRobot actions.
-        actions = episodes.expert_actions(env) if lerobot else None
-        env, frames, keyframes = episode_observations(episodes, env, spec, every)
-        for w, index in enumerate(batch):
-            index = int(index)
-            if env.outcome[w] == Outcome.SUCCESS:
-                v = int(variations[w])
-                if lerobot:
-                    _stage(cfg, task, index, v, frames[w], keyframes[w], actions, w,
-                           every, episodes.dt)
-                else:
-                    write_episode(episode_dir(cfg.out, task.name, index), frames[w],
-                                  task.descriptions(v), v,
-                                  None if every is None else keyframes[w])
-                stats["written"] += 1
-                todo.remove(index)
-            else:
-                attempts[index] += 1
-                stats["failed"] += 1
-                if attempts[index] >= cfg.max_attempts:
-                    log.warning("%s: demo %d failed %d attempts; skipped", task.name, index,
-                                attempts[index])
-                    todo.remove(index)
-    return stats
-
-
-def _stage(cfg: ExportConfig, task, index: int, variation: int, frames: list[dict],
-           keyframes: list[int], actions, w: int, every: int | None, dt: float) -> None:
-    """One successful demo -> its LeRobot staging file (data/lerobot.py)."""
-    from agnostos_mjx.data.lerobot import stage_episode
-
-    info = {"task": task.name, "demo": index, "variation": variation,
-            "instruction": task.descriptions(variation)[0], "cameras": list(cfg.cameras),
-            "size": cfg.size, "seed": cfg.seed, "every_steps": every,
-            "frame_period_s": None if every is None else every * dt}
-    stage_episode(cfg.episode_path(task.name, index), frames, keyframes,
-                  np.asarray(actions.pos[w]), np.asarray(actions.quat[w]),
-                  np.asarray(actions.gripper[w]), info, dense=every is not None)
-
-
-def frames_per_demo(every: int | str | None) -> float:
-    """Mean frames of a seen-task demo: 1 + its key actions, and with dense frames every K
-    steps about S / K + A / 2 more (each action's ceil(S_a / K))."""
-    if every is None:
-        return 1 + SEEN_KEY_ACTIONS
-    steps = SEEN_DEMO_SECONDS / TIMESTEP
-    return 1 + steps / frame_every(every, TIMESTEP) + SEEN_KEY_ACTIONS / 2
-
-
-def _every_text(every: int | str | None) -> str:
-    if every is None:
-        return ", keyframes only"
-    return ", RLBench's 20 Hz frames" if every == "rlbench" else f", frames every {every} steps"
-
-
-def parallel_tasks(cfg: ExportConfig, workers: int) -> int:
-    """Tasks exported at once: min(workers, tasks, cores)."""
-    return max(1, min(workers, len(cfg.tasks), usable_cores()))
-
-
-def estimate(cfg: ExportConfig, frames: float | None = None, workers: int = 1
-             ) -> tuple[float, float]:
-    """(bytes, seconds) to expect: a rough guide printed before starting; `frames` per demo
-    defaults to :func:`frames_per_demo`; the time is divided by the tasks run at once
-    (:func:`parallel_tasks`)."""
-    frames = frames_per_demo(cfg.every) if frames is None else frames
-    camera_frames = len(cfg.tasks) * cfg.demos * frames * len(cfg.cameras)
-    pixels = (cfg.size / 128) ** 2
-    rgb_only = cfg.format == "lerobot"
-    size = camera_frames * (LEROBOT_BYTES_PER_CAMERA_FRAME_224 * (cfg.size / 224) ** 2
-                            if rgb_only else BYTES_PER_CAMERA_FRAME_128 * pixels)
-    seconds = (len(cfg.tasks) * (CPU_TASK_SETUP_S + cfg.demos * CPU_PHYSICS_S_PER_DEMO)
-               + camera_frames / CPU_CAMERA_FRAMES_PER_S * pixels
-               * (LEROBOT_TIME_SHARE if rgb_only else 1.0))
-    return size, seconds / parallel_tasks(cfg, workers)
-
-
-def _look(manifest: dict, home: Path) -> dict:
-    """This run's look record; one that differs in renderer or scene version from the
-    record of the episodes already in `home` is a ValueError, as other settings are: the
-    episodes of one export look alike."""
-    from agnostos_mjx.data.look import look_record
-
-    look = look_record(EXPORT_RENDERER)
-    old = manifest.get(LOOK_KEY)
-    keys = ("renderer", "scene_version")
-    if old and manifest.get("tasks") and any(old.get(k) != look[k] for k in keys):
-        raise ValueError(f"{home} was rendered with {', '.join(f'{k} {old.get(k)}' for k in keys)}"
-                         f", not {', '.join(f'{k} {look[k]}' for k in keys)}: export to "
-                         f"another --out")
-    return look
-
-
-def _run_task(cfg: ExportConfig, name: str, threads: int | None = None) -> dict:
-    """export_task, timed (what a worker runs)."""
-    t0 = time.perf_counter()
-    stats = export_task(cfg, name, threads)
-    stats["seconds"] = time.perf_counter() - t0
-    return stats
-
-
-def _worker_init() -> None:
-    configure_jax()  # a spawned process sets up its JAX as the command did
-    # Ctrl-C is the parent's to handle: it stops the workers itself.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-@contextlib.contextmanager
-def _worker_env(threads: int) -> Iterator[None]:
-    """Settings for spawned workers (inherited at spawn; the parent renders nothing while
-    they run): thread caps for llvmpipe's render threads and OpenMP/BLAS pools, and JAX on
-    the CPU: a worker simulates with native MuJoCo and renders on the CPU, and N processes
-    each pre-allocating most of one GPU's memory would fail (seen on a GPU host with 16
-    workers).  Values the user set are kept."""
-    values = {k: str(threads) for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS",
-                                         "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    values["JAX_PLATFORMS"] = "cpu"
-    saved = {k: os.environ.get(k) for k in values}
-    for k, v in values.items():
-        os.environ.setdefault(k, v)
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-def _one_line(err: BaseException, limit: int = 500) -> str:
-    text = " ".join(f"{type(err).__name__}: {err}".split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _stop_workers(pool) -> None:
-    """Cancel the queued tasks and end the running workers (Ctrl-C)."""
-    processes = list((getattr(pool, "_processes", None) or {}).values())  # before shutdown
-    pool.shutdown(wait=False, cancel_futures=True)
-    for proc in processes:
-        proc.terminate()
-    for proc in processes:
-        proc.join(5)
-
-
-def export(cfg: ExportConfig, workers: int = 1) -> dict:
-    """Export `cfg`'s tasks, `workers` at once (each in its own process when more than 1);
-    returns the manifest, with "failed_tasks" {task: one-line error} when some failed."""
-    lerobot = cfg.format == "lerobot"
-    if lerobot:  # refuse a foreign --out before rendering anything
-        from agnostos_mjx.data.lerobot import check_out
-
-        check_out(cfg.out)
-    # The episodes' home: the RLBench folders, or the LeRobot staging directory.
-    home = cfg.staging_root() if lerobot else cfg.out
-    home.mkdir(parents=True, exist_ok=True)
-    workers = max(1, int(workers))
-    size, seconds = estimate(cfg, workers=workers)
-    at_once = parallel_tasks(cfg, workers)
-    kind = f"LeRobot {cfg.lerobot_version} " if lerobot else ""
-    print(f"export: {kind}{len(cfg.tasks)} tasks x {cfg.demos} demos, cameras "
-          f"{','.join(cfg.cameras)} at {cfg.size}px{_every_text(cfg.every)}"
-          f": {frames_per_demo(cfg.every):.0f} frames per demo, about {size / 1e9:.2f} GB and "
-          f"{seconds / 60:.0f} min with {at_once} task(s) at once ({workers} worker(s), "
-          f"{usable_cores()} cores; rough: the time per task measured on 2 shared cores; "
-          f"complete episodes in {home} are skipped)", flush=True)
-    t0 = time.perf_counter()
-    manifest_path = home / "manifest.json"
-    manifest = json.loads(manifest_path.read_text()) if manifest_path.exists() else {}
-    # Settings that change what an episode holds must match between runs.
-    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()
-              if k in ("seed", "cameras", "size")}
-    if lerobot:
-        from agnostos_mjx.data.lerobot import STAGING_VERSION
-
-        config["format"] = f"lerobot-staging-{STAGING_VERSION}"
-    else:
-        config["format"] = FORMAT
-    if cfg.every is not None:  # absent for keyframes only, as in exports made before --every
-        config["every"] = cfg.every
-    if not lerobot and (missing := [c for c in RLBENCH_CAMERAS if c not in cfg.cameras]):
-        log.warning("cameras %s not exported: RLBench's get_stored_demos (PerAct, RVT) needs "
-                    "the rgb and depth folders of all five", ",".join(missing))
-    if manifest.get("config", config) != config:
-        raise ValueError(f"{home} was exported with {manifest['config']}, not {config}")
-    manifest["config"] = config
-    manifest[LOOK_KEY] = _look(manifest, home)
-    manifest.pop("failed_tasks", None)
-    manifest.pop("lerobot", None)
-    order = list(manifest.get("tasks", {})) + [t for t in cfg.tasks
-                                               if t not in manifest.get("tasks", {})]
-    failed: dict[str, str] = {}
-    done = 0
-
-    def write() -> None:
-        from agnostos_mjx.infra.cli import atomic_write
-
-        tasks = manifest.get("tasks", {})
-        manifest["tasks"] = {t: tasks[t] for t in order if t in tasks}  # cfg's order
-        if failed:
-            manifest["failed_tasks"] = {t: failed[t] for t in order if t in failed}
-        atomic_write(manifest_path, json.dumps(manifest, indent=1) + "\n")
-
-    def finished(name: str, stats: dict | None, err: BaseException | None) -> None:
-        nonlocal done
-        done += 1
-        if err is not None:
-            failed[name] = _one_line(err)
-            log.debug("%s failed", name, exc_info=err)
-            print(f"export: {name} FAILED: {failed[name]}", file=sys.stderr, flush=True)
-            write()
-            return
-        entry = manifest.setdefault("tasks", {}).setdefault(name, {})
-        entry.update({k: v for k, v in stats.items() if k in ("labels", "every_steps")
-                      and v is not None})
-        entry["episodes"] = sum(cfg.is_done(name, i) for i in range(cfg.demos))
-        print(f"export: {name}: {entry['episodes']}/{cfg.demos} episodes ({stats['written']} "
-              f"written, {stats['skipped']} skipped, {stats['failed']} failed attempts) in "
-              f"{stats['seconds']:.1f} s [{done}/{len(cfg.tasks)} tasks]", flush=True)
-        write()
-
-    manifest.setdefault("tasks", {})
-    if workers == 1:
-        for name in cfg.tasks:
-            try:
-                stats = _run_task(cfg, name)
-            except Exception as err:
-                finished(name, None, err)
-            else:
-                finished(name, stats, None)
-    else:
-        import multiprocessing
-        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-        threads = max(1, usable_cores() // at_once)
-        with _worker_env(threads):
-            pool = ProcessPoolExecutor(at_once, multiprocessing.get_context("spawn"),
-                                       initializer=_worker_init)
-            try:
-                futures = {pool.submit(_run_task, cfg, name, threads): name
-                           for name in cfg.tasks}
-                pending = set(futures)
-                while pending:
-                    ready, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for fut in sorted(ready, key=lambda f: cfg.tasks.index(futures[f])):
-                        err = fut.exception()
-                        finished(futures[fut], None if err else fut.result(), err)
-            except BaseException:
-                _stop_workers(pool)
-                write()
-                raise
-            pool.shutdown()
-    if lerobot:
-        if failed:
-            print(f"export: {len(failed)} task(s) failed: LeRobot dataset {cfg.out} not "
-                  f"assembled (the staged demos in {home} are kept)", file=sys.stderr,
-                  flush=True)
-        else:
-            from agnostos_mjx.data.lerobot import assemble
-
-            t1 = time.perf_counter()
-            done_ = assemble(cfg.out, home, cfg.tasks, cfg.demos, cfg.layout(),
-                             look=manifest[LOOK_KEY])
-            verb = "already assembled" if done_["skipped"] else "assembled"
-            print(f"export: LeRobot {cfg.lerobot_version} dataset {cfg.out} {verb}: "
-                  f"{done_['episodes']} episodes, {done_['frames']} frames, {done_['tasks']} "
-                  f"instructions ({time.perf_counter() - t1:.1f} s); staged demos: {home}",
-                  flush=True)
-            manifest["lerobot"] = {"out": str(cfg.out), **asdict(cfg.layout()),
-                                   **{k: done_[k] for k in ("episodes", "frames", "tasks")}}
-    manifest["wall_s"] = round(time.perf_counter() - t0, 1)
-    write()
-    return manifest
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -158,7 +158,7 @@ def generate_chunk(cfg: DataConfig, task_name: str, start: int, stop: int,
 
 def generate(cfg: DataConfig, workers: int = 1) -> dict:
     """Every chunk of `cfg`, `workers` at once (spawned processes, as the export's)."""
-    from agnostos_mjx.data.export import _worker_env, _worker_init
+    from agnostos_mjx.data.export_run import _worker_env, _worker_init
     from agnostos_mjx.infra.settings import usable_cores
 
     cfg.out.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,7 @@
 """LeRobot env plug-in ``agnostos``: importing this package registers the env type with
 LeRobot when lerobot is installed (LeRobot >= 0.6 imports it itself, as it imports every
 installed ``lerobot_env_*`` distribution); without lerobot it still gives the gymnasium
-VectorEnv (agnostos_mjx/gym_env.py, the one implementation)."""
+VectorEnv (agnostos_mjx/gym/, the one implementation, imported as agnostos_mjx.gym_env)."""
 
 from __future__ import annotations
 

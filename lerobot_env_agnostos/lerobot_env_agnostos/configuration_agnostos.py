@@ -88,7 +88,7 @@ class AgnostosEnvConfig(EnvConfig):
     the training data; they default to the policy's image inputs and its training data's
     state and action names (without either: all five cameras at 224 px, rlbench state,
     quat actions).  ``renderer``: auto, cpu (as the export renders) or warp.  The rest:
-    agnostos_mjx.gym_env's module docstring."""
+    agnostos_mjx.gym.env's module docstring."""
 
     task: str | None = "unseen"
     fps: int = 10  # the export's nominal keyframe rate
