@@ -5,6 +5,8 @@ the per-task cases are slow tests; `python -m pytest -m slow tests/test_key_acti
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -54,7 +56,7 @@ def test_device_step_traces_with_the_documented_shapes(task):
     program = ep.device_program(2)
     for stop in (True, False):
         dev = env.replace(stop_at_success=stop).to_device()
-        plan = jax.eval_shape(ep._device_plan, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
+        plan = jax.eval_shape(ep.device_plans.plan, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
         out = jax.eval_shape(program, dev, acts, plan)
         shapes = jax.tree.map(lambda x: (x.shape, x.dtype), out)
         assert shapes == jax.tree.map(lambda x: (x.shape, x.dtype), dev)
@@ -238,8 +240,9 @@ def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
     apart = Episodes(get_task("lamp_on"), "native", planner="device", plan_rows=whole)
     reset_apart = apart.reset(_keys(whole)[2:4], np.zeros(2, np.int32))
     checked: list[int] = []
-    reachable = apart._reachable
-    monkeypatch.setattr(apart, "_reachable", lambda q, *a: checked.append(len(q)) or reachable(q, *a))
+    reachable = apart.plans.reachable
+    monkeypatch.setattr(apart, "plans", dataclasses.replace(
+        apart.plans, reachable=lambda q, *a: checked.append(len(q)) or reachable(q, *a)))
     np.testing.assert_array_equal(np.asarray(ep.expert_reachable(start))[2:4],
                                   apart.expert_reachable(reset_apart))
     assert checked == [whole]
@@ -260,13 +263,13 @@ def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
     ep = Episodes(get_task("lamp_on"), "native", planner="device")
     env = ep.reset(_keys(b), np.zeros(b, np.int32))
     seen: dict[str, list] = {"conditions": [], "planner": []}
-    conditions, plan = ep._jit_conditions, ep._plan
+    conditions, plan = ep.programs[("conditions",)], ep.plans.plan
 
     def spy(name, fn):
         return lambda *a: seen[name].append(jax.config.jax_default_device) or fn(*a)
 
-    monkeypatch.setattr(ep, "_jit_conditions", spy("conditions", conditions))
-    monkeypatch.setattr(ep, "_plan", spy("planner", plan))
+    monkeypatch.setitem(ep.programs, ("conditions",), spy("conditions", conditions))
+    monkeypatch.setattr(ep, "plans", dataclasses.replace(ep.plans, plan=spy("planner", plan)))
     env, _ = ep.step(env, _expert_steps(ep, env)[0])
     assert seen["planner"] == [None]
     assert seen["conditions"] and set(seen["conditions"]) == {cpu}
