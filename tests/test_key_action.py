@@ -284,3 +284,29 @@ def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
 
     monkeypatch.setattr(phase.jax, "local_devices", no_cpu)
     assert phase.host_device() is None
+
+
+def test_device_reset_and_step_are_pure_functions_a_user_can_jit():
+    """Episodes.device_reset and device_step (issue 52): jitted by the caller, over native
+    physics behind the device boundary (physics/callback.py, so it compiles in seconds),
+    the reset gives the host reset's scenes (no scene re-sampled here) as the device state,
+    and the key action the device program's result."""
+    from agnostos_mjx.physics.callback import callback_physics
+
+    ep = Episodes(get_task("lamp_on"), "native")
+    b = 2
+    keys, variations = _keys(b), np.zeros(b, np.int32)
+    host = ep.reset(keys, variations).to_device()
+    physics = callback_physics(ep.scene.model, b)
+    state = jax.jit(ep.device_reset(b, physics=physics))(keys, variations)
+    assert jax.tree.structure(state) == jax.tree.structure(host)
+    for a, h in zip(jax.tree.leaves(state), jax.tree.leaves(host), strict=True):
+        assert (a.shape, a.dtype) == (h.shape, h.dtype)
+        np.testing.assert_allclose(np.asarray(a, float), np.asarray(h, float), atol=1e-4)
+    first = jax.tree.map(lambda x: jax.numpy.asarray(x[:, 0]), ep.expert_actions(host.to_host()))
+    plan = ep.device_plans.plan(state.data[:, ep.spec.arm_q], first.pos, first.quat)
+    mine = jax.jit(ep.device_step(b, physics))(state, first, plan)
+    want = ep.step_on_device(host.to_host(), first, physics=physics)
+    np.testing.assert_array_equal(np.asarray(mine.outcome), want.outcome)
+    np.testing.assert_array_equal(np.asarray(mine.sim_steps), want.sim_steps)
+    np.testing.assert_allclose(np.asarray(mine.data), want.data, atol=1e-3)

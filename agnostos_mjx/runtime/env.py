@@ -11,6 +11,7 @@ import contextlib
 import functools
 import logging
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -39,8 +40,11 @@ from agnostos_mjx.sim.control import PandaKinematics
 from agnostos_mjx.sim.world import FINGER_OPEN, SceneModel, build_scene
 from agnostos_mjx.tasks.base import KeyActions, Task
 
+if TYPE_CHECKING:  # native physics never imports MJX
+    from agnostos_mjx.physics.mjx_backend import DevicePhysics
+
 __all__ = ["PLANNERS", "REACH_STEPS", "SETTLE_STEPS", "Episodes", "device_dense_action",
-           "device_key_action", "resolve_planner"]
+           "device_key_action", "resolve_planner", "sample_and_settle"]
 
 log = logging.getLogger(__name__)
 SETTLE_STEPS = 10  # RLBench runs 10 physics steps after placing the scene
@@ -58,6 +62,40 @@ def device_dense_action(spec: StepSpec, phases: DevicePhases, ctl: DenseControl,
                         state: EnvState, targets: KeyActions, plan: tuple) -> EnvState:
     """The dense step's new state, as `device_key_action`."""
     return dense_action(spec, phases, state, targets, plan, ctl)[0]
+
+
+def sample_and_settle(fns: TaskFunctions, dev: DevicePhysics, stop_at_success: bool,
+                      keys: jax.Array, variations: jax.Array) -> EnvState:
+    """B worlds sampled and settled (RLBench's 10 steps) in one traceable function: what
+    `Episodes.reset` does on the host, without re-sampling the scenes whose expert the arm
+    cannot reach (that check is the host's loop)."""
+    m, f32 = fns.scene.model, jnp.float32
+    variations = jnp.asarray(variations, jnp.int32)
+    b = variations.shape[0]
+    qpos, mocap_pos, mocap_quat, rgba = jax.vmap(fns.sample, in_axes=(0, 0, None))(
+        keys, variations, jnp.int32(0))
+    ctrl = jnp.zeros((b, m.nu), f32).at[:, :7].set(qpos[:, fns.scene.arm_qpos])
+    ctrl = ctrl.at[:, 7].set(FINGER_OPEN)
+    physics = PhysicsState(
+        qpos=qpos.astype(f32), qvel=jnp.zeros((b, m.nv), f32), act=jnp.zeros((b, m.na), f32),
+        ctrl=ctrl, mocap_pos=mocap_pos.astype(f32), mocap_quat=mocap_quat.astype(f32),
+        eq_active=jnp.tile(jnp.asarray(m.eq_active0, bool), (b, 1)),
+        eq_data=jnp.tile(jnp.asarray(m.eq_data, f32), (b, 1, 1)), time=jnp.zeros(b, f32))
+    model, d = dev.load(physics)
+
+    def settle(_, d):
+        return dev.step(model, d, ctrl)
+
+    d = jax.lax.fori_loop(0, SETTLE_STEPS, settle, d)
+    data = d.sensordata
+    attached = jnp.zeros((b, len(fns.task.graspables)), bool)
+    carry, _ = jax.vmap(fns.settled)(data, attached, variations)
+    zeros = jnp.zeros(b, jnp.int32)
+    return EnvState(
+        physics=dev.save(physics, d), data=data, attached=attached, carry=carry,
+        variation=variations, gripper=jnp.full(b, FINGER_OPEN, f32), outcome=zeros,
+        key_actions=zeros, sim_steps=zeros, world_steps=zeros, geom_rgba=rgba,
+        initial_data=data, layout=fns.scene.layout, stop_at_success=stop_at_success)
 
 
 class Episodes:
@@ -328,6 +366,14 @@ class Episodes:
         phases = DevicePhases(dev, self.spec.condition_step,
                               unroll or steps_per_iteration(self.backend_name))
         return functools.partial(device_key_action, self.spec, phases)
+
+    def device_reset(self, batch: int, stop_at_success: bool = True, physics=None
+                     ) -> Callable[[jax.Array, jax.Array], EnvState]:
+        """Reset of `batch` worlds on the device as a pure function (keys, variations) ->
+        state (`sample_and_settle`: no re-sampling of scenes the expert cannot reach);
+        `physics` as in `device_step`."""
+        return functools.partial(sample_and_settle, self.fns,
+                                 physics or self.backend.device_physics(batch), stop_at_success)
 
     def device_program(self, batch: int, physics=None, unroll: int | None = None) -> Callable:
         """`device_step` jitted, compiled once per batch size (and per stop_at_success)."""
