@@ -85,7 +85,7 @@ def warm_planner(batch: int, planner: str = "auto") -> dict:
     if resolve_planner(planner) != "device":
         return {"programs": 0}
     kin = control.PandaKinematics.from_model(build_scene(get_task("lamp_on")).model)
-    # The dtypes and shapes the runtime passes (Episodes._run_on_host, expert_reachable).
+    # The dtypes and shapes the runtime passes (Episodes._plan_on_host, expert_reachable).
     q = np.tile(np.asarray(HOME_QPOS, np.float64), (batch, 1))
     pos = np.tile(np.array([0.3, 0.0, 1.0]), (batch, 1))
     quat = np.tile(np.array([0.0, 1.0, 0.0, 0.0]), (batch, 1))

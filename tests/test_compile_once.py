@@ -88,16 +88,16 @@ def test_phases_of_any_length_share_one_condition_program():
     assert start.stop_at_success is not None
     rows = [np.concatenate([getattr(r, f) for r in record], axis=1)
             for f in ("sensordata", "attached")]
-    whole = ep._jit_conditions(start.carry, *rows, np.ones(rows[0].shape[:2], bool),
-                               start.variation)
+    conditions = ep.programs[("conditions",)]
+    whole = conditions(start.carry, *rows, np.ones(rows[0].shape[:2], bool), start.variation)
     assert (np.asarray(whole[1]) > CONDITION_ROWS).all(), "success must come after a chunk"
-    phases = HostPhases(ep.backend, ep.scene.model, ep._jit_conditions)
+    phases = HostPhases(ep.backend, ep.scene.model, conditions)
     with count_compiles() as compiles:
         for t in (rows[0].shape[1], CONDITION_ROWS + 5, 40):
             valid = np.ones((3, t), bool)
             carry, s, f = phases._scan(start, rows[0][:, :t], rows[1][:, :t], valid)
-            want = ep._jit_conditions(start.carry, rows[0][:, :t], rows[1][:, :t], valid,
-                                      start.variation)
+            want = conditions(start.carry, rows[0][:, :t], rows[1][:, :t], valid,
+                              start.variation)
             np.testing.assert_array_equal(s, np.asarray(want[1]))
             np.testing.assert_array_equal(f, np.asarray(want[2]))
             for x, y in zip(jax.tree.leaves(carry), jax.tree.leaves(want[0])):
@@ -157,7 +157,7 @@ def test_the_device_planners_reset_check_is_one_program_for_resets_and_tasks():
     env = ep.reset(_keys(0, 6), np.zeros(6, np.int32))
     actions = ep.expert_actions(env)
     q = np.asarray(env.data[:, ep.spec.arm_q])
-    unpadded = np.asarray(ep._reachable(q, actions.pos, actions.quat, actions.valid))
+    unpadded = np.asarray(ep.plans.reachable(q, actions.pos, actions.quat, actions.valid))
     np.testing.assert_array_equal(ep.expert_reachable(env), unpadded)
     np.testing.assert_array_equal(ep.expert_reachable(env.replace(
         **{f: getattr(env, f)[:2] for f in ("data", "initial_data", "variation", "attached")})),

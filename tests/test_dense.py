@@ -321,7 +321,7 @@ def test_dense_device_program_traces_with_the_documented_shapes() -> None:
     program = ep.dense_program(2, ctl)
     acts = jax.tree.map(jax.numpy.asarray, _hold(env))
     dev = env.to_device()
-    plan = jax.eval_shape(ep._dense_ik, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
+    plan = jax.eval_shape(ep.device_plans.dense_ik, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
     out = jax.eval_shape(program, dev, acts, plan)
     assert (jax.tree.map(lambda x: (x.shape, x.dtype), out)
             == jax.tree.map(lambda x: (x.shape, x.dtype), dev))

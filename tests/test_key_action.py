@@ -5,6 +5,8 @@ the per-task cases are slow tests; `python -m pytest -m slow tests/test_key_acti
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -54,7 +56,7 @@ def test_device_step_traces_with_the_documented_shapes(task):
     program = ep.device_program(2)
     for stop in (True, False):
         dev = env.replace(stop_at_success=stop).to_device()
-        plan = jax.eval_shape(ep._device_plan, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
+        plan = jax.eval_shape(ep.device_plans.plan, dev.data[:, ep.spec.arm_q], acts.pos, acts.quat)
         out = jax.eval_shape(program, dev, acts, plan)
         shapes = jax.tree.map(lambda x: (x.shape, x.dtype), out)
         assert shapes == jax.tree.map(lambda x: (x.shape, x.dtype), dev)
@@ -238,8 +240,9 @@ def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
     apart = Episodes(get_task("lamp_on"), "native", planner="device", plan_rows=whole)
     reset_apart = apart.reset(_keys(whole)[2:4], np.zeros(2, np.int32))
     checked: list[int] = []
-    reachable = apart._reachable
-    monkeypatch.setattr(apart, "_reachable", lambda q, *a: checked.append(len(q)) or reachable(q, *a))
+    reachable = apart.plans.reachable
+    monkeypatch.setattr(apart, "plans", dataclasses.replace(
+        apart.plans, reachable=lambda q, *a: checked.append(len(q)) or reachable(q, *a)))
     np.testing.assert_array_equal(np.asarray(ep.expert_reachable(start))[2:4],
                                   apart.expert_reachable(reset_apart))
     assert checked == [whole]
@@ -260,13 +263,13 @@ def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
     ep = Episodes(get_task("lamp_on"), "native", planner="device")
     env = ep.reset(_keys(b), np.zeros(b, np.int32))
     seen: dict[str, list] = {"conditions": [], "planner": []}
-    conditions, plan = ep._jit_conditions, ep._plan
+    conditions, plan = ep.programs[("conditions",)], ep.plans.plan
 
     def spy(name, fn):
         return lambda *a: seen[name].append(jax.config.jax_default_device) or fn(*a)
 
-    monkeypatch.setattr(ep, "_jit_conditions", spy("conditions", conditions))
-    monkeypatch.setattr(ep, "_plan", spy("planner", plan))
+    monkeypatch.setitem(ep.programs, ("conditions",), spy("conditions", conditions))
+    monkeypatch.setattr(ep, "plans", dataclasses.replace(ep.plans, plan=spy("planner", plan)))
     env, _ = ep.step(env, _expert_steps(ep, env)[0])
     assert seen["planner"] == [None]
     assert seen["conditions"] and set(seen["conditions"]) == {cpu}
@@ -281,3 +284,29 @@ def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
 
     monkeypatch.setattr(phase.jax, "local_devices", no_cpu)
     assert phase.host_device() is None
+
+
+def test_device_reset_and_step_are_pure_functions_a_user_can_jit():
+    """Episodes.device_reset and device_step (issue 52): jitted by the caller, over native
+    physics behind the device boundary (physics/callback.py, so it compiles in seconds),
+    the reset gives the host reset's scenes (no scene re-sampled here) as the device state,
+    and the key action the device program's result."""
+    from agnostos_mjx.physics.callback import callback_physics
+
+    ep = Episodes(get_task("lamp_on"), "native")
+    b = 2
+    keys, variations = _keys(b), np.zeros(b, np.int32)
+    host = ep.reset(keys, variations).to_device()
+    physics = callback_physics(ep.scene.model, b)
+    state = jax.jit(ep.device_reset(b, physics=physics))(keys, variations)
+    assert jax.tree.structure(state) == jax.tree.structure(host)
+    for a, h in zip(jax.tree.leaves(state), jax.tree.leaves(host), strict=True):
+        assert (a.shape, a.dtype) == (h.shape, h.dtype)
+        np.testing.assert_allclose(np.asarray(a, float), np.asarray(h, float), atol=1e-4)
+    first = jax.tree.map(lambda x: jax.numpy.asarray(x[:, 0]), ep.expert_actions(host.to_host()))
+    plan = ep.device_plans.plan(state.data[:, ep.spec.arm_q], first.pos, first.quat)
+    mine = jax.jit(ep.device_step(b, physics))(state, first, plan)
+    want = ep.step_on_device(host.to_host(), first, physics=physics)
+    np.testing.assert_array_equal(np.asarray(mine.outcome), want.outcome)
+    np.testing.assert_array_equal(np.asarray(mine.sim_steps), want.sim_steps)
+    np.testing.assert_allclose(np.asarray(mine.data), want.data, atol=1e-3)

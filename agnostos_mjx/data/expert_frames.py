@@ -98,7 +98,7 @@ def expert_frames(episodes, env, snapshot, every: int | None = None, qpos: bool 
 
     def dense(env, results, rgba, running):
         """The in-between frames of one key action from its phases' StepResults."""
-        colours = episodes.state_colors
+        colours = episodes.fns.colors
         offset = np.zeros(n, np.int64)  # steps of this action before the phase
         total = sum(r.valid.sum(1) for r in results)
         for r in results:

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import functools
 import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -30,39 +33,69 @@ from agnostos_mjx.runtime.phase import (
     steps_per_iteration,
 )
 from agnostos_mjx.runtime.plan_rows import GatheredPlanner
+from agnostos_mjx.runtime.planner import PLANNERS, Planner, resolve_planner
 from agnostos_mjx.runtime.state import EnvState, StepResult
-from agnostos_mjx.sim import control
+from agnostos_mjx.runtime.task_fns import TaskFunctions
 from agnostos_mjx.sim.control import PandaKinematics
-from agnostos_mjx.sim.math3d import quat_conj, quat_rotate
-from agnostos_mjx.sim.observables import Observation
-from agnostos_mjx.sim.visual_state import StateColors
-from agnostos_mjx.sim.world import FINGER_OPEN, SceneModel, apply_placement, build_scene
+from agnostos_mjx.sim.world import FINGER_OPEN, SceneModel, build_scene
 from agnostos_mjx.tasks.base import KeyActions, Task
+
+if TYPE_CHECKING:  # native physics never imports MJX
+    from agnostos_mjx.physics.mjx_backend import DevicePhysics
+
+__all__ = ["PLANNERS", "REACH_STEPS", "SETTLE_STEPS", "Episodes", "device_dense_action",
+           "device_key_action", "resolve_planner", "sample_and_settle"]
 
 log = logging.getLogger(__name__)
 SETTLE_STEPS = 10  # RLBench runs 10 physics steps after placing the scene
-# Attach volume between the fingers in the tip frame (RLBench's attach proximity
-# sensor: 0.02 x 0.10 m face, 0.045 m deep along the approach axis).
-ATTACH_CENTER = np.array([0.0, 0.0, -0.018])
-ATTACH_HALF = np.array([0.01, 0.05, 0.0275])
-
-
-PLANNERS = ("auto", "host", "device")
-
-
 REACH_STEPS = 8  # the device planner checks an expert's key actions in multiples of this
 
 
-def resolve_planner(name: str) -> str:
-    """`auto`: `device` when JAX has an accelerator, else `host`.  `device`: the jitted
-    float32 planner (one program for every task, off the host's Python loop); `host`: numpy
-    float64 (the CPU path, bit for bit as before).  The two can pick different IK
-    solutions near a limit, so a run's records say which (`Episodes.planner`)."""
-    if name not in PLANNERS:
-        raise ValueError(f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}")
-    if name == "auto":
-        return "device" if jax.default_backend() != "cpu" else "host"
-    return name
+def device_key_action(spec: StepSpec, phases: DevicePhases, state: EnvState,
+                      actions: KeyActions, plan: tuple) -> EnvState:
+    """The key action's new state (a device phase records nothing): what
+    `Episodes.device_step` binds to a runner's spec and phases."""
+    return key_action(spec, phases, state, actions, plan)[0]
+
+
+def device_dense_action(spec: StepSpec, phases: DevicePhases, ctl: DenseControl,
+                        state: EnvState, targets: KeyActions, plan: tuple) -> EnvState:
+    """The dense step's new state, as `device_key_action`."""
+    return dense_action(spec, phases, state, targets, plan, ctl)[0]
+
+
+def sample_and_settle(fns: TaskFunctions, dev: DevicePhysics, stop_at_success: bool,
+                      keys: jax.Array, variations: jax.Array) -> EnvState:
+    """B worlds sampled and settled (RLBench's 10 steps) in one traceable function: what
+    `Episodes.reset` does on the host, without re-sampling the scenes whose expert the arm
+    cannot reach (that check is the host's loop)."""
+    m, f32 = fns.scene.model, jnp.float32
+    variations = jnp.asarray(variations, jnp.int32)
+    b = variations.shape[0]
+    qpos, mocap_pos, mocap_quat, rgba = jax.vmap(fns.sample, in_axes=(0, 0, None))(
+        keys, variations, jnp.int32(0))
+    ctrl = jnp.zeros((b, m.nu), f32).at[:, :7].set(qpos[:, fns.scene.arm_qpos])
+    ctrl = ctrl.at[:, 7].set(FINGER_OPEN)
+    physics = PhysicsState(
+        qpos=qpos.astype(f32), qvel=jnp.zeros((b, m.nv), f32), act=jnp.zeros((b, m.na), f32),
+        ctrl=ctrl, mocap_pos=mocap_pos.astype(f32), mocap_quat=mocap_quat.astype(f32),
+        eq_active=jnp.tile(jnp.asarray(m.eq_active0, bool), (b, 1)),
+        eq_data=jnp.tile(jnp.asarray(m.eq_data, f32), (b, 1, 1)), time=jnp.zeros(b, f32))
+    model, d = dev.load(physics)
+
+    def settle(_, d):
+        return dev.step(model, d, ctrl)
+
+    d = jax.lax.fori_loop(0, SETTLE_STEPS, settle, d)
+    data = d.sensordata
+    attached = jnp.zeros((b, len(fns.task.graspables)), bool)
+    carry, _ = jax.vmap(fns.settled)(data, attached, variations)
+    zeros = jnp.zeros(b, jnp.int32)
+    return EnvState(
+        physics=dev.save(physics, d), data=data, attached=attached, carry=carry,
+        variation=variations, gripper=jnp.full(b, FINGER_OPEN, f32), outcome=zeros,
+        key_actions=zeros, sim_steps=zeros, world_steps=zeros, geom_rgba=rgba,
+        initial_data=data, layout=fns.scene.layout, stop_at_success=stop_at_success)
 
 
 class Episodes:
@@ -87,71 +120,34 @@ class Episodes:
         self.kin = PandaKinematics.from_model(self.scene.model)
         self.dt = float(self.scene.model.opt.timestep)
         self.nu = self.scene.model.nu
-        self.state_colors = StateColors(task, self.scene.model, self.scene.layout)
+        self.fns = TaskFunctions.of(task, self.scene)
         self.observer = Observer(task, self.scene, self.backend_name, renderer)
+        # Every jitted program of this runner, by (kind, batch, ...): reset's (the placement;
+        # one program for a settled scene's first condition carry and expert), the host's
+        # condition scan and grasp test here, the device's key action and dense step as
+        # their batches come (device_program, dense_program).
+        self.programs: dict[tuple, Callable] = {
+            ("sample",): jax.jit(jax.vmap(self.fns.sample, in_axes=(0, 0, None))),
+            ("settled",): jax.jit(jax.vmap(self.fns.settled)),
+            ("conditions",): jax.jit(jax.vmap(scan_conditions(self.fns.condition_step))),
+        }
+        if task.graspables:
+            self.programs[("attach",)] = jax.jit(jax.vmap(self.fns.attach))
         self.spec = StepSpec(
             arm_q=self.scene.layout.slice("arm_q"), dt=self.dt,
-            max_key_actions=task.max_key_actions, condition_step=self._condition_step,
-            attach=jax.jit(jax.vmap(self._attach_test)) if task.graspables else None,
-            hand_body=self.scene.hand_body, graspable_bodies=self.scene.graspable_bodies,
-            weld_ids=self.scene.weld_ids, repaint=self.state_colors)
-        self._jit_sample = jax.jit(jax.vmap(self._sample_one, in_axes=(0, 0, None)))
-        # One program for what a settled scene gives: its conditions' first carry and the
-        # expert's key actions (reset rejects scenes the expert cannot reach).
-        self._jit_settled = jax.jit(jax.vmap(self._settled_one))
-        self._jit_conditions = jax.jit(jax.vmap(scan_conditions(self._condition_step)))
-        # Planning (IK and the Cartesian path of every world) is one compiled program shared
-        # by every task of a run (control.jit_for_robot) wherever there is an accelerator,
-        # for native MuJoCo too; on a CPU-only machine it is plain numpy (float64), which
-        # is faster there and what the recorded results were made with (see resolve_planner).
+            max_key_actions=task.max_key_actions, condition_step=self.fns.condition_step,
+            attach=self.programs.get(("attach",)), hand_body=self.scene.hand_body,
+            graspable_bodies=self.scene.graspable_bodies, weld_ids=self.scene.weld_ids,
+            repaint=self.fns.colors)
+        # Next to host physics, planning (IK and the Cartesian path of every world) is one
+        # compiled program shared by every task of a run (control.jit_for_robot) wherever
+        # there is an accelerator; on a CPU-only machine it is plain numpy (float64), which
+        # is faster there and what the recorded results were made with (resolve_planner).
+        # Next to MJX the plan is always the shared program (`device_plans`).
         self.planner = resolve_planner(planner)
-        on_device = self.planner == "device"
-        self._device_plan = control.jit_for_robot(control.plan_arm, self.kin)
-        self._plan = self._device_plan if on_device else (
-            lambda q, p, r: control.plan_arm(self.kin, q, p, r))
-        self._reachable = control.jit_for_robot(control.reachable, self.kin) if on_device else (
-            lambda *args: control.reachable(self.kin, *args))
-        self._device_programs: dict = {}  # batch size -> jitted key action (compiled once each)
-        # Dense control's IK (runtime/dense.py): one small descent per control step, which
-        # native physics runs on the host (a device call's round trip costs more than the
-        # numpy IK) unless the device planner is asked for by name.
-        self._dense_ik = control.jit_for_robot(control.dense_ik, self.kin)
-        self._dense_plan = self._dense_ik if planner == "device" else (
-            lambda q, p, r: control.dense_ik(self.kin, q, p, r))
+        self.plans = Planner.chosen(self.kin, planner)
+        self.device_plans = Planner.device(self.kin)
         self._jit_rows: int | None = None  # batch the jitted reset helpers run at
-
-    # ---- pure pieces (vmapped above) -------------------------------------------------
-    def _sample_one(self, key, variation, attempt):
-        """A placement; attempt k > 0 draws from fold_in(key, k) (reset's re-sampling)."""
-        key = jnp.where(attempt > 0, jax.random.fold_in(key, attempt), key)
-        return apply_placement(self.scene, self.task.sample(key, variation))
-
-    def _obs(self, data, attached) -> Observation:
-        return Observation(data, self.scene.layout, attached)
-
-    def _settled_one(self, data, attached, variation):
-        """(the success and failure trees' first carry, the expert's key actions)."""
-        obs = self._obs(data, attached)
-        carry = (self.task.success(variation).init(obs), self.task.failure(variation).init(obs))
-        return carry, self.task.expert(obs, variation)
-
-    def _condition_step(self, carry, data, attached, variation):
-        """One physics step of one world's success and failure trees: (carry, met, failed)."""
-        obs = self._obs(data, attached)
-        sc, s = self.task.success(variation).step(carry[0], obs)
-        fc, f = self.task.failure(variation).step(carry[1], obs)
-        return (sc, fc), jnp.asarray(s, bool), jnp.asarray(f, bool)
-
-    def _attach_test(self, data, attached):
-        """Which graspables lie in the attach volume (RLBench's grasp on close)."""
-        obs = self._obs(data, attached)
-        tip_p, tip_q = obs["tip.pos"], obs["tip.quat"]
-        hits = []
-        for frame, radius in zip(self.task.grasp_frames, self.task.graspable_radius):
-            local = quat_rotate(quat_conj(tip_q), obs.pos(frame) - tip_p) - ATTACH_CENTER
-            gap = jnp.linalg.norm(jnp.maximum(jnp.abs(local) - ATTACH_HALF, 0.0))
-            hits.append(gap <= radius)
-        return jnp.stack(hits) if hits else jnp.zeros((0,), bool)
 
     # ---- reset ------------------------------------------------------------------------
     def reset(self, keys: jax.Array, variations, placement_tries: int = 20,
@@ -172,7 +168,7 @@ class Episodes:
         keys = jnp.asarray(keys)
         b = len(variations)
         self._jit_rows = b
-        sampled = list(map(np.asarray, self._jit_sample(keys, variations, np.int32(0))))
+        sampled = list(map(np.asarray, self.programs[("sample",)](keys, variations, np.int32(0))))
         state, expert = self._settle(sampled, variations)
         ok = np.array(self.expert_reachable(state, expert), copy=True)
         for attempt in range(1, placement_tries):
@@ -180,7 +176,7 @@ class Episodes:
                 break
             # Only the rejected scenes are settled and checked again (in a padded batch,
             # so jitted shapes stay few); every world is settled once more at the end.
-            fresh = list(map(np.asarray, self._jit_sample(keys, variations, np.int32(attempt))))
+            fresh = list(map(np.asarray, self.programs[("sample",)](keys, variations, np.int32(attempt))))
             bad = ~ok
             sampled = [np.where(bad.reshape(-1, *([1] * (a.ndim - 1))), f, a)
                        for a, f in zip(sampled, fresh)]
@@ -219,7 +215,7 @@ class Episodes:
         physics, sens = self.backend.run(physics, np.repeat(ctrl[:, None], SETTLE_STEPS, axis=1))
         attached = np.zeros((b, len(self.task.graspables)), bool)
         data = np.asarray(sens[:, -1])
-        carry, expert = self._padded(self._jit_settled, data, attached, variations)
+        carry, expert = self._padded(self.programs[("settled",)], data, attached, variations)
         return EnvState(
             physics=physics.numpy(), data=data, attached=attached, carry=carry,
             variation=variations, gripper=np.full(b, FINGER_OPEN),
@@ -249,21 +245,21 @@ class Episodes:
         experts' key actions when the caller has them (reset does)."""
         actions = self.expert_actions(state) if actions is None else actions
         q = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        if self.planner != "device":
-            return np.asarray(self._reachable(q, actions.pos, actions.quat, actions.valid))
+        if not self.plans.on_device:
+            return np.asarray(self.plans.reachable(q, actions.pos, actions.quat, actions.valid))
         # The jitted check runs at the reset's batch size and at a multiple of REACH_STEPS key
         # actions (an invalid one changes nothing): one program for a task's resets and
         # re-samples, and a few for a run's tasks, where each size compiled one.
         pad = ((0, 0), (0, -actions.pos.shape[1] % REACH_STEPS))
         quat = np.pad(np.asarray(actions.quat), (*pad, (0, 0)))
         quat[:, actions.pos.shape[1]:, 0] = 1.0
-        return self._padded(self._reachable, q, np.pad(np.asarray(actions.pos), (*pad, (0, 0))),
+        return self._padded(self.plans.reachable, q, np.pad(np.asarray(actions.pos), (*pad, (0, 0))),
                             quat, np.pad(np.asarray(actions.valid), pad), rows=self.plan_rows)
 
     def expert_actions(self, state: EnvState) -> KeyActions:
         """The task's scripted expert, computed from the observation at reset."""
         initial = state.initial_obs
-        return self._padded(self._jit_settled, initial.data, initial.attached,
+        return self._padded(self.programs[("settled",)], initial.data, initial.attached,
                             state.variation)[1]
 
     def _padded(self, fn, *args, rows: int | None = None):
@@ -291,51 +287,53 @@ class Episodes:
         `plan_request`) when the caller has it."""
         if self.capabilities.on_device and not record:
             return self.step_on_device(state, actions), ()
-        plan_fn = self._plan if plan is None else (lambda *_: plan)
-        return self._run_on_host(state, actions, plan_fn,
-                                 lambda *args: key_action(self.spec, *args))
+        if plan is None:
+            plan = self._plan_on_host(self.plans.plan, state, actions)
+        phases = self._host_phases()
+        with jax.default_device(host_device()):
+            return key_action(self.spec, phases, state, jax.tree.map(np.asarray, actions),
+                              tuple(map(np.asarray, plan)))
 
     def plan_request(self, state: EnvState, actions: KeyActions
                      ) -> concurrent.futures.Future | None:
         """The plan of `step` on the host as a request that gathers with other tasks' (one
         device planner call for the worlds of every task waiting: runtime/plan_rows.py);
         None where `step` plans by itself (the host planner, the MJX backends)."""
-        if self.capabilities.on_device or self.planner != "device":
+        if self.capabilities.on_device or not self.plans.on_device:
             return None
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
         return GatheredPlanner.for_robot(self.kin).submit(q0, actions.pos, actions.quat,
                                                           self.plan_rows)
 
-    def _run_on_host(self, state: EnvState, actions: KeyActions, plan_fn, run,
-                     rows: int = CONDITION_ROWS) -> tuple[EnvState, tuple[StepResult, ...]]:
-        """`run(phases, state, actions, plan)` on the host (HostPhases, numpy; its jitted
-        helpers on the CPU), the plan `plan_fn(q, pos, quat)` from the current joints;
-        `rows`: the condition program's rows per call."""
-        phases = HostPhases(self.backend, self.scene.model, self._jit_conditions,
-                            self.record_qpos, rows)
+    def _host_phases(self, rows: int = CONDITION_ROWS) -> HostPhases:
+        """The host's physics boundary (numpy; its jitted helpers on the CPU); `rows`: the
+        condition program's rows per call."""
+        return HostPhases(self.backend, self.scene.model, self.programs[("conditions",)],
+                          self.record_qpos, rows)
+
+    def _plan_on_host(self, plan_fn: Callable, state: EnvState, actions: KeyActions) -> tuple:
+        """`plan_fn(q, pos, quat)` from the current joints, in float64, as numpy: asked
+        before the key action, on JAX's default device (the device planner's)."""
         q0 = np.asarray(state.data[:, self.spec.arm_q], np.float64)
-        plan = tuple(map(np.asarray, plan_fn(
+        return tuple(map(np.asarray, plan_fn(
             q0, np.asarray(actions.pos, q0.dtype), np.asarray(actions.quat, q0.dtype))))
-        actions = jax.tree.map(np.asarray, actions)
-        with jax.default_device(host_device()):
-            return run(phases, state, actions, plan)
 
     def step_on_device(self, state: EnvState, actions: KeyActions, physics=None,
                        unroll: int | None = None) -> EnvState:
         """`step` as one device program; the physics state and condition carries stay on
         the device, the host receives the per-world bookkeeping and latest sensor row.
-        `physics`, `unroll`: see `device_program`."""
-        return self._run_on_device(state, actions,
-                                   lambda b: self.device_program(b, physics, unroll),
-                                   self._device_plan)
+        `physics`, `unroll`: see `device_step`."""
+        dev, acts, n = self._to_device(state, actions)
+        program = self.device_program(dev.batch, physics, unroll)
+        # The plan is its own program, shared by every task (control.jit_for_robot): the
+        # IK is most of the compile time, and the robot is the same in every scene.
+        plan = self.device_plans.plan(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        return self._run_program(program, dev, acts, plan, n)
 
-    def _run_on_device(self, state: EnvState, actions: KeyActions, program_for, plan_fn
-                       ) -> EnvState:
-        """`program_for(batch)(state, actions, plan_fn(q, pos, quat))` with state and
-        actions as JAX arrays, split over the local devices where the backend has several
-        (sharding.py); returns the host's view of the new state."""
-        from agnostos_mjx.physics.mjx_backend import gc_paused
-
+    def _to_device(self, state: EnvState, actions: KeyActions
+                   ) -> tuple[EnvState, KeyActions, int]:
+        """State and actions as JAX arrays, split over the local devices where the backend
+        has several (sharding.py); with the batch to cut the result back to."""
         dev = state.to_device()
         acts = KeyActions(jnp.asarray(actions.pos, jnp.float32),
                           jnp.asarray(actions.quat, jnp.float32),
@@ -345,27 +343,44 @@ class Episodes:
         mesh = getattr(self.backend, "mesh", None)
         if mesh is not None:  # worlds split over the local devices (sharding.py)
             (dev, acts), n = sharding.shard((dev, acts), mesh)
-        program = program_for(dev.batch)
-        # The plan is its own program, shared by every task (control.jit_for_robot): the
-        # IK is most of the compile time, and the robot is the same in every scene.
-        plan = plan_fn(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        return dev, acts, n
+
+    def _run_program(self, program: Callable, dev: EnvState, acts: KeyActions, plan: tuple,
+                     n: int) -> EnvState:
+        """`program(dev, acts, plan)` to its end; the host's view of its first `n` worlds."""
+        from agnostos_mjx.physics.mjx_backend import gc_paused
+
         with gc_paused() if self.capabilities.captures_graphs else contextlib.nullcontext():
             new = jax.block_until_ready(program(dev, acts, plan))
         return sharding.unpad(new, n).to_host()
 
-    def device_program(self, batch: int, physics=None, unroll: int | None = None):
-        """The jitted key action of a batch of `batch` worlds: (state, actions, plan) ->
-        state, compiled once per batch size (and per stop_at_success).  `physics`: the
-        DevicePhysics to step (default: this runner's MJX backend's); `unroll`: physics
-        steps per loop iteration (default: phase.steps_per_iteration)."""
-        key = (batch, physics, unroll)
-        if key not in self._device_programs:
-            dev = physics or self.backend.device_physics(batch)
-            k = unroll or steps_per_iteration(self.backend_name)
-            phases = DevicePhases(dev, self._condition_step, k)
-            self._device_programs[key] = jax.jit(
-                lambda s, a, p: key_action(self.spec, phases, s, a, p)[0])
-        return self._device_programs[key]
+    def device_step(self, batch: int, physics=None, unroll: int | None = None
+                    ) -> Callable[[EnvState, KeyActions, tuple], EnvState]:
+        """The key action of `batch` worlds on the device as a pure function (state,
+        actions, plan) -> state over JAX arrays (`EnvState.to_device`; the plan
+        `self.device_plans.plan(q, pos, quat)`): jit it, or trace it into a program of
+        your own.  `physics`: the DevicePhysics to step (default: this runner's MJX
+        backend's); `unroll`: physics steps per loop iteration (default:
+        phase.steps_per_iteration)."""
+        dev = physics or self.backend.device_physics(batch)
+        phases = DevicePhases(dev, self.spec.condition_step,
+                              unroll or steps_per_iteration(self.backend_name))
+        return functools.partial(device_key_action, self.spec, phases)
+
+    def device_reset(self, batch: int, stop_at_success: bool = True, physics=None
+                     ) -> Callable[[jax.Array, jax.Array], EnvState]:
+        """Reset of `batch` worlds on the device as a pure function (keys, variations) ->
+        state (`sample_and_settle`: no re-sampling of scenes the expert cannot reach);
+        `physics` as in `device_step`."""
+        return functools.partial(sample_and_settle, self.fns,
+                                 physics or self.backend.device_physics(batch), stop_at_success)
+
+    def device_program(self, batch: int, physics=None, unroll: int | None = None) -> Callable:
+        """`device_step` jitted, compiled once per batch size (and per stop_at_success)."""
+        key = ("key_action", batch, physics, unroll)
+        if key not in self.programs:
+            self.programs[key] = jax.jit(self.device_step(batch, physics, unroll))
+        return self.programs[key]
 
     # ---- one dense control step ---------------------------------------------------------
     def step_dense(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
@@ -376,29 +391,36 @@ class Episodes:
         `record=True` run the same step on the host."""
         if self.capabilities.on_device and not record:
             return self.dense_on_device(state, targets, ctl), ()
-        return self._run_on_host(state, targets, self._dense_plan,
-                                 lambda *args: dense_action(self.spec, *args, ctl),
-                                 condition_rows(ctl.period_steps))
+        plan = self._plan_on_host(self.plans.dense_ik, state, targets)
+        phases = self._host_phases(condition_rows(ctl.period_steps))
+        with jax.default_device(host_device()):
+            return dense_action(self.spec, phases, state, jax.tree.map(np.asarray, targets),
+                                plan, ctl)
 
     def dense_on_device(self, state: EnvState, targets: KeyActions, ctl: DenseControl,
                         physics=None) -> EnvState:
         """`step_dense` as one device program (the IK its own program, shared by every
         task as the key action's plan is); `physics`: the DevicePhysics to step (default:
         this runner's MJX backend's)."""
-        return self._run_on_device(state, targets,
-                                   lambda b: self.dense_program(b, ctl, physics),
-                                   self._dense_ik)
+        dev, acts, n = self._to_device(state, targets)
+        program = self.dense_program(dev.batch, ctl, physics)
+        plan = self.device_plans.dense_ik(dev.data[:, self.spec.arm_q], acts.pos, acts.quat)
+        return self._run_program(program, dev, acts, plan, n)
 
-    def dense_program(self, batch: int, ctl: DenseControl, physics=None):
-        """The jitted dense step of `batch` worlds: (state, targets, IK plan) -> state,
-        compiled once per batch size and control (as `device_program`)."""
+    def dense_step(self, batch: int, ctl: DenseControl, physics=None
+                   ) -> Callable[[EnvState, KeyActions, tuple], EnvState]:
+        """The dense step of `batch` worlds as a pure function (state, targets, IK plan)
+        -> state, as `device_step` (the plan `self.device_plans.dense_ik(q, pos, quat)`)."""
+        phases = DevicePhases(physics or self.backend.device_physics(batch),
+                              self.spec.condition_step, steps_per_iteration(self.backend_name))
+        return functools.partial(device_dense_action, self.spec, phases, ctl)
+
+    def dense_program(self, batch: int, ctl: DenseControl, physics=None) -> Callable:
+        """`dense_step` jitted, compiled once per batch size and control."""
         key = ("dense", batch, ctl, physics)
-        if key not in self._device_programs:
-            phases = DevicePhases(physics or self.backend.device_physics(batch),
-                                  self._condition_step, steps_per_iteration(self.backend_name))
-            self._device_programs[key] = jax.jit(
-                lambda s, a, p: dense_action(self.spec, phases, s, a, p, ctl)[0])
-        return self._device_programs[key]
+        if key not in self.programs:
+            self.programs[key] = jax.jit(self.dense_step(batch, ctl, physics))
+        return self.programs[key]
 
     # ---- observation ------------------------------------------------------------------
     def render(self, state: EnvState, camera: str = "front", width: int = 128,
