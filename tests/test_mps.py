@@ -344,7 +344,7 @@ def test_long_out_paths_get_a_short_pipe_folder(machine, tmp_path: Path) -> None
 def test_cli_option() -> None:
     from agnostos_mjx.evaluation.config import parse_config
 
-    assert parse_config([]).mps == "auto" and parse_config(["--mps", "off"]).mps == "off"
+    assert parse_config([]).run.mps == "auto" and parse_config(["--mps", "off"]).run.mps == "off"
     with pytest.raises(SystemExit):
         parse_config(["--mps", "maybe"])
 
@@ -369,8 +369,8 @@ def test_default_process_count_follows_the_gpus_and_cores(tmp_path: Path,
         env = {**bare, "CUDA_VISIBLE_DEVICES": gpus}
         assert processes.default_count(cfg, env)[0] == expected, (cores, gpus)
     env = {**bare, "CUDA_VISIBLE_DEVICES": "0"}
-    assert processes.default_count(EvalConfig(num_processes=4, process_id=1), env)[0] == 1
-    assert processes.default_count(EvalConfig(resume=True), env)[0] == 1
+    assert processes.default_count(EvalConfig.of(num_processes=4, process_id=1), env)[0] == 1
+    assert processes.default_count(EvalConfig.of(resume=True), env)[0] == 1
     monkeypatch.setattr(settings, "usable_cores", lambda: 16)
-    few = EvalConfig(tasks="lamp_on,close_jar", seeds=[0])  # one process per (task, seed)
+    few = EvalConfig.of(tasks="lamp_on,close_jar", seeds=[0])  # one process per (task, seed)
     assert processes.default_count(few, env)[0] == 2

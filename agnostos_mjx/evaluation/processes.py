@@ -95,29 +95,30 @@ def default_count(cfg: EvalConfig, environ: dict[str, str] | None = None) -> tup
     from agnostos_mjx.infra.settings import usable_cores
     from agnostos_mjx.tasks.catalog import parse_task_names
 
-    if cfg.num_processes > 1 or cfg.coordinator or (cfg.resume and cfg.out is None):
+    run = cfg.run
+    if run.num_processes > 1 or run.coordinator or (run.resume and run.out is None):
         return 1, "one process of a run"
     gpus, source = mps.visible_gpus(dict(os.environ if environ is None else environ))
     if not gpus:
         return 1, source
     cores = usable_cores()
-    units = len(parse_task_names(cfg.tasks)) * len(cfg.seeds)
+    units = len(parse_task_names(cfg.protocol.tasks)) * len(cfg.protocol.seeds)
     n = max(1, min(PROCESSES_PER_GPU * len(gpus), MAX_DEFAULT_PROCESSES, cores // 2, units))
     return n, f"{len(gpus)} GPU(s) and {cores} cores"
 
 
 def main(cfg: EvalConfig, argv: Sequence[str]) -> int:
     """``--local-processes N``: the run of `argv` as N processes, then merged; the exit code."""
-    if cfg.out is None:
+    if cfg.run.out is None:
         print("error: --local-processes needs --out DIR, the folder the processes share",
               file=sys.stderr)
         return 2
-    if cfg.num_processes > 1 or cfg.coordinator:
+    if cfg.run.num_processes > 1 or cfg.run.coordinator:
         print("error: --local-processes starts its own processes; drop --num-processes, "
               "--process-id and --coordinator", file=sys.stderr)
         return 2
-    return run(argv, cfg.local_processes, Path(cfg.out), cfg.quiet, cfg.gpu_mem_fraction,
-               mps_mode=cfg.mps)
+    return run(argv, cfg.run.local_processes, Path(cfg.run.out), cfg.run.quiet,
+               cfg.run.gpu_mem_fraction, mps_mode=cfg.run.mps)
 
 
 def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
