@@ -97,7 +97,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         if guard is not None and cfg.run.out:  # the resume hint even if stopping takes long
             guard.message = processes.interrupted_text(Path(cfg.run.out))
             guard.grace_s = processes.STOP_GRACE_S
-        return processes.main(cfg, argv)  # the launcher imports no JAX: its processes do
+        return processes.main(cfg)  # the launcher imports no JAX: its processes do
     from agnostos_mjx.evaluation.run import evaluate, resolve_out
 
     try:

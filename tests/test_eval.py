@@ -297,7 +297,7 @@ def test_the_command_line_is_generated_from_eval_config() -> None:
 
     from agnostos_mjx.evaluation.config import OPTIONS, EvalConfig, build_parser, parse_config
 
-    options = {a.dest: a for a in build_parser()._actions if a.dest != "help"}
+    options = {a.dest: a for a in build_parser()._actions if a.dest not in ("help", "spec")}
     assert sorted(options) == sorted(OPTIONS)
     assert all(a.help and a.option_strings for a in options.values())
     assert parse_config([]) == EvalConfig()
@@ -310,6 +310,21 @@ def test_the_command_line_is_generated_from_eval_config() -> None:
     assert EvalConfig.of(**cfg.options()) == cfg
     with pytest.raises(TypeError, match="no such option: sedes"):
         EvalConfig.of(sedes=[0])
+
+
+def test_a_spec_file_and_the_options_beside_it(tmp_path: Path, capsys) -> None:
+    """--spec FILE: the config written there, with the options given beside it; a file
+    that cannot be read is a usage error (exit 2)."""
+    from agnostos_mjx.evaluation.config import EvalConfig, parse_config, write_spec
+
+    cfg = EvalConfig.of(tasks="lamp_on", seeds=[5], policy_args={"k": [1]}, out="o")
+    write_spec(tmp_path / "spec.json", cfg)
+    assert parse_config(["--spec", str(tmp_path / "spec.json")]) == cfg
+    assert parse_config(["--spec", str(tmp_path / "spec.json"), "--process-id", "3"]
+                        ) == cfg.with_options(process_id=3)
+    with pytest.raises(SystemExit) as exc:
+        parse_config(["--spec", str(tmp_path / "missing.json")])
+    assert exc.value.code == 2 and "--spec" in capsys.readouterr().err
 
 
 # The command line as it was before EvalConfig had parts: its flags and --help's sections.
@@ -327,11 +342,15 @@ HELP_SECTIONS = ["positional arguments", "options", "dense control (see README, 
 
 def test_the_flags_and_help_sections_stay() -> None:
     """Splitting the config into parts keeps the command line: same flags, same sections,
-    the main options in their order."""
+    the main options in their order; the processes' --spec is not in --help."""
+    import argparse
+
     from agnostos_mjx.evaluation.config import build_parser
 
     parser = build_parser()
-    assert sorted(s for a in parser._actions for s in a.option_strings) == FLAGS
+    assert sorted(s for a in parser._actions for s in a.option_strings
+                  if a.help != argparse.SUPPRESS) == FLAGS
+    assert "--spec" not in parser.format_help()
     assert [g.title for g in parser._action_groups] == HELP_SECTIONS
     main = [a.option_strings[0] for a in parser._action_groups[1]._group_actions]
     assert main[:6] == ["-h", "--policy", "--policy-arg", "--policy-url",

@@ -17,12 +17,12 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-from dataclasses import MISSING, Field, dataclass, field, fields
+from dataclasses import MISSING, Field, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from agnostos_mjx.infra import settings
-from agnostos_mjx.infra.cli import HelpFormatter, prog
+from agnostos_mjx.infra.cli import HelpFormatter, atomic_write, prog
 from agnostos_mjx.infra.mps import MODES as MPS_MODES
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
@@ -363,8 +363,9 @@ def _default(f: Field) -> Any:
     return f.default_factory() if f.default is MISSING else f.default  # type: ignore[misc]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The command line of EvalConfig's options (see `option`), in HELP_ORDER."""
+def build_parser(defaults: bool = True) -> argparse.ArgumentParser:
+    """The command line of EvalConfig's options (see `option`), in HELP_ORDER, and the
+    hidden ``--spec FILE``; without `defaults` a parse holds only the options given."""
     parser = argparse.ArgumentParser(
         prog=prog("agnostos_mjx.eval"),
         description="Evaluate a policy on AGNOSTOS tasks (X-ICM protocol) and write "
@@ -383,17 +384,47 @@ def build_parser() -> argparse.ArgumentParser:
             kwargs["action"], default = "append", None
         if meta["group"] not in groups:
             groups[meta["group"]] = parser.add_argument_group(meta["group"])
-        groups[meta["group"]].add_argument(meta["flag"] or "--" + name.replace("_", "-"),
-                                           dest=name, default=default, help=meta["help"],
-                                           **kwargs)
+        groups[meta["group"]].add_argument(
+            meta["flag"] or "--" + name.replace("_", "-"), dest=name, help=meta["help"],
+            default=default if defaults else argparse.SUPPRESS, **kwargs)
+    # The processes of --local-processes read the run from the file their launcher wrote
+    # (write_spec), not from flags parsed again; not for people, so not in --help.
+    parser.add_argument("--spec", metavar="FILE", help=argparse.SUPPRESS,
+                        default=None if defaults else argparse.SUPPRESS)
     return parser
 
 
 def parse_config(argv: list[str] | None = None) -> EvalConfig:
-    """EvalConfig of a command line (argparse exits on a bad one)."""
+    """EvalConfig of a command line (argparse exits on a bad one); with ``--spec FILE``,
+    the config of FILE with the options given beside it."""
     args = vars(build_parser().parse_args(argv))
-    return EvalConfig.of(**{name: dict(args[name] or []) if isinstance(_default(f), dict)
-                            else args[name] for name, (_, f) in OPTIONS.items()})
+    if args.pop("spec") is None:
+        return EvalConfig.of(**_values(args))
+    parser = build_parser(defaults=False)
+    given = vars(parser.parse_args(argv))
+    try:
+        return read_spec(Path(given.pop("spec"))).with_options(**_values(given))
+    except UsageError as e:
+        parser.error(str(e))
+
+
+def _values(args: dict[str, Any]) -> dict[str, Any]:
+    """Parsed options as EvalConfig's values: repeated KEY=VALUE pairs as a dict."""
+    return {name: dict(value or []) if isinstance(_default(OPTIONS[name][1]), dict) else value
+            for name, value in args.items()}
+
+
+def write_spec(path: Path, cfg: EvalConfig) -> None:
+    """`cfg` to `path` (results.json's "config" form), whole or not at all."""
+    atomic_write(path, json.dumps(asdict(cfg), indent=1) + "\n")
+
+
+def read_spec(path: Path) -> EvalConfig:
+    """The config `write_spec` wrote; a UsageError when it cannot be read."""
+    try:
+        return EvalConfig.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError, TypeError) as e:
+        raise UsageError(f"--spec {path}: {e}") from None
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
