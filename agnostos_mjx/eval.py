@@ -69,32 +69,35 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     settings.configure_jax()  # before JAX is imported: its environment, no import
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg = parse_config(argv)
-    if cfg.merge:
-        setup_logging(cfg.quiet)
-        return merge_main(cfg.out)
+    if cfg.run.merge:
+        setup_logging(cfg.run.quiet)
+        return merge_main(cfg.run.out)
     try:  # before any warm-up or process starts (the names' check imports no JAX)
-        parse_task_names(cfg.tasks)
+        parse_task_names(cfg.protocol.tasks)
     except KeyError as e:
         print(f"error: {e.args[0]}", file=sys.stderr)
         return 2
-    if cfg.local_processes is None:
+    if cfg.run.local_processes is None:
         argv = default_processes(cfg, argv)
     # What every process of a run would compile alike, once per machine and before them.
-    default_selection = cfg.policy in ("auto", "retrieval", "xicm") and cfg.selection == "auto"
-    if warmup.builds_kernels(cfg.backend) and cfg.num_processes == 1:
-        setup_logging(cfg.quiet)
-        warmup.ensure_warp_kernels(cfg.tasks, cfg.batch, cfg.planner, selection=default_selection,
-                                   one_gpu=cfg.local_processes > 1)
-    elif cfg.local_processes > 1:
-        setup_logging(cfg.quiet)
-        warmup.ensure_shared_programs(cfg.tasks, cfg.batch, cfg.planner,
+    default_selection = (cfg.policy.spec in ("auto", "retrieval", "xicm")
+                         and cfg.xicm.selection == "auto")
+    protocol = cfg.protocol
+    if warmup.builds_kernels(protocol.backend) and cfg.run.num_processes == 1:
+        setup_logging(cfg.run.quiet)
+        warmup.ensure_warp_kernels(protocol.tasks, protocol.batch, protocol.planner,
+                                   selection=default_selection,
+                                   one_gpu=cfg.run.local_processes > 1)
+    elif cfg.run.local_processes > 1:
+        setup_logging(cfg.run.quiet)
+        warmup.ensure_shared_programs(protocol.tasks, protocol.batch, protocol.planner,
                                       selection=default_selection)
-    if cfg.local_processes > 1:
-        setup_logging(cfg.quiet)
-        if guard is not None and cfg.out:  # the resume hint even if stopping takes long
-            guard.message = processes.interrupted_text(Path(cfg.out))
+    if cfg.run.local_processes > 1:
+        setup_logging(cfg.run.quiet)
+        if guard is not None and cfg.run.out:  # the resume hint even if stopping takes long
+            guard.message = processes.interrupted_text(Path(cfg.run.out))
             guard.grace_s = processes.STOP_GRACE_S
-        return processes.main(cfg, argv)  # the launcher imports no JAX: its processes do
+        return processes.main(cfg)  # the launcher imports no JAX: its processes do
     from agnostos_mjx.evaluation.run import evaluate, resolve_out
 
     try:
@@ -103,7 +106,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"agnostos_mjx.eval: policy {spec}" + (f" ({note})" if note else ""), flush=True)
-    setup_logging(cfg.quiet)
+    setup_logging(cfg.run.quiet)
     try:
         start_devices(cfg, spec)
     except UsageError as e:
@@ -113,7 +116,7 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     try:
         out_dir = resolve_out(cfg, spec)
         existed = out_dir.exists()
-        message = functools.partial(interrupted_message, out_dir, argv, Path(cfg.out))
+        message = functools.partial(interrupted_message, out_dir, argv, Path(cfg.run.out))
         if guard is not None:
             guard.message = message
         results = evaluate(cfg)
@@ -133,25 +136,25 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         if out_dir is not None and not existed:
             remove_empty_dirs(out_dir)  # a run that failed before its first result
     print(results["markdown"], end="", flush=True)
-    log.info("wrote %s", cfg.out)
+    log.info("wrote %s", cfg.run.out)
     return max(request_summaries(results), policy_error_summary(results),
                failed_task_summary(results))
 
 
 def default_processes(cfg: EvalConfig, argv: list[str]) -> list[str]:
-    """Sets cfg.local_processes to the machine's default (processes.default_count) and
+    """Sets cfg.run.local_processes to the machine's default (processes.default_count) and
     returns the command line its processes get (with the run's folder, chosen here)."""
     n, why = processes.default_count(cfg)
-    cfg.local_processes = n
+    cfg.run.local_processes = n
     if n == 1:
         return argv
-    if cfg.out is None:
+    if cfg.run.out is None:
         try:
-            cfg.out = str(default_out(resolve_policy(cfg)[0]))
+            cfg.run.out = str(default_out(resolve_policy(cfg)[0]))
         except Exception:  # noqa: BLE001 - one process reports the policy's error
-            cfg.local_processes = 1
+            cfg.run.local_processes = 1
             return argv
-        argv = [*argv, "--out", cfg.out]
+        argv = [*argv, "--out", cfg.run.out]
     print(f"agnostos_mjx.eval: {n} processes ({why}; --local-processes 1 runs one)",
           flush=True)
     return argv
@@ -162,16 +165,18 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
     --coordinator (before anything touches a device)."""
     from agnostos_mjx.infra.gpu import apply_memory_limit
 
-    served = cfg.policy_url or settings.POLICY_URL.get()
-    servers = {"remote": served, "openvla": served, "xicm": cfg.llm_url or settings.LLM_URL.get()}
+    served = cfg.policy.url or settings.POLICY_URL.get()
+    servers = {"remote": served, "openvla": served,
+               "xicm": cfg.xicm.llm_url or settings.LLM_URL.get()}
+    run = cfg.run
     try:
-        apply_memory_limit(cfg.gpu_mem_fraction, [servers.get(spec)])
+        apply_memory_limit(run.gpu_mem_fraction, [servers.get(spec)])
     except ValueError as e:
         raise UsageError(f"--gpu-mem-fraction: {e}") from None
-    if cfg.coordinator:
+    if run.coordinator:
         import jax
 
-        jax.distributed.initialize(cfg.coordinator, cfg.num_processes, cfg.process_id)
+        jax.distributed.initialize(run.coordinator, run.num_processes, run.process_id)
 
 
 def cli() -> int:

@@ -276,7 +276,7 @@ def test_cli_dense_replay_records_the_mode_and_budget(tmp_path: Path) -> None:
     assert record["success"] and record["action_mode"] == "dense"
     assert record["step_budget"] == 500 and record["control_hz"] == 20.0
     assert record["policy_info"]["demo_success"]
-    config = json.loads((out / "results.json").read_text())["config"]
+    config = json.loads((out / "results.json").read_text())["config"]["protocol"]
     assert config["action_mode"] == "dense" and config["execute"] == 3
 
 

@@ -291,21 +291,103 @@ def test_help(capsys: pytest.CaptureFixture) -> None:
 
 
 def test_the_command_line_is_generated_from_eval_config() -> None:
-    """Every EvalConfig field is one documented option; no options means the defaults, and
-    each option reaches its field."""
-    from dataclasses import asdict, fields
+    """Every option of EvalConfig's parts is one documented option; no options means the
+    defaults, and each option reaches its part's field."""
+    from dataclasses import asdict
 
-    from agnostos_mjx.evaluation.config import EvalConfig, build_parser, parse_config
+    from agnostos_mjx.evaluation.config import OPTIONS, EvalConfig, build_parser, parse_config
 
-    options = {a.dest: a for a in build_parser()._actions if a.dest != "help"}
-    assert sorted(options) == sorted(f.name for f in fields(EvalConfig))
+    options = {a.dest: a for a in build_parser()._actions if a.dest not in ("help", "spec")}
+    assert sorted(options) == sorted(OPTIONS)
     assert all(a.help and a.option_strings for a in options.values())
     assert parse_config([]) == EvalConfig()
     cfg = parse_config(["--seeds", "2,0,2", "--policy-arg", "k=[1]", "--policy-arg", "s=a b",
                         "--resume", "--llm-timeout", "9", "--process-id", "1"])
-    assert cfg.seeds == [2, 0] and cfg.policy_args == {"k": [1], "s": "a b"}
-    assert cfg.resume and cfg.llm_timeout == 9.0 and cfg.process_id == 1
-    assert asdict(EvalConfig(**asdict(cfg))) == asdict(cfg)  # as merge rebuilds it
+    assert cfg.protocol.seeds == [2, 0] and cfg.policy.args == {"k": [1], "s": "a b"}
+    assert cfg.run.resume and cfg.xicm.llm_timeout == 9.0 and cfg.run.process_id == 1
+    assert EvalConfig.from_dict(asdict(cfg)) == cfg  # as merge rebuilds it
+    assert EvalConfig.from_dict(cfg.options()) == cfg  # a flat config, written before the parts
+    assert EvalConfig.of(**cfg.options()) == cfg
+    with pytest.raises(TypeError, match="no such option: sedes"):
+        EvalConfig.of(sedes=[0])
+
+
+def test_a_spec_file_and_the_options_beside_it(tmp_path: Path, capsys) -> None:
+    """--spec FILE: the config written there, with the options given beside it; a file
+    that cannot be read is a usage error (exit 2)."""
+    from agnostos_mjx.evaluation.config import EvalConfig, parse_config, write_spec
+
+    cfg = EvalConfig.of(tasks="lamp_on", seeds=[5], policy_args={"k": [1]}, out="o")
+    write_spec(tmp_path / "spec.json", cfg)
+    assert parse_config(["--spec", str(tmp_path / "spec.json")]) == cfg
+    assert parse_config(["--spec", str(tmp_path / "spec.json"), "--process-id", "3"]
+                        ) == cfg.with_options(process_id=3)
+    with pytest.raises(SystemExit) as exc:
+        parse_config(["--spec", str(tmp_path / "missing.json")])
+    assert exc.value.code == 2 and "--spec" in capsys.readouterr().err
+
+
+# The command line as it was before EvalConfig had parts: its flags and --help's sections.
+FLAGS = (
+    "--action-mode --backend --batch --compare --control-hz --coordinator --ddim-steps "
+    "--dense-steps --devices --episodes --execute --fail-fast --gpu-mem-fraction --help "
+    "--llm-cache --llm-concurrency --llm-model --llm-server-kind --llm-timeout --llm-url "
+    "--local-processes --memory --merge --mps --num-demos --num-processes --out "
+    "--overlap-tasks --planner --policy --policy-arg --policy-url --process-id --quiet "
+    "--renderer --resume --seeds --selection --task-queue --tasks --variations --video "
+    "--video-cameras -h").split()
+HELP_SECTIONS = ["positional arguments", "options", "dense control (see README, Dense control)",
+                 "several devices and hosts (see README, Scale out)", "X-ICM and retrieval"]
+
+
+def test_the_flags_and_help_sections_stay() -> None:
+    """Splitting the config into parts keeps the command line: same flags, same sections,
+    the main options in their order; the processes' --spec is not in --help."""
+    import argparse
+
+    from agnostos_mjx.evaluation.config import build_parser
+
+    parser = build_parser()
+    assert sorted(s for a in parser._actions for s in a.option_strings
+                  if a.help != argparse.SUPPRESS) == FLAGS
+    assert "--spec" not in parser.format_help()
+    assert [g.title for g in parser._action_groups] == HELP_SECTIONS
+    main = [a.option_strings[0] for a in parser._action_groups[1]._group_actions]
+    assert main[:6] == ["-h", "--policy", "--policy-arg", "--policy-url",
+                        "--gpu-mem-fraction", "--tasks"]
+
+
+def _process_results(out: Path, config: dict, task: str, seed: int) -> None:
+    """A process's folder of a two-process run, as `merge` finds it."""
+    folder = out / f"proc-{seed}"
+    folder.mkdir(parents=True)
+    recs = _records(task, "unseen_level1", seed, [True, False])
+    (folder / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    (folder / "results.json").write_text(json.dumps({
+        "config": config, "policy": {"name": "oracle"}, "backend": "native",
+        "renderer": None, "versions": {}, "tasks": [task], "started": "t", "finished": "t",
+        "wall_s": 1.0, "episodes": recs}))
+
+
+@pytest.mark.parametrize("flat", [True, False])
+def test_merge_reads_flat_and_nested_configs(flat: bool, tmp_path: Path) -> None:
+    """results.json written before the config had parts (a flat "config", one key per
+    option, some since removed) merges as well as a nested one; the merge writes it nested."""
+    from dataclasses import asdict
+
+    from agnostos_mjx.evaluation.config import EvalConfig
+
+    for i in (0, 1):
+        cfg = EvalConfig.of(tasks="lamp_on", seeds=[0, 1], episodes=2, num_processes=2,
+                            process_id=i, out=str(tmp_path), compare="X-ICM 7B")
+        config = {**cfg.options(), "removed_option": 1} if flat else asdict(cfg)
+        _process_results(tmp_path, config, "lamp_on", i)
+    merged = summary.merge(tmp_path)
+    assert merged["complete"] and len(merged["episodes"]) == 4
+    assert [p["process_id"] for p in merged["processes"]] == [0, 1]
+    assert merged["config"]["run"]["num_processes"] == 1
+    assert merged["config"]["protocol"]["seeds"] == [0, 1]
+    assert "X-ICM 7B (published)" in merged["markdown"]
 
 
 def test_markdown_compare_column_and_plot(tmp_path: Path) -> None:

@@ -9,7 +9,6 @@ import random
 import re
 import socket
 import threading
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -420,7 +419,7 @@ def test_llm_flags_are_documented(capsys):
     for flag in ("--llm-timeout", "--llm-concurrency", "--llm-server-kind"):
         assert flag in out
     cfg = parse_config(["--llm-timeout", "30", "--llm-server-kind", "llamacpp"])
-    _, kwargs, _ = resolve_policy(replace(cfg, policy="xicm"))
+    _, kwargs, _ = resolve_policy(cfg.with_options(policy="xicm"))
     assert (kwargs["timeout_s"], kwargs["server_kind"], kwargs["concurrency"]) == (
         30.0, "llamacpp", None)
 

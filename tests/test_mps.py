@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from agnostos_mjx.evaluation import processes
+from agnostos_mjx.evaluation.config import parse_config
 from agnostos_mjx.infra import mps
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,8 +44,10 @@ CHILD = """
 import json, os, sys, time
 from pathlib import Path
 argv = sys.argv[1:]
-out, i = Path(argv[argv.index("--out") + 1]), argv[argv.index("--process-id") + 1]
-record = {"argv": argv, **{k: os.environ.get(k) for k in KEYS}}
+spec = Path(argv[argv.index("--spec") + 1])  # the launcher's --out/run_spec.json
+out, i = spec.parent, argv[argv.index("--process-id") + 1]
+record = {"argv": argv, "config": json.loads(spec.read_text()),
+          **{k: os.environ.get(k) for k in KEYS}}
 (out / f"env-{i}.json").write_text(json.dumps(record))
 time.sleep(float(os.environ.get("FAKE_SLEEP", "0")))
 sys.exit(int(os.environ.get("FAKE_EXIT", "0")))
@@ -98,9 +101,9 @@ def run(tmp_path: Path, n: int, mode: str, monkeypatch: pytest.MonkeyPatch, **fa
     child = tmp_path / "child.py"
     child.write_text(CHILD)
     out = tmp_path / "run"
-    argv = ["--policy", "oracle", "--local-processes", str(n), "--mps", mode, "--out", str(out)]
-    code = processes.run(argv, n, out, True, None, poll_s=0.02, mps_mode=mode,
-                         command=[sys.executable, str(child)])
+    argv = ["--policy", "oracle", "--local-processes", str(n), "--mps", mode, "--out", str(out),
+            "--quiet"]
+    code = processes.run(parse_config(argv), poll_s=0.02, command=[sys.executable, str(child)])
     envs = [json.loads(p.read_text()) for p in sorted(out.glob("env-*.json"),
                                                       key=lambda p: int(p.stem[4:]))]
     return code, out, envs
@@ -168,9 +171,10 @@ def test_one_daemon_per_shared_gpu_started_and_stopped(mode: str, machine, tmp_p
     assert [e["CUDA_VISIBLE_DEVICES"] for e in envs] == [None, None, "2", "3", None, None]
     assert [e["CUDA_MPS_PIPE_DIRECTORY"] for e in envs] == [
         str(mps_dir / f"gpu{k}" / "pipe") if k in (0, 1) else None for k in (0, 1, 2, 3, 0, 1)]
-    assert "--mps" not in envs[0]["argv"] and "--local-processes" not in envs[0]["argv"]
-    fraction = envs[0]["argv"][envs[0]["argv"].index("--gpu-mem-fraction") + 1]
-    assert float(fraction) == pytest.approx(0.3)  # 0.6 over the 2 processes of a GPU
+    assert envs[0]["argv"] == ["--spec", str(out / "run_spec.json"), "--process-id", "0"]
+    assert envs[0]["config"]["run"]["local_processes"] == 1
+    fraction = envs[0]["config"]["run"]["gpu_mem_fraction"]
+    assert fraction == pytest.approx(0.3)  # 0.6 over the 2 processes of a GPU
 
 
 def test_single_gpu_daemon_and_child_failure(machine, tmp_path: Path,
@@ -308,8 +312,9 @@ def test_interrupt_stops_the_daemons(sig: int, machine, tmp_path: Path) -> None:
         from agnostos_mjx.evaluation import processes
         mps.PROBE = "pass"
         mps.DEFAULT_PIPE = {str(tmp_path / "none")!r}
-        sys.exit(processes.run(["--out", {str(out)!r}], 4, Path({str(out)!r}), True, None,
-                               poll_s=0.05, command=[sys.executable, {str(child)!r}]))
+        from agnostos_mjx.evaluation.config import parse_config
+        cfg = parse_config(["--out", {str(out)!r}, "--local-processes", "4", "--quiet"])
+        sys.exit(processes.run(cfg, poll_s=0.05, command=[sys.executable, {str(child)!r}]))
     """)
     env = {**os.environ, "PYTHONPATH": str(REPO), "FAKE_SLEEP": "60"}
     parent = subprocess.Popen([sys.executable, "-c", script], env=env, cwd=REPO,
@@ -344,7 +349,7 @@ def test_long_out_paths_get_a_short_pipe_folder(machine, tmp_path: Path) -> None
 def test_cli_option() -> None:
     from agnostos_mjx.evaluation.config import parse_config
 
-    assert parse_config([]).mps == "auto" and parse_config(["--mps", "off"]).mps == "off"
+    assert parse_config([]).run.mps == "auto" and parse_config(["--mps", "off"]).run.mps == "off"
     with pytest.raises(SystemExit):
         parse_config(["--mps", "maybe"])
 
@@ -369,8 +374,8 @@ def test_default_process_count_follows_the_gpus_and_cores(tmp_path: Path,
         env = {**bare, "CUDA_VISIBLE_DEVICES": gpus}
         assert processes.default_count(cfg, env)[0] == expected, (cores, gpus)
     env = {**bare, "CUDA_VISIBLE_DEVICES": "0"}
-    assert processes.default_count(EvalConfig(num_processes=4, process_id=1), env)[0] == 1
-    assert processes.default_count(EvalConfig(resume=True), env)[0] == 1
+    assert processes.default_count(EvalConfig.of(num_processes=4, process_id=1), env)[0] == 1
+    assert processes.default_count(EvalConfig.of(resume=True), env)[0] == 1
     monkeypatch.setattr(settings, "usable_cores", lambda: 16)
-    few = EvalConfig(tasks="lamp_on,close_jar", seeds=[0])  # one process per (task, seed)
+    few = EvalConfig.of(tasks="lamp_on,close_jar", seeds=[0])  # one process per (task, seed)
     assert processes.default_count(few, env)[0] == 2

@@ -187,7 +187,7 @@ def test_policy_gets_exactly_what_it_asks_for() -> None:
     from agnostos_mjx.evaluation.config import EvalConfig
     from agnostos_mjx.evaluation.rollout import run_task
     policy = TwoCameraPolicy()
-    cfg = EvalConfig(batch=2, episodes=2, seeds=[0], backend="native")
+    cfg = EvalConfig.of(batch=2, episodes=2, seeds=[0], backend="native")
     records = run_task(get_task("close_jar"), policy, [(0, 0), (0, 1)], cfg,
                        lambda r: None)
     assert [r["outcome"] for r in records] == ["no_action", "no_action"]
@@ -291,8 +291,8 @@ def test_readme_plugin_runs(tmp_path) -> None:
     from agnostos_mjx.evaluation.run import evaluate
 
     plugin = Path(__file__).resolve().parents[1] / "examples" / "vla_policy.py"
-    cfg = EvalConfig(policy=f"{plugin}:GreenSeeker", tasks="lamp_on", seeds=[0], episodes=2,
-                     batch=2, backend="native", out=str(tmp_path), quiet=True)
+    cfg = EvalConfig.of(policy=f"{plugin}:GreenSeeker", tasks="lamp_on", seeds=[0], episodes=2,
+                        batch=2, backend="native", out=str(tmp_path), quiet=True)
     results = evaluate(cfg)
     assert len(results["episodes"]) == 2
     assert all(r["outcome"] != "policy_error" for r in results["episodes"])

@@ -177,9 +177,9 @@ def _evaluate(policy: str, tmp_path: Path) -> dict:
     from agnostos_mjx.evaluation.config import EvalConfig
     from agnostos_mjx.evaluation.run import evaluate
 
-    return evaluate(EvalConfig(policy=f"{__name__}:{policy}", tasks="lamp_on", seeds=[3],
-                               episodes=2, batch=2, backend="native", quiet=True,
-                               out=str(tmp_path / "run")))
+    return evaluate(EvalConfig.of(policy=f"{__name__}:{policy}", tasks="lamp_on", seeds=[3],
+                                  episodes=2, batch=2, backend="native", quiet=True,
+                                  out=str(tmp_path / "run")))
 
 
 def test_defaults_of_a_minimal_policy(tmp_path: Path) -> None:

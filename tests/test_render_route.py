@@ -97,7 +97,7 @@ def test_timing_policy_runs_the_dense_loop_and_the_split_names_rendering(lamp, t
                     "--quiet", "--out", str(out)])
     assert code == 0
     results = json.loads((out / "results.json").read_text())
-    assert results["renderer"] == "cpu" and results["config"]["renderer"] == "cpu"
+    assert results["renderer"] == "cpu" and results["config"]["protocol"]["renderer"] == "cpu"
     assert results["policy"]["privileged"] is False
     records = [json.loads(x) for x in (out / "episodes.jsonl").read_text().splitlines()]
     assert [r["outcome"] for r in records] == ["max_steps", "max_steps"]

@@ -284,7 +284,7 @@ def test_local_processes_refuse_an_unknown_task_before_starting(tmp_path: Path, 
 FINISHING_CHILD = """
 import sys, time
 from pathlib import Path
-out = Path(sys.argv[sys.argv.index("--out") + 1])
+out = Path(sys.argv[sys.argv.index("--spec") + 1]).parent  # --out/run_spec.json
 i = sys.argv[sys.argv.index("--process-id") + 1]
 merged = out / "merged"
 early = merged.exists()  # merged before this process wrote anything: a stale marker counted
@@ -302,6 +302,7 @@ def test_the_launcher_merges_while_its_processes_end(tmp_path: Path, monkeypatch
     launcher merges while they end, not after; a marker left by an earlier run of the folder
     is not taken for one."""
     from agnostos_mjx.evaluation import processes
+    from agnostos_mjx.evaluation.config import parse_config
 
     monkeypatch.setattr(processes, "merge_main",
                         lambda out: (Path(out) / "merged").write_text("") or 0)
@@ -310,10 +311,42 @@ def test_the_launcher_merges_while_its_processes_end(tmp_path: Path, monkeypatch
     for i in range(2):  # an earlier run's markers
         (out / f"proc-{i}").mkdir(parents=True)
         (out / f"proc-{i}" / "finished").write_text("")
-    argv = ["--policy", "oracle", "--local-processes", "2", "--out", str(out)]
-    assert processes.run(argv, 2, out, True, None, poll_s=0.02, mps_mode="off",
+    argv = ["--policy", "oracle", "--local-processes", "2", "--out", str(out), "--quiet",
+            "--mps", "off"]
+    assert processes.run(parse_config(argv), poll_s=0.02,
                          command=[sys.executable, str(child)]) == 0
     assert [(out / f"saw-{i}").read_text() for i in range(2)] == ["False True"] * 2
+
+
+CONFIG_CHILD = """
+import json, sys
+from agnostos_mjx.evaluation.config import parse_config
+cfg = parse_config(sys.argv[1:])
+folder = __import__("pathlib").Path(cfg.run.out) / f"proc-{cfg.run.process_id}"
+folder.mkdir(exist_ok=True)
+(folder / "options.json").write_text(json.dumps(cfg.options()))
+(folder / "finished").write_text("")
+"""
+
+
+def test_a_process_runs_the_launchers_config(tmp_path: Path, monkeypatch) -> None:
+    """--local-processes hands its processes the run's config in a file (--spec), not flags
+    parsed again: each process's config is the launcher's, as process I of N on the queue."""
+    from agnostos_mjx.evaluation import processes
+    from agnostos_mjx.evaluation.config import parse_config
+
+    monkeypatch.setattr(processes, "merge_main", lambda out: 0)
+    child, out = tmp_path / "child.py", tmp_path / "run"
+    child.write_text(CONFIG_CHILD)
+    cfg = parse_config(["--policy", "oracle", "--policy-arg", "k=[1, 2]", "--tasks",
+                        "lamp_on,close_jar", "--seeds", "4,1", "--episodes", "3", "--video",
+                        "failures", "--gpu-mem-fraction", "0.2", "--local-processes", "2",
+                        "--mps", "off", "--out", str(out)])
+    assert processes.run(cfg, poll_s=0.02, command=[sys.executable, str(child)]) == 0
+    for i in range(2):
+        seen = json.loads((out / f"proc-{i}" / "options.json").read_text())
+        assert seen == {**cfg.options(), "num_processes": 2, "process_id": i,
+                        "local_processes": 1, "task_queue": str(out / "queue"), "quiet": True}
 
 
 @pytest.mark.slow

@@ -25,9 +25,9 @@ def test_eval_writes_selected_episode_videos(tmp_path) -> None:
     from agnostos_mjx.evaluation.run import evaluate
     from agnostos_mjx.evaluation.video import VideoSpec
 
-    cfg = EvalConfig(policy="oracle", tasks="lamp_on,close_microwave", seeds=[0], episodes=4,
-                     batch=4, backend="native", out=str(tmp_path), quiet=True,
-                     video="first:3", video_cameras="front,wrist")
+    cfg = EvalConfig.of(policy="oracle", tasks="lamp_on,close_microwave", seeds=[0], episodes=4,
+                        batch=4, backend="native", out=str(tmp_path), quiet=True,
+                        video="first:3", video_cameras="front,wrist")
     results = evaluate(cfg)
     videos = sorted((tmp_path / "videos").glob("*.mp4"))
     assert len(videos) == 6  # 2 tasks x episodes 0..2; episode 3 not filmed

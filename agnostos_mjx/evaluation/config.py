@@ -1,9 +1,15 @@
-"""EvalConfig and the command line generated from it.
+"""EvalConfig, in parts, and the command line generated from it.
 
-Each option is written once, as a field of `EvalConfig`: its type and default there, its
-help, flag and argparse details in the field's metadata (see `option`).  `build_parser`
-turns the fields into ``python -m agnostos_mjx.eval``'s options, in field order, and
-`parse_config` turns parsed arguments back into an EvalConfig.
+An evaluation is configured in four parts: `ProtocolConfig` (what is evaluated and how the
+worlds run), `PolicyConfig` (which policy, its arguments), `XicmConfig` (the built-in X-ICM
+and retrieval policies' LLM client and demo selection) and `RunConfig` (the run's folder,
+logging, processes and devices); `EvalConfig` holds one of each (``cfg.protocol.seeds``).
+Each option is written once, as a field of its part: its type and default there, its help,
+flag and argparse details in the field's metadata (see `option`).  Option names are
+unique across the parts, so a flat ``{name: value}`` still names a config (`EvalConfig.of`,
+results.json written before the parts).  `build_parser` turns the fields into ``python -m
+agnostos_mjx.eval``'s options in HELP_ORDER, and `parse_config` turns parsed arguments
+back into an EvalConfig.
 """
 
 from __future__ import annotations
@@ -11,12 +17,12 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-from dataclasses import MISSING, Field, dataclass, field, fields
+from dataclasses import MISSING, Field, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from agnostos_mjx.infra import settings
-from agnostos_mjx.infra.cli import HelpFormatter, prog
+from agnostos_mjx.infra.cli import HelpFormatter, atomic_write, prog
 from agnostos_mjx.infra.mps import MODES as MPS_MODES
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
@@ -86,41 +92,28 @@ def policy_arg(text: str) -> tuple[str, Any]:
 
 
 # ---- the configuration -------------------------------------------------------------------
-def option(default: Any, help: str, *, flag: str | None = None, group: str | None = None,
-           **argparse_kwargs: Any) -> Any:
-    """A field of EvalConfig that is also a command-line option.
+def option(default: Any, help: str, *, name: str | None = None, flag: str | None = None,
+           group: str | None = None, **argparse_kwargs: Any) -> Any:
+    """A field of a part of EvalConfig that is also a command-line option.
 
-    `help` and `argparse_kwargs` (type, choices, metavar) go to ``add_argument``; the flag
-    is ``--field-name`` unless `flag` says otherwise; `group` is the --help section.  The
-    default's type sets the option's form: False is a switch, a list is given as
-    comma-separated text (its `type` parses it), a dict collects repeated KEY=VALUE options."""
-    metadata = {"help": help, "flag": flag, "group": group, "argparse": argparse_kwargs}
+    `name` is the option's name across all the parts (argparse's dest, the key of a flat
+    results.json "config"): the field's name unless given; the flag is ``--name`` with
+    dashes unless `flag` says otherwise; `help` and `argparse_kwargs` (type, choices,
+    metavar) go to ``add_argument``; `group` is the --help section.  The default's type
+    sets the option's form: False is a switch, a list is given as comma-separated text (its
+    `type` parses it), a dict collects repeated KEY=VALUE options."""
+    metadata = {"help": help, "name": name, "flag": flag, "group": group,
+                "argparse": argparse_kwargs}
     if isinstance(default, list | dict):
         return field(default_factory=lambda: copy.copy(default), metadata=metadata)
     return field(default=default, metadata=metadata)
 
 
 @dataclass
-class EvalConfig:
-    """One evaluation run; the fields are the command line's options, in --help's order."""
+class ProtocolConfig:
+    """What is evaluated, and how the worlds run: the AGNOSTOS protocol's tasks, seeds and
+    episodes, the action mode, and the physics, planner and renderer that carry it out."""
 
-    policy: str = option(
-        "auto", "auto (xicm when an LLM is configured, else retrieval), xicm, retrieval, "
-                "oracle, or 'module:attr' / 'file.py:attr' naming a Policy class, factory or "
-                "instance (see agnostos_mjx/policies/base.py)")
-    policy_args: dict[str, Any] = option(
-        {}, "keyword argument for the policy factory (VALUE parsed as JSON if it can be); "
-            "repeatable", flag="--policy-arg", type=policy_arg, metavar="KEY=VALUE")
-    policy_url: str | None = option(
-        None, "the policy server of --policy remote or openvla: ws://... speaks openpi's "
-              "websocket protocol, http://... POSTs json_numpy bodies to /act (OpenVLA's "
-              "deploy.py); default $AGNOSTOS_POLICY_URL; its adapter options (preset, keys, "
-              "rotation, execute, timeout_s, action_index, ...) go in --policy-arg, see "
-              "agnostos_mjx/remote/adapter.py", metavar="URL")
-    gpu_mem_fraction: float | None = option(
-        None, "cap JAX's GPU memory pool at F of the card, 0: no preallocation (default "
-              "$AGNOSTOS_GPU_MEM_FRACTION; 0.35 when the policy or LLM server is on this "
-              "machine; else JAX's 75%%); see agnostos_mjx/infra/gpu.py", type=float, metavar="F")
     tasks: str = option(
         "unseen", "comma-separated task names and/or split names (seen, unseen, "
                   "unseen_level1, unseen_level2, all)")
@@ -166,6 +159,78 @@ class EvalConfig:
         None, "dense: rows of a policy's action chunk run open loop before it is asked again "
               "(default: the whole chunk); remote policies take theirs as --policy-arg "
               "execute=K", group=DENSE, type=positive_int, metavar="K")
+
+
+@dataclass
+class PolicyConfig:
+    """Which policy acts and the arguments its factory gets."""
+
+    spec: str = option(
+        "auto", "auto (xicm when an LLM is configured, else retrieval), xicm, retrieval, "
+                "oracle, or 'module:attr' / 'file.py:attr' naming a Policy class, factory or "
+                "instance (see agnostos_mjx/policies/base.py)", name="policy")
+    args: dict[str, Any] = option(
+        {}, "keyword argument for the policy factory (VALUE parsed as JSON if it can be); "
+            "repeatable", name="policy_args", flag="--policy-arg", type=policy_arg,
+        metavar="KEY=VALUE")
+    url: str | None = option(
+        None, "the policy server of --policy remote or openvla: ws://... speaks openpi's "
+              "websocket protocol, http://... POSTs json_numpy bodies to /act (OpenVLA's "
+              "deploy.py); default $AGNOSTOS_POLICY_URL; its adapter options (preset, keys, "
+              "rotation, execute, timeout_s, action_index, ...) go in --policy-arg, see "
+              "agnostos_mjx/remote/adapter.py", name="policy_url", metavar="URL")
+
+
+@dataclass
+class XicmConfig:
+    """The options of the built-in X-ICM and retrieval policies: the LLM client (X-ICM) and
+    the in-context demo selection (both)."""
+
+    llm_url: str | None = option(
+        None, "OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or 'vllm:' for an "
+              "in-process vLLM engine (extra 'vllm') (default: $AGNOSTOS_LLM_URL); the key "
+              "comes from $AGNOSTOS_LLM_API_KEY or $OPENAI_API_KEY", group=LLM)
+    llm_model: str | None = option(
+        None, "model name on that server (default: $AGNOSTOS_LLM_MODEL)", group=LLM)
+    llm_cache: str | None = option(
+        None, "response cache directory (default: <out>/llm_cache); reruns and --resume "
+              "reuse answers, a shipped cache replays a run offline", group=LLM)
+    llm_concurrency: int | None = option(
+        None, "LLM requests in flight at once (default: the server's slot count where it "
+              "publishes one (llama.cpp: 1 unless started with --parallel N), capping this "
+              "flag too; else 64 for vLLM, which batches on the GPU, and 8 for other "
+              "servers)", group=LLM, type=positive_int)
+    llm_timeout: float = option(
+        DEFAULT_TIMEOUT_S, "seconds without a byte from the LLM server before a request is "
+                           "given up (answers are streamed, so this is silence, not total "
+                           "time; not retried, since the server may still be computing). "
+                           "Covers prompt processing before the first token: seconds on a "
+                           "GPU, up to minutes for long prompts on a CPU",
+        group=LLM, type=positive_float)
+    llm_server_kind: str = option(
+        "auto", "which sampling field names to send: vllm (repetition_penalty; also "
+                "SGLang), llamacpp (repeat_penalty; llama.cpp and llama-cpp-python), openai "
+                "(no penalty field); auto detects it in the start-up check",
+        group=LLM, choices=LLM_SERVER_KINDS)
+    selection: str = option(
+        "auto", "in-context demo selection: random, text (instruction trigrams), dynamics "
+                "features lang, vis.in, vis.out joined with '+', or auto (lang+vis.out when "
+                "the memory has dynamics features, else text)", group=LLM)
+    num_demos: int = option(18, "K, in-context demonstrations per prompt", group=LLM,
+                            type=positive_int)
+    ddim_steps: int | None = option(
+        None, "DDIM steps of a query's dynamics features (default 10: as good as the "
+              "original's 50 for selection and 5x cheaper, see docs/performance.md)",
+        group=LLM, type=positive_int)
+    memory: str | None = option(
+        None, "seen-demo memory .npz (default: the one shipped with the package)", group=LLM)
+
+
+@dataclass
+class RunConfig:
+    """The run's plumbing: its folder, logging, videos and report, the GPU memory, and the
+    processes, devices and hosts it is spread over."""
+
     out: str | None = option(
         None, "output directory; default results/<policy>-<timestamp>, <policy> being the "
               "policy run (retrieval or xicm under auto)")
@@ -182,7 +247,13 @@ class EvalConfig:
         metavar="first:N|failures[:N]")
     video_cameras: str | None = option(
         None, "comma-separated cameras side by side (default front,overhead,wrist)")
-
+    compare: str | None = option(
+        None, "add a column of published numbers: 'X-ICM 7B', 'X-ICM 72B', pi0, VoxPoser or "
+              "RVT2", group=LLM)
+    gpu_mem_fraction: float | None = option(
+        None, "cap JAX's GPU memory pool at F of the card, 0: no preallocation (default "
+              "$AGNOSTOS_GPU_MEM_FRACTION; 0.35 when the policy or LLM server is on this "
+              "machine; else JAX's 75%%); see agnostos_mjx/infra/gpu.py", type=float, metavar="F")
     devices: int | None = option(
         None, "local accelerators a batch's worlds (MJX-jax) and the dynamics features are "
               "sharded over (default: all)", group=SCALE, type=positive_int, metavar="N")
@@ -217,33 +288,6 @@ class EvalConfig:
     merge: bool = option(
         False, "only merge --out/proc-*/episodes.jsonl into --out's results files "
                "(episodes.jsonl, results.json/.csv/.md/.png)", group=SCALE)
-
-    llm_url: str | None = option(
-        None, "OpenAI-compatible base URL, e.g. http://localhost:8000/v1, or 'vllm:' for an "
-              "in-process vLLM engine (extra 'vllm') (default: $AGNOSTOS_LLM_URL); the key "
-              "comes from $AGNOSTOS_LLM_API_KEY or $OPENAI_API_KEY", group=LLM)
-    llm_model: str | None = option(
-        None, "model name on that server (default: $AGNOSTOS_LLM_MODEL)", group=LLM)
-    llm_cache: str | None = option(
-        None, "response cache directory (default: <out>/llm_cache); reruns and --resume "
-              "reuse answers, a shipped cache replays a run offline", group=LLM)
-    llm_concurrency: int | None = option(
-        None, "LLM requests in flight at once (default: the server's slot count where it "
-              "publishes one (llama.cpp: 1 unless started with --parallel N), capping this "
-              "flag too; else 64 for vLLM, which batches on the GPU, and 8 for other "
-              "servers)", group=LLM, type=positive_int)
-    llm_timeout: float = option(
-        DEFAULT_TIMEOUT_S, "seconds without a byte from the LLM server before a request is "
-                           "given up (answers are streamed, so this is silence, not total "
-                           "time; not retried, since the server may still be computing). "
-                           "Covers prompt processing before the first token: seconds on a "
-                           "GPU, up to minutes for long prompts on a CPU",
-        group=LLM, type=positive_float)
-    llm_server_kind: str = option(
-        "auto", "which sampling field names to send: vllm (repetition_penalty; also "
-                "SGLang), llamacpp (repeat_penalty; llama.cpp and llama-cpp-python), openai "
-                "(no penalty field); auto detects it in the start-up check",
-        group=LLM, choices=LLM_SERVER_KINDS)
     overlap_tasks: int = option(
         3, "tasks evaluated at once in a process when the policy can wait (X-ICM, "
            "retrieval, served policies): while one task waits on its LLM requests or, on "
@@ -253,36 +297,83 @@ class EvalConfig:
            "it, on a GPU they round as the shared calls do, the same in every run with "
            "this value)", group=LLM,
         type=positive_int)
-    selection: str = option(
-        "auto", "in-context demo selection: random, text (instruction trigrams), dynamics "
-                "features lang, vis.in, vis.out joined with '+', or auto (lang+vis.out when "
-                "the memory has dynamics features, else text)", group=LLM)
-    num_demos: int = option(18, "K, in-context demonstrations per prompt", group=LLM,
-                            type=positive_int)
-    ddim_steps: int | None = option(
-        None, "DDIM steps of a query's dynamics features (default 10: as good as the "
-              "original's 50 for selection and 5x cheaper, see docs/performance.md)",
-        group=LLM, type=positive_int)
-    memory: str | None = option(
-        None, "seen-demo memory .npz (default: the one shipped with the package)", group=LLM)
-    compare: str | None = option(
-        None, "add a column of published numbers: 'X-ICM 7B', 'X-ICM 72B', pi0, VoxPoser or "
-              "RVT2", group=LLM)
+
+@dataclass
+class EvalConfig:
+    """One evaluation run, in parts; every field of a part is a command-line option."""
+
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    xicm: XicmConfig = field(default_factory=XicmConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+    @classmethod
+    def of(cls, **options: Any) -> EvalConfig:
+        """The config of options by their names (``EvalConfig.of(tasks="lamp_on")``); a
+        TypeError for a name no part has."""
+        unknown = set(options) - set(OPTIONS)
+        if unknown:
+            raise TypeError(f"no such option: {', '.join(sorted(unknown))}")
+        given: dict[str, dict[str, Any]] = {part: {} for part in PARTS}
+        for name, value in options.items():
+            part, f = OPTIONS[name]
+            given[part][f.name] = value
+        return cls(**{part: PARTS[part](**values) for part, values in given.items()})
+
+    @classmethod
+    def from_dict(cls, config: dict[str, Any]) -> EvalConfig:
+        """The config of results.json's "config": nested by part (asdict), or flat as
+        written before the parts (its options by name); keys no longer known are dropped."""
+        if not any(isinstance(config.get(part), dict) for part in PARTS):
+            return cls.of(**{k: v for k, v in config.items() if k in OPTIONS})
+        parts = {}
+        for part, values in config.items():
+            if part in PARTS and isinstance(values, dict):
+                known = {f.name for f in fields(PARTS[part])}
+                parts[part] = PARTS[part](**{k: v for k, v in values.items() if k in known})
+        return cls(**parts)
+
+    def options(self) -> dict[str, Any]:
+        """Every option by its name (the inverse of `of`)."""
+        return {name: getattr(getattr(self, part), f.name)
+                for name, (part, f) in OPTIONS.items()}
+
+    def with_options(self, **options: Any) -> EvalConfig:
+        """A copy with `options` (by name) changed."""
+        return EvalConfig.of(**{**copy.deepcopy(self.options()), **options})
+
+
+# The parts, and each option by name: (its part, its field).
+PARTS: dict[str, Any] = {f.name: f.default_factory for f in fields(EvalConfig)}
+OPTIONS: dict[str, tuple[str, Field]] = {
+    f.metadata["name"] or f.name: (part, f) for part, cls in PARTS.items() for f in fields(cls)}
+# --help's order: the parts group the options by what they configure, --help by use.
+HELP_ORDER = (
+    "policy", "policy_args", "policy_url", "gpu_mem_fraction", "tasks", "seeds", "episodes",
+    "batch", "backend", "planner", "renderer", "variations", "action_mode", "control_hz",
+    "dense_steps", "execute", "out", "resume", "fail_fast", "quiet", "video", "video_cameras",
+    "devices", "num_processes", "process_id", "coordinator", "local_processes", "task_queue",
+    "mps", "merge", "llm_url", "llm_model", "llm_cache", "llm_concurrency", "llm_timeout",
+    "llm_server_kind", "overlap_tasks", "selection", "num_demos", "ddim_steps", "memory",
+    "compare")
+assert sorted(HELP_ORDER) == sorted(OPTIONS), "HELP_ORDER must name every option once"
 
 
 def _default(f: Field) -> Any:
-    return f.default_factory() if f.default is MISSING else f.default
+    return f.default_factory() if f.default is MISSING else f.default  # type: ignore[misc]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The command line of EvalConfig's fields (see `option`)."""
+def build_parser(defaults: bool = True) -> argparse.ArgumentParser:
+    """The command line of EvalConfig's options (see `option`), in HELP_ORDER, and the
+    hidden ``--spec FILE``; without `defaults` a parse holds only the options given."""
     parser = argparse.ArgumentParser(
         prog=prog("agnostos_mjx.eval"),
         description="Evaluate a policy on AGNOSTOS tasks (X-ICM protocol) and write "
                     "episodes.jsonl, results.json, results.csv and results.md.",
         formatter_class=HelpFormatter)
     groups: dict[str | None, Any] = {None: parser}
-    for f in fields(EvalConfig):
+    for name in HELP_ORDER:
+        f = OPTIONS[name][1]
         meta, default = f.metadata, _default(f)
         kwargs = dict(meta["argparse"])
         if default is False:
@@ -293,17 +384,47 @@ def build_parser() -> argparse.ArgumentParser:
             kwargs["action"], default = "append", None
         if meta["group"] not in groups:
             groups[meta["group"]] = parser.add_argument_group(meta["group"])
-        groups[meta["group"]].add_argument(meta["flag"] or "--" + f.name.replace("_", "-"),
-                                           dest=f.name, default=default, help=meta["help"],
-                                           **kwargs)
+        groups[meta["group"]].add_argument(
+            meta["flag"] or "--" + name.replace("_", "-"), dest=name, help=meta["help"],
+            default=default if defaults else argparse.SUPPRESS, **kwargs)
+    # The processes of --local-processes read the run from the file their launcher wrote
+    # (write_spec), not from flags parsed again; not for people, so not in --help.
+    parser.add_argument("--spec", metavar="FILE", help=argparse.SUPPRESS,
+                        default=None if defaults else argparse.SUPPRESS)
     return parser
 
 
 def parse_config(argv: list[str] | None = None) -> EvalConfig:
-    """EvalConfig of a command line (argparse exits on a bad one)."""
+    """EvalConfig of a command line (argparse exits on a bad one); with ``--spec FILE``,
+    the config of FILE with the options given beside it."""
     args = vars(build_parser().parse_args(argv))
-    return EvalConfig(**{f.name: dict(args[f.name] or []) if isinstance(_default(f), dict)
-                         else args[f.name] for f in fields(EvalConfig)})
+    if args.pop("spec") is None:
+        return EvalConfig.of(**_values(args))
+    parser = build_parser(defaults=False)
+    given = vars(parser.parse_args(argv))
+    try:
+        return read_spec(Path(given.pop("spec"))).with_options(**_values(given))
+    except UsageError as e:
+        parser.error(str(e))
+
+
+def _values(args: dict[str, Any]) -> dict[str, Any]:
+    """Parsed options as EvalConfig's values: repeated KEY=VALUE pairs as a dict."""
+    return {name: dict(value or []) if isinstance(_default(OPTIONS[name][1]), dict) else value
+            for name, value in args.items()}
+
+
+def write_spec(path: Path, cfg: EvalConfig) -> None:
+    """`cfg` to `path` (results.json's "config" form), whole or not at all."""
+    atomic_write(path, json.dumps(asdict(cfg), indent=1) + "\n")
+
+
+def read_spec(path: Path) -> EvalConfig:
+    """The config `write_spec` wrote; a UsageError when it cannot be read."""
+    try:
+        return EvalConfig.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError, TypeError) as e:
+        raise UsageError(f"--spec {path}: {e}") from None
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
@@ -311,22 +432,22 @@ def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
     the built-in policies' arguments from the command line."""
     from agnostos_mjx.llm.client import LLMConfig
 
-    spec, note = cfg.policy, ""
+    spec, note, llm = cfg.policy.spec, "", cfg.xicm
     if spec == "auto":
-        configured = LLMConfig.from_env(cfg.llm_url, cfg.llm_model) is not None
+        configured = LLMConfig.from_env(llm.llm_url, llm.llm_model) is not None
         spec = "xicm" if configured else "retrieval"
         note = ("an LLM is configured: running X-ICM" if configured else
                 "no LLM configured (set --llm-url/--llm-model or AGNOSTOS_LLM_URL/"
                 "AGNOSTOS_LLM_MODEL for X-ICM): running the retrieval baseline")
     kwargs: dict[str, Any] = {}
     if spec in ("xicm", "retrieval"):
-        kwargs.update(selection=cfg.selection, memory=cfg.memory, sample_steps=cfg.ddim_steps)
+        kwargs.update(selection=llm.selection, memory=llm.memory, sample_steps=llm.ddim_steps)
     if spec == "xicm":
-        cache = cfg.llm_cache or str(Path(cfg.out or ".") / "llm_cache")
-        kwargs.update(llm_url=cfg.llm_url, llm_model=cfg.llm_model, llm_cache=cache,
-                      concurrency=cfg.llm_concurrency, timeout_s=cfg.llm_timeout,
-                      server_kind=cfg.llm_server_kind, num_demos=cfg.num_demos)
+        cache = llm.llm_cache or str(Path(cfg.run.out or ".") / "llm_cache")
+        kwargs.update(llm_url=llm.llm_url, llm_model=llm.llm_model, llm_cache=cache,
+                      concurrency=llm.llm_concurrency, timeout_s=llm.llm_timeout,
+                      server_kind=llm.llm_server_kind, num_demos=llm.num_demos)
     if spec in ("remote", "openvla"):
-        kwargs["url"] = cfg.policy_url or settings.POLICY_URL.get()
-    kwargs.update(cfg.policy_args)
+        kwargs["url"] = cfg.policy.url or settings.POLICY_URL.get()
+    kwargs.update(cfg.policy.args)
     return spec, kwargs, note

@@ -34,26 +34,27 @@ if TYPE_CHECKING:
 def check_action_mode(cfg: EvalConfig, policy: Policy) -> None:
     """A UsageError unless the policy acts in cfg's action mode and the dense options are
     only given with ``--action-mode dense``."""
-    if cfg.action_mode != "dense":
-        given = [flag for flag, value in (("--control-hz", cfg.control_hz),
-                                          ("--dense-steps", cfg.dense_steps),
-                                          ("--execute", cfg.execute)) if value is not None]
+    protocol = cfg.protocol
+    if protocol.action_mode != "dense":
+        given = [flag for flag, value in (("--control-hz", protocol.control_hz),
+                                          ("--dense-steps", protocol.dense_steps),
+                                          ("--execute", protocol.execute)) if value is not None]
         if given:
             raise UsageError(f"{', '.join(given)}: only with --action-mode dense")
     modes = policy.action_modes
-    if cfg.action_mode not in modes:
+    if (mode := protocol.action_mode) not in modes:
         raise UsageError(
             f"policy {policy.name} acts in {' and '.join(modes)} mode, not "
-            f"{cfg.action_mode}: --action-mode {cfg.action_mode} needs a policy that declares "
-            f"it (action_modes = (..., {cfg.action_mode!r}), see agnostos_mjx/policies/base.py)")
+            f"{mode}: --action-mode {mode} needs a policy that declares "
+            f"it (action_modes = (..., {mode!r}), see agnostos_mjx/policies/base.py)")
 
 
 def dense_control(cfg: EvalConfig, runner: Episodes) -> DenseControl:
     """The control period and step budget of cfg for `runner`'s task."""
     from agnostos_mjx.runtime.dense import DEFAULT_CONTROL_HZ, DenseControl
 
-    hz = DEFAULT_CONTROL_HZ if cfg.control_hz is None else cfg.control_hz
-    return DenseControl.at(hz, runner.dt, runner.task.max_key_actions, cfg.dense_steps)
+    hz = DEFAULT_CONTROL_HZ if cfg.protocol.control_hz is None else cfg.protocol.control_hz
+    return DenseControl.at(hz, runner.dt, runner.task.max_key_actions, cfg.protocol.dense_steps)
 
 
 ROW_SHAPES = "pos (B, 3), quat (B, 4) wxyz, gripper (B,), valid (B,)"

@@ -1,7 +1,8 @@
 """``python -m agnostos_mjx.eval --local-processes N``: one run as N processes on this machine.
 
-Each process is the same command with ``--num-processes N --process-id I --task-queue
---out/queue`` (into ``--out/proc-I``, its log in ``--out/proc-I.log``): whenever a process is
+Each process runs the launcher's config with ``--num-processes N --task-queue --out/queue``,
+read from ``--out/run_spec.json`` (``--spec FILE --process-id I``: the run is not parsed
+again from flags), into ``--out/proc-I``, its log in ``--out/proc-I.log``: whenever a process is
 free it takes the next task no other process has taken, longest expected first
 (task_queue.py); when all have finished, their records are merged into ``--out`` as one
 process would have written them (summary.merge).
@@ -48,7 +49,7 @@ from pathlib import Path
 from typing import IO
 
 from agnostos_mjx.evaluation import report_plot, task_queue
-from agnostos_mjx.evaluation.config import EvalConfig
+from agnostos_mjx.evaluation.config import EvalConfig, write_spec
 from agnostos_mjx.evaluation.records import EPISODES_FILE
 from agnostos_mjx.evaluation.summary import merge_main
 from agnostos_mjx.infra import mps
@@ -62,19 +63,7 @@ JAX_MEMORY_SHARE = 0.6  # of the card, split over the processes
 PROCESSES_PER_GPU = 8
 MAX_DEFAULT_PROCESSES = 16
 QUEUE_DIR = "queue"  # --out/queue: the claims of the processes (task_queue.py)
-
-
-def _without(argv: Sequence[str], *flags: str) -> list[str]:
-    """`argv` without `flags` and their values (``--flag N`` or ``--flag=N``)."""
-    out, skip = [], False
-    for arg in argv:
-        if skip:
-            skip = False
-        elif arg in flags:
-            skip = True
-        elif not any(arg.startswith(flag + "=") for flag in flags):
-            out.append(arg)
-    return out
+SPEC_FILE = "run_spec.json"  # --out/run_spec.json: the processes' config (--spec)
 
 
 def _episodes_done(out: Path, n: int) -> int:
@@ -95,29 +84,29 @@ def default_count(cfg: EvalConfig, environ: dict[str, str] | None = None) -> tup
     from agnostos_mjx.infra.settings import usable_cores
     from agnostos_mjx.tasks.catalog import parse_task_names
 
-    if cfg.num_processes > 1 or cfg.coordinator or (cfg.resume and cfg.out is None):
+    run = cfg.run
+    if run.num_processes > 1 or run.coordinator or (run.resume and run.out is None):
         return 1, "one process of a run"
     gpus, source = mps.visible_gpus(dict(os.environ if environ is None else environ))
     if not gpus:
         return 1, source
     cores = usable_cores()
-    units = len(parse_task_names(cfg.tasks)) * len(cfg.seeds)
+    units = len(parse_task_names(cfg.protocol.tasks)) * len(cfg.protocol.seeds)
     n = max(1, min(PROCESSES_PER_GPU * len(gpus), MAX_DEFAULT_PROCESSES, cores // 2, units))
     return n, f"{len(gpus)} GPU(s) and {cores} cores"
 
 
-def main(cfg: EvalConfig, argv: Sequence[str]) -> int:
-    """``--local-processes N``: the run of `argv` as N processes, then merged; the exit code."""
-    if cfg.out is None:
+def main(cfg: EvalConfig) -> int:
+    """``--local-processes N``: the run of `cfg` as N processes, then merged; the exit code."""
+    if cfg.run.out is None:
         print("error: --local-processes needs --out DIR, the folder the processes share",
               file=sys.stderr)
         return 2
-    if cfg.num_processes > 1 or cfg.coordinator:
+    if cfg.run.num_processes > 1 or cfg.run.coordinator:
         print("error: --local-processes starts its own processes; drop --num-processes, "
               "--process-id and --coordinator", file=sys.stderr)
         return 2
-    return run(argv, cfg.local_processes, Path(cfg.out), cfg.quiet, cfg.gpu_mem_fraction,
-               mps_mode=cfg.mps)
+    return run(cfg)
 
 
 def gpu_setup(n: int, out: Path, mode: str, environ: dict[str, str],
@@ -193,12 +182,12 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: float | None,
-        poll_s: float = 5.0, mps_mode: str = "auto",
-        command: Sequence[str] | None = None) -> int:
-    """Start the N processes, wait for them, merge; the exit code (130 if interrupted, 2 if
-    --mps on cannot start MPS).  `command` replaces ``python -m agnostos_mjx.eval`` (tests).
-    SIGTERM is handled as Ctrl-C."""
+def run(cfg: EvalConfig, poll_s: float = 5.0, command: Sequence[str] | None = None) -> int:
+    """Start cfg's --local-processes N processes into its --out, wait for them, merge; the
+    exit code (130 if interrupted, 2 if --mps on cannot start MPS).  `command` replaces
+    ``python -m agnostos_mjx.eval`` (tests).  SIGTERM is handled as Ctrl-C."""
+    n, out, quiet, mps_mode = (cfg.run.local_processes or 1, Path(cfg.run.out or "."),
+                               cfg.run.quiet, cfg.run.mps)
     out.mkdir(parents=True, exist_ok=True)
     package_root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ,
@@ -216,8 +205,8 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
         except mps.MpsError as e:
             print(f"error: --mps {mps_mode}: {e}", file=sys.stderr)
             return 2
-        child = _child_args(argv, out, n, memory_fraction, per_gpu)
-        _start(command, child, n, out, envs, procs, logs)
+        spec = _child_spec(cfg, out, n, per_gpu)
+        _start(command, ["--spec", str(spec)], n, out, envs, procs, logs)
         _wait(procs, out, poll_s, quiet, t0)
         # Every process has written its final results: merge while they end (their
         # interpreters' teardown), unless one ended without them.
@@ -244,22 +233,25 @@ def run(argv: Sequence[str], n: int, out: Path, quiet: bool, memory_fraction: fl
     return max(_merge(out, n, t0) if merged is None else merged, 1 if failed else 0)
 
 
-def _child_args(argv: Sequence[str], out: Path, n: int, memory_fraction: float | None,
-                per_gpu: int) -> list[str]:
-    """The processes' common command line: `argv` on the shared task queue (prepared here,
-    a resumed run's tasks kept by their processes), with each one's share of GPU memory."""
-    child = _without(argv, "--local-processes", "--mps", "--task-queue")
+def _child_spec(cfg: EvalConfig, out: Path, n: int, per_gpu: int) -> Path:
+    """Writes the processes' common config to out/SPEC_FILE and returns its path: `cfg` as
+    one process of N on the shared task queue (prepared here, a resumed run's tasks kept by
+    their processes), with each one's share of GPU memory."""
     queue = out / QUEUE_DIR
     owners = task_queue.prepare(queue, out, n)  # resumed tasks stay with their process
     if owners:
         log.info("%d tasks stay with the processes that have episodes of them",
                  sum(task_queue.SEED_UNIT not in unit for unit in owners))
-    child += ["--task-queue", str(queue)]
     for stale in out.glob(f"proc-*/{task_queue.FINISHED_FILE}"):  # a resumed run's
         stale.unlink()
-    if memory_fraction is None and GPU_MEM_FRACTION.get() is None:
-        child += ["--gpu-mem-fraction", f"{JAX_MEMORY_SHARE / per_gpu:.4f}"]
-    return child
+    fraction = cfg.run.gpu_mem_fraction
+    if fraction is None and GPU_MEM_FRACTION.get() is None:
+        fraction = round(JAX_MEMORY_SHARE / per_gpu, 4)
+    path = out / SPEC_FILE
+    write_spec(path, cfg.with_options(
+        num_processes=n, process_id=0, local_processes=1, task_queue=str(queue),
+        gpu_mem_fraction=fraction, quiet=True, out=str(out)))
+    return path
 
 
 def _start(command: list[str], child: list[str], n: int, out: Path,
@@ -270,7 +262,7 @@ def _start(command: list[str], child: list[str], n: int, out: Path,
     for i in range(n):
         logs.append((out / f"proc-{i}.log").open("w"))
         procs.append(subprocess.Popen(
-            [*command, *child, "--quiet", "--num-processes", str(n), "--process-id", str(i)],
+            [*command, *child, "--process-id", str(i)],
             stdout=logs[-1], stderr=subprocess.STDOUT, env=envs[i],
             start_new_session=True))  # Ctrl-C reaches them once, forwarded by `_stop`
     log.info("%d processes started %.1f s after the launcher; logs in %s/proc-I.log", n,

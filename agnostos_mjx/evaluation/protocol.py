@@ -74,26 +74,26 @@ def select_tasks(cfg: EvalConfig) -> list[str]:
     from agnostos_mjx.tasks import get_task, parse_task_names
 
     try:
-        names = parse_task_names(cfg.tasks)
+        names = parse_task_names(cfg.protocol.tasks)
     except KeyError as e:
         raise UsageError(e.args[0] if e.args else str(e)) from None
     if not names:
-        raise UsageError(f"--tasks {cfg.tasks!r} selects no registered task")
-    if cfg.variations.isdigit():
+        raise UsageError(f"--tasks {cfg.protocol.tasks!r} selects no registered task")
+    if (variation := cfg.protocol.variations).isdigit():
         for t in map(get_task, names):
-            if int(cfg.variations) >= t.num_variations:
-                raise UsageError(f"--variations {cfg.variations}: {t.name} has variations "
+            if int(variation) >= t.num_variations:
+                raise UsageError(f"--variations {variation}: {t.name} has variations "
                                  f"0..{t.num_variations - 1}")
     return names
 
 
 def process_share(tasks: Sequence[str], cfg: EvalConfig) -> list[str]:
     """The tasks this process runs: every N-th from its index (all when one process)."""
-    return list(tasks[cfg.process_id::cfg.num_processes])
+    return list(tasks[cfg.run.process_id::cfg.run.num_processes])
 
 
 def pending_episodes(task: str, cfg: EvalConfig, recorded: Container[tuple[str, int, int]]
                      ) -> list[tuple[int, int]]:
     """The (seed, episode) pairs of `task` still to run: all but the `recorded` ones."""
-    return [(s, e) for s in cfg.seeds for e in range(cfg.episodes)
+    return [(s, e) for s in cfg.protocol.seeds for e in range(cfg.protocol.episodes)
             if (task, s, e) not in recorded]

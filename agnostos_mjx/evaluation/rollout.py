@@ -45,7 +45,7 @@ Steps = Generator["concurrent.futures.Future", Any, list[dict]]
 def run_task(task: Task, policy: Policy, pending: list[tuple[int, int]],
              cfg: EvalConfig, on_records: OnRecords, progress: Progress | None = None,
              done_before: int = 0) -> list[dict]:
-    """Run `pending` (seed, episode) pairs of one task in chunks of cfg.batch;
+    """Run `pending` (seed, episode) pairs of one task in chunks of --batch;
     `on_records(records)` is called as episodes finish.  Returns the records."""
     from agnostos_mjx.policies.planning import run_blocking
 
@@ -72,12 +72,13 @@ def task_steps(task: Task, policy: Policy, pending: list[tuple[int, int]],
     t0, started = time.perf_counter(), process_age_s()
     split = TimeSplit()
     with split.measure("build"):
-        runner = Episodes(task, cfg.backend, planner=cfg.planner, plan_rows=cfg.batch,
-                          renderer=cfg.renderer)
-    videos = EpisodeVideos.for_task(cfg, runner)
+        protocol = cfg.protocol
+        runner = Episodes(task, protocol.backend, planner=protocol.planner,
+                          plan_rows=protocol.batch, renderer=protocol.renderer)
+    videos = EpisodeVideos.for_task(cfg.run, runner)
     log.info("%s: %d episodes on backend %s (runner built in %.1f s)", task.name, len(pending),
              runner.backend_name, time.perf_counter() - t0)
-    chunk = min(cfg.batch, len(pending))
+    chunk = min(cfg.protocol.batch, len(pending))
     batches = -(-len(pending) // chunk)
     # A backend that compiles per batch shape (MJX) gets its last chunk padded.
     pad = runner.capabilities.padded_batch
@@ -165,7 +166,7 @@ def batch_steps(task: Task, policy: Policy, runner: Episodes,
     except UsageError:  # an answer of the wrong form (dense.check_answer) stops the run
         raise
     except Exception:
-        if cfg.fail_fast:
+        if cfg.run.fail_fast:
             raise
         log.exception("%s: the policy raised; running episodes of this batch end as "
                       "policy_error", task.name)
@@ -196,18 +197,18 @@ class Batch:
                                                                      done_before, label)
         self.n = n = len(part)
         self.run_part = part + [part[-1]] * (size - n)
-        dense = cfg.action_mode == "dense"
+        dense = cfg.protocol.action_mode == "dense"
         self.ctl = dense_control(cfg, runner) if dense else None
         self.limit = self.ctl.max_steps if self.ctl is not None else task.max_key_actions
-        self.mode = {"action_mode": cfg.action_mode, "step_budget": self.limit}
+        self.mode = {"action_mode": cfg.protocol.action_mode, "step_budget": self.limit}
         if self.ctl is not None:
             self.mode["control_hz"] = round(1.0 / (self.ctl.period_steps * runner.dt), 6)
-        self.execute = cfg.execute
+        self.execute = cfg.protocol.execute
         self.t_batch = time.perf_counter()
         self.keys = episode_keys(np.array([s for s, _ in self.run_part]),
                                  np.array([e for _, e in self.run_part]))
         self.variations = episode_variations(self.keys, task.num_variations,
-                                             task.split.value, cfg.variations)
+                                             task.split.value, cfg.protocol.variations)
         self.instructions = [task.descriptions(int(v))[0] for v in self.variations]
         self.unit = "control step" if dense else "key action"
         self.recorded = np.zeros(n, bool)

@@ -13,7 +13,7 @@ import json
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -57,28 +57,28 @@ log = logging.getLogger("agnostos_mjx.eval")
 def process_dir(out: Path, cfg: EvalConfig) -> Path:
     """Where this process writes: `out` itself, or out/proc-I when several processes share
     it, so each keeps its own episodes.jsonl (and --resume) with no file locking."""
-    return out / f"proc-{cfg.process_id}" if cfg.num_processes > 1 else out
+    return out / f"proc-{cfg.run.process_id}" if cfg.run.num_processes > 1 else out
 
 
 def resolve_out(cfg: EvalConfig, spec: str) -> Path:
-    """Sets cfg.out (default results/<policy>-<timestamp>) and checks, before anything
+    """Sets cfg.run.out (default results/<policy>-<timestamp>) and checks, before anything
     is loaded or created, that the run can write there."""
-    if cfg.out is None and cfg.num_processes > 1:
+    if cfg.run.out is None and cfg.run.num_processes > 1:
         raise UsageError("--num-processes needs --out DIR, the folder the processes share")
-    if cfg.out is None:
-        if cfg.resume:
+    if cfg.run.out is None:
+        if cfg.run.resume:
             latest = latest_run()
             hint = f" (the latest run is {latest})" if latest else ""
             raise UsageError(f"--resume needs --out DIR, the folder of the run to continue"
                              f"{hint}")
-        cfg.out = str(default_out(spec))
-    if not 0 <= cfg.process_id < cfg.num_processes:
-        raise UsageError(f"--process-id {cfg.process_id}: expected 0..{cfg.num_processes - 1}")
-    out_dir = process_dir(Path(cfg.out), cfg)
+        cfg.run.out = str(default_out(spec))
+    if not 0 <= (i := cfg.run.process_id) < (n := cfg.run.num_processes):
+        raise UsageError(f"--process-id {i}: expected 0..{n - 1}")
+    out_dir = process_dir(Path(cfg.run.out), cfg)
     problem = check_writable_dir(out_dir)
     if problem:
         raise UsageError(f"--out: {problem}")
-    if (out_dir / EPISODES_FILE).exists() and not cfg.resume:
+    if (out_dir / EPISODES_FILE).exists() and not cfg.run.resume:
         raise UsageError(f"{out_dir / EPISODES_FILE} exists; pass --resume to continue that "
                          f"run or choose another --out")
     return out_dir
@@ -86,21 +86,21 @@ def resolve_out(cfg: EvalConfig, spec: str) -> Path:
 
 # ---- checks and loading ------------------------------------------------------------------
 def _check_video(cfg: EvalConfig) -> None:
-    if cfg.video:
+    if cfg.run.video:
         from agnostos_mjx.evaluation.video import VideoSpec
 
         try:
-            VideoSpec.parse(cfg.video, cfg.video_cameras)
+            VideoSpec.parse(cfg.run.video, cfg.run.video_cameras)
         except ValueError as e:
             raise UsageError(str(e)) from None
 
 
 def _check_compare(cfg: EvalConfig) -> None:
-    if cfg.compare:
+    if cfg.run.compare:
         from agnostos_mjx.evaluation.paper import published
 
         try:
-            published(cfg.compare)
+            published(cfg.run.compare)
         except KeyError as e:
             raise UsageError(f"--compare: {e.args[0]}") from None
 
@@ -132,8 +132,8 @@ def observation_route(cfg: EvalConfig, policy: Policy, backend: str) -> str | No
     spec = policy.observation_spec
     if spec is None:
         return None
-    route = resolve_renderer(cfg.renderer if cfg.renderer != "auto" else spec.renderer,
-                             backend)
+    chosen = cfg.protocol.renderer
+    route = resolve_renderer(chosen if chosen != "auto" else spec.renderer, backend)
     log.info("observations: %s at %dx%d rendered by %s", ",".join(spec.cameras), spec.height,
              spec.width, "MJX-Warp on the GPU" if route == "warp" else "OpenGL on the CPU")
     return route
@@ -197,27 +197,27 @@ class Run:
         _check_video(cfg)
         self.out_dir = resolve_out(cfg, resolve_policy(cfg)[0])
         self.episodes_path = self.out_dir / EPISODES_FILE
-        sharding.configure(cfg.devices)
-        self.backend = resolve_backend(cfg.backend, cfg.batch)
+        sharding.configure(cfg.run.devices)
+        self.backend = resolve_backend(cfg.protocol.backend, cfg.protocol.batch)
         self.queue: TaskQueue | None = None
         # Tasks from a shared queue run beside whichever others this process got first:
         # their requests then go alone (agnostos_mjx/infra/gather.py).
-        gather.allow_gathering(cfg.task_queue is None)
-        if cfg.task_queue is not None:  # its balanced share first (claim_order, `_todo`)
-            self.queue = TaskQueue(Path(cfg.task_queue), cfg.process_id)
-            log.info("process %d of %d: tasks from the queue %s", cfg.process_id,
-                     cfg.num_processes, cfg.task_queue)
+        gather.allow_gathering(cfg.run.task_queue is None)
+        if cfg.run.task_queue is not None:  # its balanced share first (claim_order, `_todo`)
+            self.queue = TaskQueue(Path(cfg.run.task_queue), cfg.run.process_id)
+            log.info("process %d of %d: tasks from the queue %s", cfg.run.process_id,
+                     cfg.run.num_processes, cfg.run.task_queue)
         else:
             tasks = process_share(tasks, cfg)
-            if cfg.num_processes > 1:
-                log.info("process %d of %d: %s", cfg.process_id, cfg.num_processes,
+            if cfg.run.num_processes > 1:
+                log.info("process %d of %d: %s", cfg.run.process_id, cfg.run.num_processes,
                          ", ".join(tasks) or "no task")
         self.tasks = tasks
 
     def _plan(self) -> None:
         """The records already written (--resume) and each task's pending episodes."""
         cfg, tasks, name = self.cfg, self.tasks, self.policy.name
-        self.records = repair_records(self.episodes_path) if cfg.resume else []
+        self.records = repair_records(self.episodes_path) if cfg.run.resume else []
         if self.records:
             earlier = {r.get("policy") for r in self.records} - {None}
             if earlier and earlier != {name}:
@@ -226,9 +226,10 @@ class Run:
         recorded = {record_key(r) for r in self.records}
         self.plan = {task: pending_episodes(task, cfg, recorded) for task in tasks}
         self.total = sum(map(len, self.plan.values()))
-        skipped = len(tasks) * len(cfg.seeds) * cfg.episodes - self.total
+        seeds, episodes = cfg.protocol.seeds, cfg.protocol.episodes
+        skipped = len(tasks) * len(seeds) * episodes - self.total
         log.info("%d tasks (%s), seeds %s, %d episodes each: %d to run%s", len(tasks),
-                 ", ".join(tasks), ",".join(map(str, cfg.seeds)), cfg.episodes,
+                 ", ".join(tasks), ",".join(map(str, seeds)), episodes,
                  self.total, f", {skipped} already recorded" if skipped else "")
 
     # ---- what the callbacks read and write
@@ -240,9 +241,9 @@ class Run:
 
     def selected(self) -> list[dict]:
         """The records of this process's tasks, seeds and episodes."""
-        names, seeds = set(self.mine()), set(self.cfg.seeds)
+        names, seeds = set(self.mine()), set(self.cfg.protocol.seeds)
         return [r for r in self.records if r["task"] in names and int(r["seed"]) in seeds
-                and int(r["episode"]) < self.cfg.episodes]
+                and int(r["episode"]) < self.cfg.protocol.episodes]
 
     def write_results(self, final: bool) -> dict:
         """The outputs so far (after each task, so a stopped run keeps its tables)."""
@@ -252,7 +253,7 @@ class Run:
         # A process of a multi-process run draws no plot: the merge draws the run's.
         return write_outputs(self.out_dir, self.meta, self.selected(), self.mine(), self.cfg,
                              time.perf_counter() - self.t0, final, extra,
-                             plot=self.cfg.num_processes == 1)
+                             plot=self.cfg.run.num_processes == 1)
 
     def on_error(self, index: int, error: Exception) -> None:
         """A task that raised: the others go on, unless the error is the run's own."""
@@ -286,10 +287,10 @@ class Run:
         is a task, or with a queue one seed of a long task."""
         cfg, units = self.cfg, list(self.tasks)
         if self.queue is not None:  # the units it holds episodes of, then its balanced share
-            units = split_by_seed(units, self.backend, cfg.num_processes, cfg.seeds)
+            units = split_by_seed(units, self.backend, cfg.run.num_processes, cfg.protocol.seeds)
             order = [units.index(u) for u in self.queue.held(units)]
-            order += [i for i in claim_order(units, self.backend, cfg.num_processes,
-                                             cfg.process_id, overlap) if i not in order]
+            order += [i for i in claim_order(units, self.backend, cfg.run.num_processes,
+                                             cfg.run.process_id, overlap) if i not in order]
             units = [units[i] for i in order]
         return [(unit, task, pending) for unit in units
                 for task, seed in [unit_task(unit)]
@@ -300,11 +301,11 @@ class Run:
         cfg, policy = self.cfg, self.policy
         # One policy copy per task running at once: copies share the heavy parts (LLM
         # client, memory, selector); reset() gives each its own per-episode state.
-        overlap = cfg.overlap_tasks if policy.interleaves() else 1
+        overlap = cfg.run.overlap_tasks if policy.interleaves() else 1
         self.todo = self._todo(overlap)
-        with progress_bar(self.total, enabled=not cfg.quiet) as self.progress:
+        with progress_bar(self.total, enabled=not cfg.run.quiet) as self.progress:
             self.done = {unit: (0, 0.0) for unit, _, _ in self.todo}
-            run_cfg = replace(cfg, backend=self.backend)  # every task on the resolved one
+            run_cfg = cfg.with_options(backend=self.backend)  # every task on the resolved one
             # The native physics of tasks running at once overlaps on threads (task_steps).
             pool = (ThreadPoolExecutor(overlap, thread_name_prefix="physics")
                     if overlap > 1 else None)
@@ -319,12 +320,12 @@ class Run:
             try:
                 run_interleaved(jobs, overlap,
                                 on_done=lambda i, _: self.write_results(final=False),
-                                on_error=None if cfg.fail_fast else self.on_error)
+                                on_error=None if cfg.run.fail_fast else self.on_error)
             finally:
                 if pool is not None:
                     pool.shutdown(cancel_futures=True)
         if self.mine():  # the process's own costs beside its tasks' (timings.process_table)
-            self.on_timing({"process": cfg.process_id, "startup_s": startup_s,
+            self.on_timing({"process": cfg.run.process_id, "startup_s": startup_s,
                             "tasks_s": round(time.perf_counter() - t_tasks, 3),
                             "tasks": len(self.mine()), "startup": self.startup})
         results = self.write_results(final=True)

@@ -202,26 +202,27 @@ def write_outputs(out_dir: Path, meta: dict, records: Sequence[dict], tasks: Seq
     records = sorted(records, key=lambda r: (list(tasks).index(r["task"]), r["seed"],
                                              r["episode"]))
     summary = aggregate(records, tasks)
+    seeds, episodes, compare_with = cfg.protocol.seeds, cfg.protocol.episodes, cfg.run.compare
     out_dir.mkdir(parents=True, exist_ok=True)
     results = {**meta, "finished": datetime.now().isoformat(timespec="seconds") if final
                else None, "wall_s": round(wall_s, 2),
-               "complete": len(records) == len(tasks) * len(cfg.seeds) * cfg.episodes,
+               "complete": len(records) == len(tasks) * len(seeds) * episodes,
                "summary": summary, "episodes": records, **(extra or {})}
     atomic_write(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
     atomic_write(out_dir / "results.csv", format_csv(summary))
     title = (f"policy {meta['policy']['name']}, backend {meta['backend']}, seeds "
-             f"{','.join(map(str, cfg.seeds))}, {cfg.episodes} episodes per seed")
+             f"{','.join(map(str, seeds))}, {episodes} episodes per seed")
     compare = None
-    if cfg.compare:
+    if compare_with:
         from agnostos_mjx.evaluation.paper import published
 
-        compare = published(cfg.compare)
-    results["markdown"] = format_markdown(summary, title, compare, cfg.compare or "")
+        compare = published(compare_with)
+    results["markdown"] = format_markdown(summary, title, compare, compare_with or "")
     atomic_write(out_dir / "results.md", results["markdown"])
     if final and plot:
         from agnostos_mjx.evaluation.report_plot import plot_summary
 
-        plot_summary(summary, out_dir / "results.png", title, compare, cfg.compare or "")
+        plot_summary(summary, out_dir / "results.png", title, compare, compare_with or "")
     return results
 
 
@@ -236,10 +237,12 @@ def merge(out: Path) -> dict:
                          f"--num-processes N --out {out} first)")
     metas = [json.loads(p.read_text(encoding="utf-8")) for p in parts]
     first = metas[0]
-    cfg = EvalConfig(**{**first["config"], "process_id": 0, "num_processes": 1,
-                        "coordinator": None, "merge": False, "resume": False})
-    expected = first["config"]["num_processes"]
-    missing = sorted(set(range(expected)) - {m["config"]["process_id"] for m in metas})
+    # Each "config" nested by part, or flat as written before the parts.
+    configs = [EvalConfig.from_dict(m["config"]) for m in metas]
+    cfg = configs[0].with_options(process_id=0, num_processes=1, coordinator=None,
+                                  merge=False, resume=False)
+    expected = configs[0].run.num_processes
+    missing = sorted(set(range(expected)) - {c.run.process_id for c in configs})
     if missing:
         log.warning("%s: no results yet from process %s", out, ", ".join(map(str, missing)))
     records: dict[tuple, dict] = {}
@@ -251,9 +254,9 @@ def merge(out: Path) -> dict:
                                       "tasks")}
     meta["config"] = asdict(cfg)
     meta["started"] = min(m["started"] for m in metas)
-    meta["processes"] = [{"process_id": m["config"]["process_id"], "wall_s": m["wall_s"],
+    meta["processes"] = [{"process_id": c.run.process_id, "wall_s": m["wall_s"],
                           "finished": m["finished"], "episodes": len(m["episodes"])}
-                         for m in metas]
+                         for c, m in zip(configs, metas)]
     failed = {t: e for m in metas for t, e in m.get("failed_tasks", {}).items()}
     tasks = first["tasks"]
     atomic_write(out / EPISODES_FILE, jsonl(sorted(merged, key=lambda r: (

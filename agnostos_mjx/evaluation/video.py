@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
+    from agnostos_mjx.evaluation.config import RunConfig
     from agnostos_mjx.runtime.env import Episodes
     from agnostos_mjx.runtime.state import EnvState
 
@@ -102,13 +103,11 @@ class EpisodeVideos:
         self._frames: list[list[np.ndarray]] = []
 
     @classmethod
-    def for_task(cls, cfg: Any, runner: Episodes) -> EpisodeVideos:
-        spec = getattr(cfg, "video", None)
-        if not spec:
+    def for_task(cls, run: RunConfig, runner: Episodes) -> EpisodeVideos:
+        """The videos of a run's options (--video, --video-cameras, --out) for one task."""
+        if not run.video:
             return cls(None, None, None)
-        if isinstance(spec, str):
-            spec = VideoSpec.parse(spec, getattr(cfg, "video_cameras", None))
-        return cls(spec, runner, Path(cfg.out or "."))
+        return cls(VideoSpec.parse(run.video, run.video_cameras), runner, Path(run.out or "."))
 
     @property
     def enabled(self) -> bool:
