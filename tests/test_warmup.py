@@ -172,7 +172,7 @@ def test_a_run_of_several_processes_compiles_the_shared_programs_once(tmp_path, 
     codes, commands = [1, 0], []
     monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: (
         commands.append(cmd), types.SimpleNamespace(returncode=codes.pop(0)))[1])
-    monkeypatch.setattr(ev.processes, "main", lambda cfg, argv: 0)  # not the processes
+    monkeypatch.setattr(ev.processes, "main", lambda cfg: 0)  # not the processes
     args = ["--tasks", "lamp_on,lamp_off", "--local-processes", "2", "--out", str(tmp_path / "r")]
     assert ev.main(args) == 0 and not warmup.shared_marker(75, True).exists()  # failed
     assert ev.main(args) == 0 and warmup.shared_marker(75, True).exists()
