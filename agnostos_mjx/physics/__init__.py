@@ -29,8 +29,9 @@ WARP_MIN_BATCH = 4096
 log = logging.getLogger(__name__)
 
 
+@functools.cache
 def cuda_gpu() -> bool:
-    """True when JAX sees a CUDA GPU."""
+    """True when JAX sees a CUDA GPU (asked once: every CPU-route observation reads it)."""
     try:
         import jax
 
