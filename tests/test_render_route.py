@@ -120,3 +120,28 @@ def test_dense_periods_scan_their_conditions_in_short_chunks() -> None:
 
     assert [condition_rows(n) for n in (1, 8, 10, 16, 17, 1000)] == [8, 8, 16, 16, 32,
                                                                     CONDITION_ROWS]
+
+
+def test_warp_preload_starts_once_and_is_waited_for(monkeypatch) -> None:
+    """A run on the warp route loads Warp on one background thread (render.warp.preload),
+    started once however often asked; a failed load is left to the renderer's own import."""
+    import threading
+
+    from agnostos_mjx.render import warp
+
+    started = []
+    release = threading.Event()
+
+    def load() -> None:
+        started.append(threading.current_thread().name)
+        release.wait(5)
+
+    monkeypatch.setattr(warp, "_load_warp", load)
+    monkeypatch.setattr(warp, "_preloading", None)
+    warp.preload()
+    warp.preload()
+    thread = warp._preloading
+    assert thread is not None and thread.is_alive()
+    release.set()
+    thread.join(5)
+    assert started == ["warp-preload"]

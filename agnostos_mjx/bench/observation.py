@@ -8,8 +8,9 @@ segmentation; `--cameras` at `--size` px) per task and batch, for
   or over each count of ``--render-threads`` in turn (timed alternately, one row each);
 * ``warp``: MJX-Warp's batch ray tracer, observations kept on the device (JAX arrays),
   from host state as the evaluator has it;
-* ``warp-bare``: the bare MJX-Warp renderer (``refit_bvh`` + ``render`` alone) on the same
-  posed data, the ceiling the observation is compared with (``warp / warp-bare``).
+* ``warp-bare``: the bare MJX-Warp renderer (pose, ``refit_bvh`` and ``render``, without
+  unpacking the images) from the same state, the ceiling the observation is compared with
+  (``warp / warp-bare``).
 
 The warp rows run only where a CUDA GPU and warp-lang are present.  Each figure is the best
 of `--repeats` timed calls after one warm-up call.  A benchmark, not a test.
@@ -160,9 +161,9 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
         if kind == "warp":
             renderer = runner.observer.renderer(spec, "warp", batch)
             p = env.physics
-            data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
             rgba = jax.numpy.asarray(env.geom_rgba, jax.numpy.float32)
-            bare = _best(functools.partial(renderer.render_buffers, data, rgba), repeats)
+            bare = _best(functools.partial(renderer.state_buffers, p.qpos, p.mocap_pos,
+                                           p.mocap_quat, rgba), repeats)
             rows.append(_row(task_name, batch, "warp-bare", len(cameras), bare))
             rows[-2]["fraction_of_bare"] = round(bare / seconds, 3)
         log.info("%s", rows[-1])

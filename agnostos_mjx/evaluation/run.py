@@ -179,6 +179,10 @@ class Run:
         started = datetime.now().isoformat(timespec="seconds")
         self.t0 = time.perf_counter()
         renderer = observation_route(cfg, policy, self.backend)
+        if renderer == "warp":  # Warp's start overlaps the first task's build and reset
+            from agnostos_mjx.render.warp import preload
+
+            preload()
         self.meta = {"config": asdict(cfg),
                      "policy": {"spec": self.spec, "name": policy.name, "note": self.note,
                                 "class": self.policy_class,

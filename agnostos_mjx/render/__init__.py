@@ -11,13 +11,14 @@ Two implementations behind one small interface (``width``, ``height``, ``camera_
   ``render_views`` call into N contiguous chunks rendered in parallel (MuJoCo and llvmpipe
   release the GIL); results are byte-identical to one CpuRenderer. :func:`cpu_renderer`
   builds it with :func:`render_threads` threads, or a plain CpuRenderer when that is 1.
-* :class:`WarpRenderer` - MJX ``impl="warp"`` batch ray-tracer on a CUDA GPU.
-  ``render(data, camera)`` takes an ``mjx.Data`` batch whose kinematics are up to date.
+* :class:`WarpRenderer` - MJX ``impl="warp"`` batch ray-tracer on a CUDA GPU, all worlds in
+  one call: ``render`` takes the same state arrays (host or device), ``state_views`` every
+  camera at once as device arrays.
 
 Modules: ``common`` (CameraImages, camera names, clipping planes, the GL install hint),
 ``cpu`` (CpuRenderer), ``threaded`` (ThreadedCpuRenderer, cpu_renderer, render_threads),
 ``warp`` (WarpRenderer, FixedCamLight).  Every public name is importable from
-``agnostos_mjx.render`` itself, as before the split.
+``agnostos_mjx.render`` itself.
 
 Headless GL selection (``MUJOCO_GL``): mujoco picks its GL backend when ``mujoco`` is first
 imported, from ``MUJOCO_GL``. An existing ``MUJOCO_GL`` is always respected. Otherwise this

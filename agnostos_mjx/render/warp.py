@@ -7,6 +7,7 @@ built)."""
 from __future__ import annotations
 
 import copy
+import threading
 from collections.abc import Sequence
 from typing import Any, Self
 
@@ -26,6 +27,30 @@ def captured(program: Any, *args: Any) -> Any:
 
     with gc_paused():
         return jax.block_until_ready(program(*args))
+
+
+_preloading: threading.Thread | None = None
+
+
+def preload() -> None:
+    """Start loading MJX-Warp (mujoco_warp's kernel modules, Warp's CUDA start) on a thread,
+    so that it overlaps a run's start instead of delaying its first observation; the first
+    `WarpRenderer` waits for it.  For a run that has chosen the warp route."""
+    global _preloading
+    if _preloading is None:
+        _preloading = threading.Thread(target=_load_warp, name="warp-preload", daemon=True)
+        _preloading.start()
+
+
+def _load_warp() -> None:
+    try:
+        import warp
+
+        from agnostos_mjx.physics.quiet_mjx import mjx  # noqa: F401
+
+        warp.init()
+    except Exception:  # noqa: BLE001 - the renderer's own import reports it
+        pass
 
 
 class FixedCamLight:
@@ -109,10 +134,10 @@ class WarpRenderer:
 
     ``nworld`` is fixed by the render context. ``cameras`` limits which cameras are rendered
     (default: all); ``depth`` and ``segmentation`` add those buffers to the context (they cost
-    nothing measurable). ``data`` passed to the render methods must be a warp-impl
-    batch (leading axis ``nworld``) on which forward/kinematics already ran (cam_xpos,
-    geom_xpos are read). Colours come from the mjx.Model (``mjx_model``, default
-    ``put_model`` of the renderer's `model`) or per world from ``geom_rgba`` [B, ngeom, 4].
+    nothing measurable). The render methods take a batch's state (qpos, mocap_pos,
+    mocap_quat, leading axis ``nworld``) and pose it on the device (`pose`). Colours come
+    from the mjx.Model (``mjx_model``, default ``put_model`` of the renderer's `model`) or
+    per world from ``geom_rgba`` [B, ngeom, 4].
     Lighting is `CpuRenderer`'s: the headlight of the first of ``cameras`` lights them all
     (`headlight_as_light`; a given ``mjx_model`` must be ``put_model(renderer.model)``).
     """
@@ -131,6 +156,8 @@ class WarpRenderer:
         import jax  # lazy: keeps this module importable without warp/CUDA
         import jax.numpy as jnp
 
+        if _preloading is not None:
+            _preloading.join()
         from agnostos_mjx.physics.base import for_warp
         from agnostos_mjx.physics.quiet_mjx import mjx
 
@@ -193,11 +220,12 @@ class WarpRenderer:
                                            rgb=img, depth=metres, segmentation=labels)
             return views
 
-        self._buffers = jax.jit(_buffers)
+        self._buffers_fn = _buffers
         self._views_fn = _views
-        self._views = jax.jit(_views)
-        self._template: Any = None
-        self._pose_jit: Any = None
+        make = lambda _: mjx.make_data(self._model, impl="warp", naconmax=64 * self.nworld,  # noqa: E731
+                                       njmax=256)
+        self._template = jax.jit(jax.vmap(make))(jnp.arange(self.nworld))  # state replaced
+        self._programs: dict[str, Any] = {}
         self._camlight = FixedCamLight(model) if FixedCamLight.supports(model) else None
 
     @property
@@ -205,24 +233,13 @@ class WarpRenderer:
         """The MjModel Warp renders: the caller's, lit as `CpuRenderer` lights it."""
         return self._model
 
-    def template(self) -> Any:
-        """A warp ``mjx.Data`` batch of ``nworld`` worlds, made once (its state is replaced)."""
-        import jax
-        import jax.numpy as jnp
-
-        from agnostos_mjx.physics.quiet_mjx import mjx
-
-        if self._template is None:
-            make = lambda _: mjx.make_data(self._model, impl="warp",  # noqa: E731
-                                           naconmax=64 * self.nworld, njmax=256)
-            self._template = jax.jit(jax.vmap(make))(jnp.arange(self.nworld))
-        return self._template
-
-    def pose(self, template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
-        """``template`` with this state, posed for rendering (traceable: use inside a jit).
+    def pose(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
+        """The template with this state, posed for rendering (traceable: use inside a jit).
 
         Kinematics and the cameras' and lights' poses when they are all fixed to bodies
-        (every task scene), else a full ``forward``."""
+        (every task scene), else a full ``forward``.  The template enters the program as a
+        constant: as an argument, every call cost several times the render itself on the
+        GPU (docs/performance.md)."""
         import jax
         import jax.numpy as jnp
 
@@ -230,7 +247,8 @@ class WarpRenderer:
 
         mx = self.mx
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        d = template.replace(qpos=f32(qpos), mocap_pos=f32(mocap_pos), mocap_quat=f32(mocap_quat))
+        d = self._template.replace(qpos=f32(qpos), mocap_pos=f32(mocap_pos),
+                                    mocap_quat=f32(mocap_quat))
         if self._camlight is None:
             d = jax.vmap(lambda d: mjx.forward(mx, d))(d)
             cam_xpos, cam_xmat = d.cam_xpos, d.cam_xmat
@@ -245,16 +263,35 @@ class WarpRenderer:
         return d.tree_replace({"cam_xpos": cam_xpos, "cam_xmat": cam_xmat,
                                "_impl.light_xpos": light_xpos, "_impl.light_xdir": light_xdir})
 
-    def state_data(self, qpos: Any, mocap_pos: Any, mocap_quat: Any) -> Any:
-        """A posed warp ``mjx.Data`` batch from host or device state arrays."""
+    def _program(self, name: str, body: Any) -> Any:
+        """The jitted program `name` (made once) of `body(pose(qpos, ...), geom_rgba)`."""
         import jax
 
-        if self._pose_jit is None:
-            self._pose_jit = jax.jit(self.pose)
-        return captured(self._pose_jit, self.template(), qpos, mocap_pos, mocap_quat)
+        if self._rc is None:
+            raise RuntimeError("WarpRenderer is closed")
+        if name not in self._programs:
+            self._programs[name] = jax.jit(
+                lambda q, mp, mq, rgba: body(self.pose(q, mp, mq), rgba))
+        return self._programs[name]
+
+    def state_buffers(self, qpos: Any, mocap_pos: Any, mocap_quat: Any,
+                      geom_rgba: Any = None) -> tuple[Any, Any, Any]:
+        """The bare renderer from a state: pose, refit the BVH, trace; packed device buffers,
+        for timing (what an observation costs before its images are unpacked)."""
+        return captured(self._program("buffers", self._buffers_fn), qpos, mocap_pos,
+                        mocap_quat, geom_rgba)
+
+    def state_views(self, qpos: Any, mocap_pos: Any, mocap_quat: Any,
+                    geom_rgba: Any = None) -> dict[str, CameraImages]:
+        """Every camera of the context for a state (host or device arrays, leading axis
+        ``nworld``) -> :class:`CameraImages` of device arrays."""
+        if np.shape(qpos)[0] != self.nworld:
+            raise ValueError(f"state batch {np.shape(qpos)[0]} != nworld {self.nworld}")
+        return captured(self._program("views", self._views_fn), qpos, mocap_pos, mocap_quat,
+                        geom_rgba)
 
     def views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
-        """:meth:`render_views` without the checks (traceable: use inside a jit)."""
+        """The images of a posed ``data`` (traceable: use inside a jit, after `pose`)."""
         return self._views_fn(data, geom_rgba)
 
     def camera_id(self, camera: str) -> int:
@@ -263,30 +300,11 @@ class WarpRenderer:
             raise unknown_camera(self._model, camera)
         return self.camera_names.index(camera)
 
-    def _check(self, data: Any) -> None:
-        if self._rc is None:
-            raise RuntimeError("WarpRenderer is closed")
-        if data.qpos.shape[0] != self.nworld:
-            raise ValueError(f"data batch {data.qpos.shape[0]} != nworld {self.nworld}")
-
-    def render_buffers(self, data: Any, geom_rgba: Any = None) -> tuple[Any, Any, Any]:
-        """The bare renderer (``refit_bvh`` + ``render``): packed device buffers, for timing."""
-        self._check(data)
-        return captured(self._buffers, data, geom_rgba)
-
-    def render_views(self, data: Any, geom_rgba: Any = None) -> dict[str, CameraImages]:
-        """Every camera of the context -> :class:`CameraImages` of JAX device arrays."""
-        self._check(data)
-        return captured(self._views, data, geom_rgba)
-
-    def render_jax(self, data: Any, camera: str) -> Any:
-        """Like :meth:`render` but returns the device array (no host copy)."""
+    def render(self, qpos: Any, mocap_pos: Any, mocap_quat: Any, camera: str,
+               geom_rgba: Any = None) -> np.ndarray:
+        """RGB of ``camera`` for every world of a state -> uint8 [B, H, W, 3]."""
         self.camera_id(camera)
-        return self.render_views(data)[camera].rgb
-
-    def render(self, data: Any, camera: str) -> np.ndarray:
-        """Render ``camera`` for every world of ``data`` -> uint8 [B, H, W, 3]."""
-        return np.asarray(self.render_jax(data, camera))
+        return np.asarray(self.state_views(qpos, mocap_pos, mocap_quat, geom_rgba)[camera].rgb)
 
     def close(self) -> None:
         """Drop the render context so its GPU buffers are released, once the renders already

@@ -81,8 +81,8 @@ class Observer:
         kind = self.renderer_kind(spec)
         renderer = self.renderer(spec, kind, len(p.qpos))
         if kind == "warp":
-            data = renderer.state_data(p.qpos, p.mocap_pos, p.mocap_quat)
-            return renderer.render_views(data, jnp.asarray(state.geom_rgba, jnp.float32))
+            return renderer.state_views(p.qpos, p.mocap_pos, p.mocap_quat,
+                                        jnp.asarray(state.geom_rgba, jnp.float32))
         return self._cpu_views(renderer, state, spec)
 
     def _cpu_views(self, renderer: Any, state: EnvState, spec: ObservationSpec
@@ -120,7 +120,8 @@ class Observer:
     def _warp_cameras(self, state: EnvState, spec: ObservationSpec
                       ) -> dict[str, CameraObservation]:
         """Every camera of `spec` on MJX-Warp as one device program: pose (kinematics and
-        camera poses), trace, then depth clipping, extrinsics and point clouds."""
+        camera poses), trace, then depth clipping, extrinsics and point clouds; numpy arrays
+        when the spec asks for them."""
         from agnostos_mjx.render.warp import captured
 
         p = state.physics
@@ -128,9 +129,9 @@ class Observer:
         constants = camera_constants(self.scene.model, spec)
         key = (spec, len(p.qpos))
         if key not in self._programs:
-            def observe_all(template: Any, qpos: Any, mocap_pos: Any, mocap_quat: Any,
+            def observe_all(qpos: Any, mocap_pos: Any, mocap_quat: Any,
                             rgba: Any) -> dict[str, dict[str, Any]]:
-                views = renderer.views(renderer.pose(template, qpos, mocap_pos, mocap_quat), rgba)
+                views = renderer.views(renderer.pose(qpos, mocap_pos, mocap_quat), rgba)
                 out = {}
                 for name, (k, near, far) in constants.items():
                     cam = camera_observation(views[name], k, near, far, spec, jnp)
@@ -138,8 +139,10 @@ class Observer:
                 return out
 
             self._programs[key] = jax.jit(observe_all)
-        arrays = captured(self._programs[key], renderer.template(), p.qpos, p.mocap_pos,
-                          p.mocap_quat, jnp.asarray(state.geom_rgba, jnp.float32))
+        arrays = captured(self._programs[key], p.qpos, p.mocap_pos, p.mocap_quat,
+                          jnp.asarray(state.geom_rgba, jnp.float32))
+        if spec.numpy:  # one transfer for all: an np.asarray per array waits once each
+            arrays = jax.device_get(arrays)
         return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
                 for name, (k, near, far) in constants.items()}
 
@@ -168,10 +171,6 @@ class Observer:
         t = time.perf_counter()
         if self.renderer_kind(spec) == "warp":
             cameras = self._warp_cameras(state, spec)
-            if spec.numpy:
-                cameras = {name: CameraObservation(**{
-                    f: (np.asarray(v) if hasattr(v, "shape") else v) for f, v in vars(cam).items()})
-                    for name, cam in cameras.items()}
             self.frames += state.batch * len(spec.cameras)
         else:
             views = self.render_views(state, spec)
