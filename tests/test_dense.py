@@ -22,6 +22,7 @@ from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
 from agnostos_mjx.runtime.dense import DenseControl
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.sim.actions import KeyActions
+from agnostos_mjx.tasks import SEEN, UNSEEN_LEVEL1, UNSEEN_LEVEL2
 from tests.conftest import episodes_for
 
 TASK = "turn_tap"  # a seen task with a short demo (3 key actions, about 90 control steps)
@@ -349,3 +350,21 @@ def test_dense_device_step_matches_host_path_on_mjx() -> None:
     np.testing.assert_array_equal(dev.outcome, host.outcome)
     np.testing.assert_array_equal(dev.key_actions, host.key_actions)
     assert np.abs(np.asarray(dev.obs["tip.pos"]) - np.asarray(host.obs["tip.pos"])).max() < 0.01
+
+
+@pytest.mark.slow  # 41 tasks x the whole dense budget
+@pytest.mark.parametrize("name", sorted(SEEN + UNSEEN_LEVEL1 + UNSEEN_LEVEL2))
+def test_a_gripper_held_still_solves_no_task(name: str) -> None:
+    """A policy that holds the gripper where it starts, open, for the whole dense budget
+    succeeds on no task: nothing in a scene drifts into its success state by itself (a USB
+    stick once crept out of its port and fell within 30 s)."""
+    ep = episodes_for(name)
+    keys = jax.random.split(jax.random.PRNGKey(0), 1)
+    env = ep.reset(keys, np.zeros(1, np.int32))
+    ctl = DenseControl.at(20.0, ep.dt, ep.task.max_key_actions)
+    target = _hold(env)
+    for _ in range(ctl.max_steps):
+        env, _ = ep.step_dense(env, target, ctl)
+        if env.done.all():
+            break
+    assert int(env.outcome[0]) != Outcome.SUCCESS, f"{name} solved by holding still"

@@ -17,7 +17,7 @@ from agnostos_mjx.tasks.base import (
     place_root,
 )
 from agnostos_mjx.tasks.builders.common import DOWN, pose_in_root, sensor_volume
-from agnostos_mjx.tasks.builders.kitchen import desktop_computer, plug
+from agnostos_mjx.tasks.builders.kitchen import HOLDING, desktop_computer, plug
 
 CASE_HALF = (0.15, 0.09, 0.17)
 FRONT_X = 0.05  # the case's front face; the stick sticks out towards the root's -x
@@ -55,7 +55,8 @@ class TakeUsbOutOfComputer(Task):
         root = scene.mocap("take_usb_out_of_computer")
         desktop_computer(root, "computer", front_x=FRONT_X, half=CASE_HALF, port=PORT)
         plug(scene, "usb", body_half=STICK_HALF, pins=[(0.0, 0.0)], pin_half=(0.0060, 0.0023),
-             pin_length=0.012, grasp_offset=(-0.004, 0.0, 0.0), rgba=(0.1, 0.25, 0.7), mass=0.008)
+             pin_length=0.012, grasp_offset=(-0.004, 0.0, 0.0), rgba=(0.1, 0.25, 0.7), mass=0.008,
+             impedance=HOLDING)  # left alone, the stick stays in its port
         sensor_volume(root, "usb_success", (FRONT_X, *PORT), SUCCESS_HALF)
 
     def sample(self, key, variation) -> Placement:

@@ -31,11 +31,18 @@ def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
     return geom
 
 
-def stiff(geom: mujoco.MjsGeom) -> mujoco.MjsGeom:
+# solimp (dmin, dmax) of `stiff` contacts, and of harder ones for a pin that must stay in its
+# port under its own weight for a whole episode: at STIFF a USB stick left alone crept out of
+# its port and fell within 30 s.
+STIFF = (0.95, 0.99)
+HOLDING = (0.99, 0.999)
+
+
+def stiff(geom: mujoco.MjsGeom, impedance: tuple[float, float] = STIFF) -> mujoco.MjsGeom:
     """Hard contacts for a tight fit: the default soft contacts let a pin sink
     millimetres into its hole's walls, enough to tilt a plug out."""
     geom.solref = [0.01, 1.0]
-    geom.solimp = [0.95, 0.99, 0.001, 0.5, 2.0]
+    geom.solimp = [*impedance, 0.001, 0.5, 2.0]
     return geom
 
 
@@ -95,31 +102,33 @@ def saucepan(scene: SceneBuilder, parent: mujoco.MjsBody, name: str, *, center=(
 
 # ---- plugs and sockets (charger in a wall socket, USB stick in a computer) -----------------
 def socket_tube(parent: mujoco.MjsBody, front, inner_half: tuple[float, float], depth: float,
-                wall: float = 0.0015, rgba=GREY) -> None:
+                wall: float = 0.0015, rgba=GREY, impedance: tuple[float, float] = STIFF) -> None:
     """A rectangular hole running along the root's +x from the point `front`
     (its mouth): four thin walls that hold a plugged pin by contact."""
     x, y, z = front
     hy, hz = inner_half
     xc, hx = x + depth / 2, depth / 2
     for s in (-1, 1):
-        stiff(hidden(panel(parent, (hx, wall, hz + 2 * wall), (xc, y + s * (hy + wall), z), rgba)))
-        stiff(hidden(panel(parent, (hx, hy, wall), (xc, y, z + s * (hz + wall)), rgba)))
+        stiff(hidden(panel(parent, (hx, wall, hz + 2 * wall), (xc, y + s * (hy + wall), z),
+                           rgba)), impedance)
+        stiff(hidden(panel(parent, (hx, hy, wall), (xc, y, z + s * (hz + wall)), rgba)), impedance)
     parent.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.0005, hy + wall, hz + wall],
                     pos=[x - 0.0005, y, z], rgba=[*DARK, 1.0], contype=0, conaffinity=0, group=1)
 
 
 def plug(scene: SceneBuilder, name: str, *, body_half, pins, pin_half: tuple[float, float],
          pin_length: float, grasp_offset=(0.0, 0.0, 0.0), rgba=GREY, pin_rgba=STEEL,
-         mass: float = 0.01) -> str:
+         mass: float = 0.01, impedance: tuple[float, float] = STIFF) -> str:
     """A free plug: a box body (origin at its centre) with pins sticking out
     of its +x face at (y, z) offsets `pins`, and a site `<name>_grasp_point`
-    where the gripper should hold it.  Returns the site name."""
+    where the gripper should hold it; `impedance`: its pins' contacts (`stiff`).
+    Returns the site name."""
     body = free_body(scene, name)
     panel(body, body_half, (0, 0, 0), rgba, name=f"{name}_visual").mass = mass
     x = body_half[0] + pin_length / 2
     for i, (y, z) in enumerate(pins):
         stiff(panel(body, (pin_length / 2, *pin_half), (x, y, z), pin_rgba,
-                    name=f"{name}_pin{i}")).mass = 0.1 * mass
+                    name=f"{name}_pin{i}"), impedance).mass = 0.1 * mass
     grasp_site(body, f"{name}_grasp_point", grasp_offset)
     return f"{name}_grasp_point"
 
@@ -147,9 +156,9 @@ def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=
                      port=(0.0, 0.3), port_half=(0.0062, 0.0024), port_depth: float = 0.02,
                      rgba=(0.22, 0.22, 0.25)) -> str:
     """A tower PC on the table whose front (at `front_x`) faces the root's -x,
-    with one USB port at (y, z) `port`.  The case collides from `port_depth`
-    behind its front so the port's tube fits in the bezel.  Returns a site
-    `<name>_port` at the port's mouth."""
+    with one USB port at (y, z) `port` that holds a plugged stick (`HOLDING` contacts).
+    The case collides from `port_depth` behind its front so the port's tube fits in the
+    bezel.  Returns a site `<name>_port` at the port's mouth."""
     hx, hy, hz = half
     case = parent.add_body(name=name, pos=[front_x + hx, 0.0, hz])
     depth = port_depth + 0.002
@@ -163,7 +172,7 @@ def desktop_computer(parent: mujoco.MjsBody, name: str, *, front_x: float, half=
                            rgba=[0.6, 0.8, 1.0, 1.0], contype=0, conaffinity=0, group=1)
     button.name = f"{name}_power"
     y, z = port
-    socket_tube(case, (-hx, y, z - hz), port_half, port_depth, wall=0.002)
+    socket_tube(case, (-hx, y, z - hz), port_half, port_depth, wall=0.002, impedance=HOLDING)
     grasp_site(case, f"{name}_port", (-hx, y, z - hz))
     return f"{name}_port"
 
