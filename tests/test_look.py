@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -81,7 +82,7 @@ def test_rlbench_export_records_the_look(tmp_path, monkeypatch) -> None:
 
     monkeypatch.setattr(export_run, "_run_task", fake_task)
     cfg = ex.ExportConfig(out=tmp_path, tasks=("open_drawer",), demos=1)
-    assert ex.export(cfg)[LOOK_KEY] == look_record(ex.EXPORT_RENDERER)
+    assert ex.export(cfg)[LOOK_KEY] == look_record(cfg.renderer) == look_record("cpu")
     manifest = json.loads((tmp_path / "manifest.json").read_text())
     assert manifest[LOOK_KEY] == look_record("cpu")
     assert check_look(manifest, "cpu") is None and check_look(manifest, "warp")
@@ -90,6 +91,31 @@ def test_rlbench_export_records_the_look(tmp_path, monkeypatch) -> None:
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ValueError, match="scene_version 0123456789ab, not"):
         ex.export(cfg)
+    manifest[LOOK_KEY] = look_record("cpu")
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="renderer cpu, .*not renderer warp"):  # another look
+        ex.export(replace(cfg, renderer="warp"))
+
+
+def test_export_renders_where_the_evaluator_does(tmp_path, monkeypatch) -> None:
+    """--renderer auto takes the machine's route (physics.resolve_renderer, as the
+    evaluator's); the route reaches the config, whose look record names it."""
+    seen = {}
+
+    def fake_export(cfg, workers):
+        seen["renderer"] = cfg.renderer
+        return {"wall_s": 0.0}
+
+    monkeypatch.setattr(ex, "export", fake_export)
+    monkeypatch.setattr(ex, "resolve_renderer", lambda name: "warp" if name == "auto" else name)
+    assert ex.main(["--out", str(tmp_path), "--tasks", "open_drawer", "--demos", "1",
+                    "--quiet"]) == 0
+    assert seen["renderer"] == "warp"
+    assert ex.main(["--out", str(tmp_path), "--tasks", "open_drawer", "--demos", "1",
+                    "--renderer", "cpu", "--quiet"]) == 0
+    assert seen["renderer"] == "cpu"
+    with pytest.raises(ValueError, match="renderer must be cpu or warp"):
+        ex.ExportConfig(out=tmp_path, tasks=("open_drawer",), renderer="auto")
 
 
 def test_env_look_warning_names_the_renderer_option() -> None:

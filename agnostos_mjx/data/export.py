@@ -106,7 +106,6 @@ from pathlib import Path
 
 from agnostos_mjx.data.episode_files import read_episode, verify_episode, write_episode
 from agnostos_mjx.data.export_config import (
-    EXPORT_RENDERER,
     FORMATS,
     ExportConfig,
     estimate,
@@ -118,10 +117,11 @@ from agnostos_mjx.data.lerobot_layout import STATE_LAYOUTS
 from agnostos_mjx.data.rlbench_format import RLBENCH_CAMERAS, episode_dir, is_complete
 from agnostos_mjx.data.rotations import ROTATIONS
 from agnostos_mjx.infra.settings import configure_jax
+from agnostos_mjx.physics import RENDERERS, resolve_renderer
 
 # The export's API and the episode format's, importable from here as before the splits
 # (README, reports):
-__all__ = ["EXPORT_RENDERER", "ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate",
+__all__ = ["ExportConfig", "RLBENCH_CAMERAS", "episode_dir", "estimate",
            "export", "export_task", "frames_per_demo", "is_complete", "main", "read_episode",
            "verify_episode", "write_episode"]
 
@@ -182,6 +182,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--staging", default=None,
                    help="lerobot: where each demo is staged before assembly, what a rerun "
                         "resumes from (default: <out>.staging)")
+    p.add_argument("--renderer", choices=RENDERERS, default="auto",
+                   help="where the images render: warp = MJX-Warp's batch ray tracer on the "
+                        "GPU (auto wherever JAX has a CUDA GPU and warp-lang is installed, as "
+                        "the evaluator's --renderer), cpu = MuJoCo's OpenGL (auto elsewhere); "
+                        "the two look slightly different, so the dataset records which")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
     if a.workers < 1:
@@ -199,7 +204,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                            size=a.size or DEFAULT_SIZE[a.format], batch=a.batch, every=a.every,
                            format=a.format, lerobot_version=a.lerobot_version or "v3.0",
                            rotation=a.rotation or "quat", state=a.state or "rlbench",
-                           video=a.video, staging=None if a.staging is None else Path(a.staging))
+                           video=a.video, staging=None if a.staging is None else Path(a.staging),
+                           renderer=resolve_renderer(a.renderer))
     except (ValueError, ImportError) as err:
         p.error(str(err))
     try:

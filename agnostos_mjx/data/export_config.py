@@ -10,9 +10,10 @@ from agnostos_mjx.data.expert_frames import frame_every
 from agnostos_mjx.data.rlbench_format import RLBENCH_CAMERAS, episode_dir, is_complete
 from agnostos_mjx.infra.settings import usable_cores
 
-# Exports render on the CPU (MuJoCo's OpenGL), whatever the machine: the record of the
-# images' look (data/look.py) names it, for a run rendering otherwise to be told.
-EXPORT_RENDERER = "cpu"
+# Exports render where the machine's evaluations do (`--renderer auto`, as the evaluator's):
+# MJX-Warp on a GPU with warp-lang, MuJoCo's OpenGL elsewhere.  The two renderers' images
+# differ slightly (eval/reports/renderer_parity_h200), so the record of the images' look
+# (data/look.py) names the one used, for a run rendering otherwise to be told.
 FORMATS = ("rlbench", "lerobot")
 # A LeRobot export renders RGB only: bytes per camera-frame measured at 224 px (one RGB PNG;
 # open_drawer + stack_blocks, 2 demos each, 5 cameras: 10.2 KB) and its share of the RLBench
@@ -53,8 +54,11 @@ class ExportConfig:
     state: str = "rlbench"
     video: bool = False
     staging: Path | None = None
+    renderer: str = "cpu"  # the route taken: "cpu" or "warp" (export.py resolves --renderer)
 
     def __post_init__(self) -> None:
+        if self.renderer not in ("cpu", "warp"):
+            raise ValueError(f"renderer must be cpu or warp, got {self.renderer!r}")
         if self.format not in FORMATS:
             raise ValueError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
         if self.format == "lerobot":

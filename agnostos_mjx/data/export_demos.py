@@ -10,7 +10,7 @@ import numpy as np
 
 from agnostos_mjx.data.episode_files import write_episode
 from agnostos_mjx.data.expert_frames import episode_observations, frame_every
-from agnostos_mjx.data.export_config import EXPORT_RENDERER, ExportConfig
+from agnostos_mjx.data.export_config import ExportConfig
 from agnostos_mjx.data.rlbench_format import episode_dir
 
 log = logging.getLogger("agnostos_mjx.data.export")
@@ -35,7 +35,7 @@ def export_task(cfg: ExportConfig, task_name: str, threads: int | None = None) -
     lerobot = cfg.format == "lerobot"
     spec = ObservationSpec(cameras=cfg.cameras, height=cfg.size, width=cfg.size,
                            modalities=("rgb",) if lerobot else MODALITIES,
-                           renderer=EXPORT_RENDERER)
+                           renderer=cfg.renderer)
     stats["every_steps"] = every
     stats["labels"] = {"geom_names": list(scene_labels(episodes.scene).geom_names),
                        "objects": {k: list(v) for k, v in

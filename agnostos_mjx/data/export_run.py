@@ -17,7 +17,6 @@ from dataclasses import asdict
 from pathlib import Path
 
 from agnostos_mjx.data.export_config import (
-    EXPORT_RENDERER,
     ExportConfig,
     estimate,
     frames_per_demo,
@@ -37,13 +36,13 @@ def _every_text(every: int | str | None) -> str:
     return ", RLBench's 20 Hz frames" if every == "rlbench" else f", frames every {every} steps"
 
 
-def _look(manifest: dict, home: Path) -> dict:
+def _look(cfg: ExportConfig, manifest: dict, home: Path) -> dict:
     """This run's look record; one that differs in renderer or scene version from the
     record of the episodes already in `home` is a ValueError, as other settings are: the
     episodes of one export look alike."""
     from agnostos_mjx.data.look import look_record
 
-    look = look_record(EXPORT_RENDERER)
+    look = look_record(cfg.renderer)
     old = manifest.get(LOOK_KEY)
     keys = ("renderer", "scene_version")
     if old and manifest.get("tasks") and any(old.get(k) != look[k] for k in keys):
@@ -68,15 +67,18 @@ def _worker_init() -> None:
 
 
 @contextlib.contextmanager
-def _worker_env(threads: int) -> Iterator[None]:
+def _worker_env(threads: int, renderer: str) -> Iterator[None]:
     """Settings for spawned workers (inherited at spawn; the parent renders nothing while
     they run): thread caps for llvmpipe's render threads and OpenMP/BLAS pools, and JAX on
-    the CPU: a worker simulates with native MuJoCo and renders on the CPU, and N processes
-    each pre-allocating most of one GPU's memory would fail (seen on a GPU host with 16
-    workers).  Values the user set are kept."""
+    the CPU when they render there (a worker simulates with native MuJoCo) or, rendering on
+    the GPU, taking its memory as needed: N processes each pre-allocating most of one GPU's
+    memory would fail (seen on a GPU host with 16 workers).  Values the user set are kept."""
     values = {k: str(threads) for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS",
                                          "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    values["JAX_PLATFORMS"] = "cpu"
+    if renderer == "cpu":
+        values["JAX_PLATFORMS"] = "cpu"
+    else:
+        values["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     saved = {k: os.environ.get(k) for k in values}
     for k, v in values.items():
         os.environ.setdefault(k, v)
@@ -146,7 +148,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
     if manifest.get("config", config) != config:
         raise ValueError(f"{home} was exported with {manifest['config']}, not {config}")
     manifest["config"] = config
-    manifest[LOOK_KEY] = _look(manifest, home)
+    manifest[LOOK_KEY] = _look(cfg, manifest, home)
     manifest.pop("failed_tasks", None)
     manifest.pop("lerobot", None)
     order = list(manifest.get("tasks", {})) + [t for t in cfg.tasks
@@ -195,7 +197,7 @@ def export(cfg: ExportConfig, workers: int = 1) -> dict:
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
         threads = max(1, usable_cores() // at_once)
-        with _worker_env(threads):
+        with _worker_env(threads, cfg.renderer):
             pool = ProcessPoolExecutor(at_once, multiprocessing.get_context("spawn"),
                                        initializer=_worker_init)
             try:

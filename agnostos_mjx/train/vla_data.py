@@ -191,7 +191,7 @@ def generate(cfg: DataConfig, workers: int = 1) -> dict:
         # Long tasks first, so that the pool does not end waiting on one of them.
         order = sorted(jobs, key=lambda j: j[0] not in ("place_cups", "stack_blocks",
                                                         "put_item_in_drawer", "stack_cups"))
-        with _worker_env(threads), ProcessPoolExecutor(
+        with _worker_env(threads, "cpu"), ProcessPoolExecutor(
                 workers, multiprocessing.get_context("spawn"), initializer=_worker_init) as pool:
             futures = [pool.submit(generate_chunk, cfg, *job, threads) for job in order]
             for fut in as_completed(futures):
