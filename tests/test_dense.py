@@ -19,6 +19,7 @@ from agnostos_mjx.evaluation.config import UsageError
 from agnostos_mjx.evaluation.dense import DenseDriver, PolicyAnswerError, as_chunk, check_answer
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
+from agnostos_mjx.policies.learned_options import DenseReplayOptions
 from agnostos_mjx.runtime.dense import DenseControl
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.sim.actions import KeyActions
@@ -75,7 +76,7 @@ def test_relative_rows_reach_the_same_targets_as_absolute_ones(replayed) -> None
     ep, env, policy = replayed
     ctl = DenseControl(10, 1000)
     absolute, _ = _replay(ep, env, policy, ctl, steps=25)
-    rel = DenseReplayPolicy(relative=True)
+    rel = DenseReplayPolicy(DenseReplayOptions(relative=True))
     rel.pose, rel.gripper, rel.frames = policy.pose, policy.gripper, policy.frames
     relative, _ = _replay(ep, env, rel, ctl, steps=25)
     np.testing.assert_array_equal(relative.outcome, absolute.outcome)
@@ -140,7 +141,7 @@ def test_a_chunked_replay_gives_the_one_row_replay(replayed) -> None:
     ep, env, policy = replayed
     ctl = DenseControl(10, 1000)
     one, _ = _replay(ep, env, policy, ctl, steps=30)
-    chunked = DenseReplayPolicy(chunk=4)
+    chunked = DenseReplayPolicy(DenseReplayOptions(chunk=4))
     chunked.pose, chunked.gripper, chunked.frames = policy.pose, policy.gripper, policy.frames
     out, driver = _replay(ep, env, chunked, ctl, steps=30, execute=3)
     assert driver.queries == 10
@@ -255,7 +256,7 @@ def _one_line_error(capsys: pytest.CaptureFixture) -> str:
     (["--policy", "dense-replay"], "policy dense-replay acts in dense mode, not keyaction"),
     (["--policy", "oracle", "--execute", "3"], "--execute: only with --action-mode dense"),
     (["--policy", "dense-replay", "--action-mode", "dense", "--policy-arg", "chunk=0"],
-     "chunk must be an integer >= 1"),
+     "--policy-arg chunk=0: must be an integer >= 1"),
 ])
 def test_cli_errors(args: list[str], expected: str, tmp_path: Path,
                     capsys: pytest.CaptureFixture) -> None:

@@ -50,14 +50,16 @@ import copy
 import functools
 import importlib
 import importlib.util
+import inspect
 import sys
 from collections.abc import Callable, Generator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from agnostos_mjx.infra.gather import send_alone
+from agnostos_mjx.policies.options import PolicyOptions, describe, parse_options
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
@@ -234,23 +236,39 @@ def no_actions(batch: int) -> KeyActions:
                       gripper=np.ones(batch, np.float32), valid=np.zeros(batch, bool))
 
 
-# Built-in policies by name, as "module:attr" so that a policy's dependencies
-# (an LLM client, a model) load only when it is used.
-_REGISTRY: dict[str, str | Callable[..., Policy]] = {
-    "oracle": "agnostos_mjx.policies.oracle:OraclePolicy",
-    "dense-replay": "agnostos_mjx.policies.dense_replay:DenseReplayPolicy",
-    "xicm": "agnostos_mjx.policies.xicm:XICMPolicy",
-    "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
-    "remote": "agnostos_mjx.remote.client:RemotePolicy",
-    "openvla": "agnostos_mjx.remote.client:OpenVLAPolicy",
-    "reference-vla": "agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
-    "timing": "agnostos_mjx.policies.timing:TimingPolicy",
+class Builtin(NamedTuple):
+    """A built-in policy: its class and its options type (policies/options.py), as
+    "module:attr" so that a policy's dependencies (an LLM client, a model, JAX) load only
+    when it is used, and its options without them."""
+
+    policy: str
+    options: str
+
+
+_REGISTRY: dict[str, Builtin | str | Callable[..., Policy]] = {
+    "oracle": Builtin("agnostos_mjx.policies.oracle:OraclePolicy",
+                      "agnostos_mjx.policies.oracle:OracleOptions"),
+    "dense-replay": Builtin("agnostos_mjx.policies.dense_replay:DenseReplayPolicy",
+                            "agnostos_mjx.policies.learned_options:DenseReplayOptions"),
+    "xicm": Builtin("agnostos_mjx.policies.xicm:XICMPolicy",
+                    "agnostos_mjx.policies.learned_options:XicmOptions"),
+    "retrieval": Builtin("agnostos_mjx.policies.retrieval:RetrievalPolicy",
+                         "agnostos_mjx.policies.learned_options:RetrievalOptions"),
+    "remote": Builtin("agnostos_mjx.remote.client:RemotePolicy",
+                      "agnostos_mjx.remote.options:RemoteOptions"),
+    "openvla": Builtin("agnostos_mjx.remote.client:OpenVLAPolicy",
+                       "agnostos_mjx.remote.options:OpenVLAOptions"),
+    "reference-vla": Builtin("agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
+                             "agnostos_mjx.policies.learned_options:ReferenceVLAOptions"),
+    "timing": Builtin("agnostos_mjx.policies.timing:TimingPolicy",
+                      "agnostos_mjx.policies.timing:TimingOptions"),
 }
 
 
 def register_policy(name: str, factory: str | Callable[..., Policy]) -> None:
     """Make `name` usable with `make_policy` / ``--policy``: `factory` is a
-    class, a function returning a Policy, or a "module:attr" string."""
+    class, a function returning a Policy, or a "module:attr" string; it gets the
+    --policy-arg pairs as keyword arguments."""
     _REGISTRY[name] = factory
 
 
@@ -283,13 +301,41 @@ def load_object(spec: str) -> Any:
     return obj
 
 
+def options_type(spec: str) -> type[PolicyOptions] | None:
+    """The options type of a built-in policy; None for any other, whose factory takes the
+    --policy-arg pairs as free keyword arguments."""
+    entry = _REGISTRY.get(spec)
+    return load_object(entry.options) if isinstance(entry, Builtin) else None
+
+
+def policy_help(spec: str) -> str:
+    """What ``--policy-arg help`` prints: a built-in policy's options, else the signature
+    its --policy-arg pairs are passed to."""
+    kind = options_type(spec)
+    if kind is not None:
+        return describe(kind, spec)
+    target = _REGISTRY.get(spec, spec)
+    if isinstance(target, str):
+        target = load_object(target)
+    try:
+        signature = str(inspect.signature(target))
+    except (TypeError, ValueError):  # an instance, or a builtin without one
+        signature = "(none: it is a ready instance)" if isinstance(target, Policy) else "(?)"
+    return f"--policy {spec} takes its --policy-arg pairs as keyword arguments: {signature}"
+
+
 def make_policy(spec: str, **kwargs: Any) -> Policy:
     """A policy from a registered name or a "module:attr" / "file.py:attr" string.
 
-    The target may be a `Policy` subclass or a factory (called with `kwargs`) or a
-    `Policy` instance (used as is; kwargs must then be empty).  A policy that keeps the
-    default name is named after `spec`."""
+    A built-in policy is constructed from its options, `kwargs` parsed into its options
+    type (`parse_options`: an OptionsError for an unknown key or a wrong type).  Any other
+    target may be a `Policy` subclass or a factory (called with `kwargs`) or a `Policy`
+    instance (used as is; kwargs must then be empty).  A policy that keeps the default
+    name is named after `spec`."""
     target = _REGISTRY.get(spec, spec)
+    if isinstance(target, Builtin):
+        options = parse_options(load_object(target.options), kwargs, spec)
+        target, kwargs = load_object(target.policy), {"options": options}
     if isinstance(target, str):
         if ":" not in target:
             raise KeyError(f"unknown policy {spec!r}; registered policies: "

@@ -55,12 +55,12 @@ from agnostos_mjx.remote.adapter import (
     request,
 )
 from agnostos_mjx.remote.adapter import sim_state as world_sim_state
+from agnostos_mjx.remote.options import OpenVLAOptions, RemoteOptions
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:
     from agnostos_mjx.runtime.observation import RLBenchObservation
 
-DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
 SCHEMES = ("ws", "wss", "http", "https")
 
 
@@ -289,37 +289,36 @@ class RemotePolicy(Policy):
     executes the key actions in its answers.  Privileged only with the ``sim`` preset,
     which sends the simulator's state (for a server that runs a privileged policy).
 
-    `preset`: rlbench, libero, droid, xicm, openvla, openvla_oft, sim, or auto (what the
-    server's metadata names as ``agnostos_preset``, else rlbench over websockets and
-    openvla over HTTP); `keys`: a server key -> source mapping (or its JSON) replacing the
-    preset's; other keyword arguments set Adapter fields (height, width, action_key,
-    action_index, execute, rotation, quat_order, relative, gripper, gripper_threshold,
-    constants)."""
+    Its options (`RemoteOptions`): the URL (else $AGNOSTOS_POLICY_URL), the preset
+    (rlbench, libero, droid, xicm, openvla, openvla_oft, sim, or auto: what the server's
+    metadata names as ``agnostos_preset``, else rlbench over websockets and openvla over
+    HTTP), `keys` (a server key -> source mapping replacing the preset's), the Adapter
+    fields that override the preset's, and the timeouts."""
 
     name = "remote"
+    Options = RemoteOptions  # its options' type, and their defaults
     # In dense mode each row is one control step's target (the adapter's execute and
     # relative options apply as for key actions).
     action_modes = ("keyaction", "dense")
 
-    def __init__(self, url: str | None = None, preset: str = "auto",
-                 keys: dict[str, str] | str | None = None,
-                 timeout_s: float = DEFAULT_TIMEOUT_S, connect_timeout_s: float = 30.0,
-                 **adapter_options: Any) -> None:
-        self.url = check_url(url, self.name)
-        self.timeout_s = float(timeout_s)
+    def __init__(self, options: RemoteOptions | None = None) -> None:
+        o = options or self.Options()
+        self.url = check_url(o.url or settings.POLICY_URL.get(), self.name)
+        self.timeout_s = o.timeout_s
         self.transport = make_transport(self.url)
         self._loop = _Loop.get()
         try:
-            self.metadata = self._loop.submit(self._probe(connect_timeout_s)).result()
+            self.metadata = self._loop.submit(self._probe(o.connect_timeout_s)).result()
         except Exception as e:  # noqa: BLE001 - any failure means "cannot use it"
             raise RemotePolicyError(f"cannot reach the policy server at {self.url}: "
                                     f"{type(e).__name__}: {e}") from None
         meta = self.metadata if isinstance(self.metadata, dict) else {}
+        preset = o.preset
         if preset == "auto":
             default = "openvla" if self.transport.kind == "http" else "rlbench"
             preset = str(meta.get("agnostos_preset", default))
         self.preset = preset
-        self.adapter = make_adapter(preset, keys, **adapter_options)
+        self.adapter = make_adapter(preset, o.keys, **o.adapter_options())
         self.observation_spec = self.adapter.spec()
         self.privileged = self.adapter.wants_sim_state
         served = meta.get("policy")
@@ -473,8 +472,4 @@ class OpenVLAPolicy(RemotePolicy):
     comes from ``url`` (``--policy-arg url=...``), else $AGNOSTOS_POLICY_URL."""
 
     name = "openvla"
-
-    def __init__(self, url: str | None = None, preset: str = "openvla", **options: Any
-                 ) -> None:
-        super().__init__(url or settings.POLICY_URL.get(), preset=preset,
-                         **options)
+    Options = OpenVLAOptions
