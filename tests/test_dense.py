@@ -93,18 +93,20 @@ def test_chunks_run_k_rows_open_loop_then_ask_again() -> None:
             h = 5
             pos = np.zeros((2, h, 3)) + 100 * self.calls + np.arange(h)[None, :, None]
             return KeyActions(pos, np.tile([1.0, 0, 0, 0], (2, h, 1)), np.ones((2, h)),
-                              np.ones((2, h), bool))
+                              np.ones((2, h), bool), end_reason=np.array([0, self.calls]))
 
     policy = Counting()
     driver, env = DenseDriver(3, False), SimpleNamespace(batch=2)
-    rows = []
+    rows, reasons = [], []
     for _ in range(7):
         gen = driver.next(policy, None, env)
         with pytest.raises(StopIteration) as stop:
             next(gen)
         rows.append(stop.value.value.pos[0, 0])
+        reasons.append(int(stop.value.value.end_reason[1]))
     assert policy.calls == driver.queries == 3
     assert rows == [100, 101, 102, 200, 201, 202, 300]
+    assert reasons == [1, 1, 1, 2, 2, 2, 3]  # a chunk's end_reason goes with each of its rows
 
 
 def test_answers_of_other_shapes_are_one_line_errors() -> None:
@@ -132,6 +134,12 @@ def test_answers_of_other_shapes_are_one_line_errors() -> None:
         check_answer(chunk, 2, "mine")  # a chunk in key-action mode
     with pytest.raises(PolicyAnswerError, match="policy mine answered tuple, not KeyActions"):
         check_answer((row.pos, row.quat), 2, "mine")
+    assert check_answer(row._replace(end_reason=np.array([0, 7])), 2, "p") == 0
+    for reason in (np.array([7]), np.array([0.0, 7.0]), np.int32(7)):  # (B,) integers only
+        for answer, chunks in ((row, False), (chunk, True)):
+            with pytest.raises(PolicyAnswerError, match=r"end_reason .*expected None or "
+                                                        r"\(2,\) integer Outcome codes"):
+                check_answer(answer._replace(end_reason=reason), 2, "mine", chunks)
     assert isinstance(PolicyAnswerError("x"), UsageError)  # eval.py prints it in one line
 
 

@@ -136,7 +136,6 @@ class FullPolicy(Policy):
 
     def reset(self, view: Round) -> None:
         self.log.setdefault("seeds", []).extend(view.episode_seeds)
-        self.end_reasons = np.zeros(view.batch, np.int32)
 
     def act(self, view: Round) -> KeyActions:
         raise AssertionError("the evaluator must use act_steps")
@@ -149,8 +148,9 @@ class FullPolicy(Policy):
         future: concurrent.futures.Future = concurrent.futures.Future()
         future.set_result(None)
         yield future
-        self.end_reasons[:] = Outcome.BAD_LLM_OUTPUT  # why no world gets an action
-        return no_actions(len(self.end_reasons))
+        # Why no world gets an action travels with the answer (B = 2 here).
+        return no_actions(view.batch)._replace(
+            end_reason=np.array([Outcome.LLM_ERROR, Outcome.BAD_LLM_OUTPUT], np.int32))
 
     def episode_info(self, world: int) -> dict:
         return {"world": world}
@@ -197,7 +197,8 @@ def test_defaults_of_a_minimal_policy(tmp_path: Path) -> None:
     with pytest.raises(StopIteration) as stop:  # act blocks: nothing to wait on
         next(steps)
     assert stop.value.value.valid.tolist() == [False, False]
-    assert policy.end_reason_codes(2).tolist() == [0, 0]
+    assert stop.value.value.end_reason is None  # plain no_action
+    assert no_actions(2, Outcome.LLM_ERROR).end_reason.tolist() == [Outcome.LLM_ERROR] * 2
     results = _evaluate("MinimalPolicy", tmp_path)
     assert [r["outcome"] for r in results["episodes"]] == ["no_action"] * 2
     assert all(r["policy"] == f"{__name__}:MinimalPolicy" for r in results["episodes"])
@@ -241,7 +242,7 @@ def test_the_evaluator_uses_every_optional_part(tmp_path: Path) -> None:
     assert log["seeds"] == [policy_seed(3, 0), policy_seed(3, 1)]
     assert log["observation_worlds"] == 2 and log["gripper_pose"] == (2, 7)
     episodes = results["episodes"]
-    assert [r["outcome"] for r in episodes] == ["bad_llm_output"] * 2
+    assert [r["outcome"] for r in episodes] == ["llm_error", "bad_llm_output"]
     assert [r["policy_info"] for r in episodes] == [{"world": 0}, {"world": 1}]
     assert results["llm"]["calls"] >= 1
 
@@ -266,7 +267,10 @@ def test_key_actions_are_a_pytree() -> None:
     acts = KeyActions(np.zeros((2, 3)), np.ones((2, 4)), np.ones(2), np.ones(2, bool))
     doubled = jax.tree.map(lambda x: 2 * x, acts)
     assert isinstance(doubled, KeyActions) and doubled.quat.shape == (2, 4)
-    assert len(jax.tree.leaves(acts)) == 4
+    assert len(jax.tree.leaves(acts)) == 4 and doubled.end_reason is None  # an empty subtree
+    reasoned = acts._replace(end_reason=np.array([0, 3], np.int32))
+    assert len(jax.tree.leaves(reasoned)) == 5
+    assert jax.jit(lambda a: a.pos)(acts).shape == (2, 3)
 
 
 # ---- options of the built-in policies (--policy-arg) --------------------------------------

@@ -26,16 +26,16 @@ per batch).  Class (or instance) attributes declare the rest, each with a defaul
   "dense": its `act` then returns one end-effector target per world per control step, or a
   chunk (B, H, ...) of them (evaluation/dense.py), and ``relative = True`` makes its rows
   deltas of the current tip pose.
-* ``end_reasons``: per world, the `Outcome` code that explains an invalid action (bad LLM
-  output, LLM error, ...); None or 0 leaves it ``no_action``.
-
 and these methods: ``act_steps`` (`act` as a generator that yields the futures it waits on,
 LLM batches or a policy server's answers, so that other tasks simulate meanwhile),
 ``episode_info(world)`` (what to store as the episode record's ``policy_info``) and
 ``report()`` (the run's request statistics, as sections of results.json).
 
 A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that is how a
-policy says "I have nothing to execute".  Worlds that already finished ignore their action.
+policy says "I have nothing to execute".  Why travels with the action: ``end_reason`` of the
+returned `KeyActions`, (B,) `Outcome` codes (``Outcome.BAD_LLM_OUTPUT``, ``LLM_ERROR``, a
+server's ``REMOTE_ERROR``, ...; 0: plain ``no_action``) that the world's record then shows
+(`no_actions(batch, reason)`).  Worlds that already finished ignore their action.
 
 Policies are found by name with `make_policy`: a registered name ("oracle") or a
 "module:attr" / "path/to/file.py:attr" string naming a class, a factory function or a
@@ -178,7 +178,6 @@ class Policy:
     privileged: bool = False
     action_modes: tuple[str, ...] = ("keyaction",)
     relative: bool = False
-    end_reasons: np.ndarray | None = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -193,8 +192,9 @@ class Policy:
     def act(self, view: Round) -> KeyActions:
         """The next key action of every world: pos (B, 3) tip position in world
         coordinates, quat (B, 4) wxyz, gripper (B,) open amount in [0, 1] and valid (B,)
-        bool; valid=False ends that world with Outcome.NO_ACTION.  Default: `act_steps`,
-        waiting on each future."""
+        bool; valid=False ends that world with Outcome.NO_ACTION, or with the Outcome code
+        of end_reason (B,) where that is given and not 0.  Default: `act_steps`, waiting on
+        each future."""
         return run_blocking(self.act_steps(view))
 
     def act_steps(self, view: Round) -> ActSteps:
@@ -222,18 +222,15 @@ class Policy:
         client, a model), its own per-batch state, which reset() replaces."""
         return copy.copy(self)
 
-    def end_reason_codes(self, batch: int) -> np.ndarray:
-        """`end_reasons` as (batch,) codes, zeros where the policy gives none."""
-        reasons = self.end_reasons
-        return np.zeros(batch, np.int32) if reasons is None else np.asarray(reasons)
 
-
-def no_actions(batch: int) -> KeyActions:
-    """A batch of invalid key actions (every world ends with NO_ACTION)."""
+def no_actions(batch: int, reason: int = 0) -> KeyActions:
+    """A batch of invalid key actions: every world ends with NO_ACTION, or with the Outcome
+    code `reason` when it is not 0."""
     quat = np.zeros((batch, 4), np.float32)
     quat[:, 0] = 1.0
     return KeyActions(pos=np.zeros((batch, 3), np.float32), quat=quat,
-                      gripper=np.ones(batch, np.float32), valid=np.zeros(batch, bool))
+                      gripper=np.ones(batch, np.float32), valid=np.zeros(batch, bool),
+                      end_reason=np.full(batch, reason, np.int32) if reason else None)
 
 
 class Builtin(NamedTuple):

@@ -327,7 +327,7 @@ class RemotePolicy(Policy):
         self.stats: collections.Counter = collections.Counter()
         self._conns: dict[int, Any] = {}
         self._queue: dict[int, collections.deque] = {}
-        self.end_reasons = np.zeros(0, np.int32)
+        self._failed = np.zeros(0, np.int32)  # each world's Outcome code once it failed
         self._errors: dict[int, str] = {}
 
     async def _probe(self, timeout_s: float) -> Any:
@@ -343,13 +343,14 @@ class RemotePolicy(Policy):
         self._conns = {}
         self._queue = {}
         self._errors = {}
-        self.end_reasons = np.zeros(b, np.int32)
+        self._failed = np.zeros(b, np.int32)
 
     def act_steps(self, view: Round) -> Generator[concurrent.futures.Future, Any, KeyActions]:
         """`act` as a generator that yields the future of the step's requests.  Worlds
-        with rows left of their last chunk execute the next one without a request."""
-        b = len(self.end_reasons)
-        running = np.nonzero(view.running[:b] & (self.end_reasons == 0))[0]
+        with rows left of their last chunk execute the next one without a request; a world
+        whose request failed gets no action, its end_reason the failure's Outcome code."""
+        b = len(self._failed)
+        running = np.nonzero(view.running[:b] & (self._failed == 0))[0]
         ask = np.array([w for w in running if not self._queue.get(int(w))], np.int64)
         sources = None
         if len(ask) or (self.adapter.relative and len(running)):
@@ -371,12 +372,12 @@ class RemotePolicy(Policy):
         valid = np.zeros(b, bool)
         for w in running:
             queue = self._queue.get(int(w))
-            if self.end_reasons[w] or not queue:  # failed, or an empty chunk: no action
+            if self._failed[w] or not queue:  # failed, or an empty chunk: no action
                 continue
             pose = sources["gripper_pose"][w] if sources is not None else None
             pos[w], quat[w], grip[w] = apply_row(self.adapter, queue.popleft(), pose)
             valid[w] = True
-        return KeyActions(pos, quat, grip, valid)
+        return KeyActions(pos, quat, grip, valid, end_reason=self._failed.copy())
 
     def episode_info(self, world: int) -> dict:
         return {"error": self._errors[world]} if world in self._errors else {}
@@ -460,7 +461,7 @@ class RemotePolicy(Policy):
     def _fail(self, world: int, code: int, why: str) -> None:
         from agnostos_mjx.runtime.outcome import Outcome
 
-        self.end_reasons[world] = code
+        self._failed[world] = code
         self._errors[world] = why
         self._queue.pop(world, None)
         self.stats[Outcome(code).label] += 1
