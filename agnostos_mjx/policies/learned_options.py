@@ -11,14 +11,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
 from agnostos_mjx.llm.server import KINDS as LLM_SERVER_KINDS
 from agnostos_mjx.policies.options import OptionsError, PolicyOptions, option
-
-if TYPE_CHECKING:
-    from agnostos_mjx.evaluation.config import EvalConfig
 
 OBJECT_SOURCES = ("ground_truth", "segmented")
 
@@ -45,7 +42,7 @@ class RetrievalOptions(PolicyOptions):
         _positive(self, "sample_steps")
 
     @classmethod
-    def from_config(cls, cfg: EvalConfig) -> dict[str, Any]:
+    def from_config(cls, cfg: Any) -> dict[str, Any]:
         part = cfg.xicm
         return {"selection": part.selection, "memory": part.memory,
                 "sample_steps": part.ddim_steps}
@@ -84,7 +81,7 @@ class XicmOptions(RetrievalOptions):
                                f"{', '.join(LLM_SERVER_KINDS)}")
 
     @classmethod
-    def from_config(cls, cfg: EvalConfig) -> dict[str, Any]:
+    def from_config(cls, cfg: Any) -> dict[str, Any]:
         part = cfg.xicm
         cache = part.llm_cache or str(Path(cfg.run.out or ".") / "llm_cache")
         return {**super().from_config(cfg), "llm_url": part.llm_url,

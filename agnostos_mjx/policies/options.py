@@ -19,10 +19,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from agnostos_mjx.evaluation.config import EvalConfig
+from typing import Any
 
 
 class OptionsError(ValueError):
@@ -58,9 +55,10 @@ class PolicyOptions:
         """Constraints beyond the types, as an OptionsError.  Default: none."""
 
     @classmethod
-    def from_config(cls, cfg: EvalConfig) -> dict[str, Any]:
-        """The options that the run's own flags set (before its --policy-arg pairs, which
-        override them).  Default: none."""
+    def from_config(cls, cfg: Any) -> dict[str, Any]:
+        """The options that the run's own flags set, `cfg` being its EvalConfig (untyped
+        here: the evaluator imports this layer, not the other way round); its --policy-arg
+        pairs override them.  Default: none."""
         return {}
 
     def values(self) -> dict[str, Any]:

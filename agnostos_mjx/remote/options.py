@@ -5,12 +5,9 @@ the fields that override it (remote/adapter.py says what each means), and the ti
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from agnostos_mjx.policies.options import OptionsError, PolicyOptions, option
-
-if TYPE_CHECKING:
-    from agnostos_mjx.evaluation.config import EvalConfig
 
 
 class _PresetValue:
@@ -58,7 +55,7 @@ class RemoteOptions(PolicyOptions):
                 raise OptionsError(f"{name}={getattr(self, name)}: must be positive")
 
     @classmethod
-    def from_config(cls, cfg: EvalConfig) -> dict[str, Any]:
+    def from_config(cls, cfg: Any) -> dict[str, Any]:
         return {"url": cfg.policy.url} if cfg.policy.url else {}
 
     def adapter_options(self) -> dict[str, Any]:
