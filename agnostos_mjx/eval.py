@@ -46,7 +46,13 @@ from pathlib import Path
 
 from agnostos_mjx import warmup
 from agnostos_mjx.evaluation import processes
-from agnostos_mjx.evaluation.config import EvalConfig, UsageError, parse_config, resolve_policy
+from agnostos_mjx.evaluation.config import (
+    EvalConfig,
+    UsageError,
+    parse_config,
+    policy_spec,
+    resolve_policy,
+)
 from agnostos_mjx.evaluation.records import default_out, interrupted_message
 from agnostos_mjx.evaluation.summary import (
     failed_task_summary,
@@ -56,6 +62,7 @@ from agnostos_mjx.evaluation.summary import (
 )
 from agnostos_mjx.infra import settings
 from agnostos_mjx.infra.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
+from agnostos_mjx.policies.base import policy_help
 from agnostos_mjx.tasks.catalog import parse_task_names
 
 log = logging.getLogger("agnostos_mjx.eval")
@@ -76,6 +83,14 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
         parse_task_names(cfg.protocol.tasks)
     except KeyError as e:
         print(f"error: {e.args[0]}", file=sys.stderr)
+        return 2
+    try:  # a bad --policy-arg is one line, before anything starts
+        if "help" in cfg.policy.args:
+            print(policy_help(policy_spec(cfg)[0]))
+            return 0
+        resolve_policy(cfg)
+    except Exception as e:  # noqa: BLE001 - e.g. an unknown option, an LLM URL without a model
+        print(f"error: {e}", file=sys.stderr)
         return 2
     if cfg.run.local_processes is None:
         argv = default_processes(cfg, argv)

@@ -25,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", default="oracle",
                    help="oracle, retrieval, xicm or 'module:attr' / 'file.py:attr'")
     p.add_argument("--policy-arg", action="append", type=policy_arg, default=None,
-                   metavar="KEY=VALUE", help="keyword argument for the policy factory")
+                   metavar="KEY=VALUE", help="an option of the policy, as for agnostos_mjx.eval "
+                                             "(--policy-arg help lists them and exits)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: all)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (0: any free one)")
     p.add_argument("--gpu-mem-fraction", type=float, default=None,
@@ -39,14 +40,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     configure_jax()
     args = build_parser().parse_args(argv)
     setup_logging(args.quiet)
+    from agnostos_mjx.policies import make_policy
+    from agnostos_mjx.policies.base import policy_help
+
+    options = dict(args.policy_arg or [])
+    if "help" in options:
+        print(policy_help(args.policy))
+        return 0
     from agnostos_mjx.infra.gpu import apply_memory_limit
 
     apply_memory_limit(args.gpu_mem_fraction)  # before JAX starts
-    from agnostos_mjx.policies import make_policy
     from agnostos_mjx.remote.server import PolicyServer
 
-    try:
-        policy = make_policy(args.policy, **dict(args.policy_arg or []))
+    try:  # a built-in policy's options are checked as eval's (policies/options.py)
+        policy = make_policy(args.policy, **options)
     except (KeyError, ImportError, ValueError, TypeError) as e:
         print(f"error: cannot load policy {args.policy!r}: {e}", file=sys.stderr)
         return 2

@@ -19,6 +19,7 @@ from agnostos_mjx.evaluation.config import UsageError
 from agnostos_mjx.evaluation.dense import DenseDriver, PolicyAnswerError, as_chunk, check_answer
 from agnostos_mjx.policies.base import Policy, Round
 from agnostos_mjx.policies.dense_replay import DenseReplayPolicy
+from agnostos_mjx.policies.learned_options import DenseReplayOptions
 from agnostos_mjx.runtime.dense import DenseControl
 from agnostos_mjx.runtime.outcome import Outcome
 from agnostos_mjx.sim.actions import KeyActions
@@ -76,7 +77,7 @@ def test_relative_rows_reach_the_same_targets_as_absolute_ones(replayed) -> None
     ep, env, policy = replayed
     ctl = DenseControl(10, 1000)
     absolute, _ = _replay(ep, env, policy, ctl, steps=25)
-    rel = DenseReplayPolicy(relative=True)
+    rel = DenseReplayPolicy(DenseReplayOptions(relative=True))
     rel.pose, rel.gripper, rel.frames = policy.pose, policy.gripper, policy.frames
     relative, _ = _replay(ep, env, rel, ctl, steps=25)
     np.testing.assert_array_equal(relative.outcome, absolute.outcome)
@@ -93,18 +94,20 @@ def test_chunks_run_k_rows_open_loop_then_ask_again() -> None:
             h = 5
             pos = np.zeros((2, h, 3)) + 100 * self.calls + np.arange(h)[None, :, None]
             return KeyActions(pos, np.tile([1.0, 0, 0, 0], (2, h, 1)), np.ones((2, h)),
-                              np.ones((2, h), bool))
+                              np.ones((2, h), bool), end_reason=np.array([0, self.calls]))
 
     policy = Counting()
     driver, env = DenseDriver(3, False), SimpleNamespace(batch=2)
-    rows = []
+    rows, reasons = [], []
     for _ in range(7):
         gen = driver.next(policy, None, env)
         with pytest.raises(StopIteration) as stop:
             next(gen)
         rows.append(stop.value.value.pos[0, 0])
+        reasons.append(int(stop.value.value.end_reason[1]))
     assert policy.calls == driver.queries == 3
     assert rows == [100, 101, 102, 200, 201, 202, 300]
+    assert reasons == [1, 1, 1, 2, 2, 2, 3]  # a chunk's end_reason goes with each of its rows
 
 
 def test_answers_of_other_shapes_are_one_line_errors() -> None:
@@ -132,6 +135,12 @@ def test_answers_of_other_shapes_are_one_line_errors() -> None:
         check_answer(chunk, 2, "mine")  # a chunk in key-action mode
     with pytest.raises(PolicyAnswerError, match="policy mine answered tuple, not KeyActions"):
         check_answer((row.pos, row.quat), 2, "mine")
+    assert check_answer(row._replace(end_reason=np.array([0, 7])), 2, "p") == 0
+    for reason in (np.array([7]), np.array([0.0, 7.0]), np.int32(7)):  # (B,) integers only
+        for answer, chunks in ((row, False), (chunk, True)):
+            with pytest.raises(PolicyAnswerError, match=r"end_reason .*expected None or "
+                                                        r"\(2,\) integer Outcome codes"):
+                check_answer(answer._replace(end_reason=reason), 2, "mine", chunks)
     assert isinstance(PolicyAnswerError("x"), UsageError)  # eval.py prints it in one line
 
 
@@ -141,7 +150,7 @@ def test_a_chunked_replay_gives_the_one_row_replay(replayed) -> None:
     ep, env, policy = replayed
     ctl = DenseControl(10, 1000)
     one, _ = _replay(ep, env, policy, ctl, steps=30)
-    chunked = DenseReplayPolicy(chunk=4)
+    chunked = DenseReplayPolicy(DenseReplayOptions(chunk=4))
     chunked.pose, chunked.gripper, chunked.frames = policy.pose, policy.gripper, policy.frames
     out, driver = _replay(ep, env, chunked, ctl, steps=30, execute=3)
     assert driver.queries == 10
@@ -256,7 +265,7 @@ def _one_line_error(capsys: pytest.CaptureFixture) -> str:
     (["--policy", "dense-replay"], "policy dense-replay acts in dense mode, not keyaction"),
     (["--policy", "oracle", "--execute", "3"], "--execute: only with --action-mode dense"),
     (["--policy", "dense-replay", "--action-mode", "dense", "--policy-arg", "chunk=0"],
-     "chunk must be an integer >= 1"),
+     "--policy-arg chunk=0: must be an integer >= 1"),
 ])
 def test_cli_errors(args: list[str], expected: str, tmp_path: Path,
                     capsys: pytest.CaptureFixture) -> None:

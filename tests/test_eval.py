@@ -227,6 +227,9 @@ def _one_line_error(capsys: pytest.CaptureFixture) -> str:
     ("unknown_compare", "unknown published method 'GPT'"),
     ("unknown_policy", "cannot load policy 'no_such_module:Policy'"),
     ("existing_run", "--resume"),
+    ("unknown_policy_arg", "--policy timing takes no --policy-arg sise; its options: cameras, "
+                           "size, chunk, modalities, numpy, renderer"),
+    ("mistyped_policy_arg", '--policy timing: --policy-arg size="big": expected an integer'),
 ])
 def test_cli_errors_are_one_line_and_leave_no_folder(case: str, expected: str, tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch,
@@ -239,7 +242,8 @@ def test_cli_errors_are_one_line_and_leave_no_folder(case: str, expected: str, t
     (tmp_path / "done" / "episodes.jsonl").write_text("")
     (tmp_path / "results" / "oracle-1").mkdir(parents=True)
     (tmp_path / "results" / "oracle-1" / "episodes.jsonl").write_text("")
-    if case in ("unwritable", "file", "resume_without_out"):  # found before loading models
+    if case in ("unwritable", "file", "resume_without_out", "unknown_policy_arg",
+                "mistyped_policy_arg"):  # found before loading models
         def no_loading(*args, **kwargs):
             raise AssertionError("loaded the policy before checking the command line")
 
@@ -247,7 +251,9 @@ def test_cli_errors_are_one_line_and_leave_no_folder(case: str, expected: str, t
     args = {"unwritable": ["--out", "/proc/forbidden"], "file": ["--out", "a_file"],
             "resume_without_out": ["--resume"], "unknown_compare": ["--compare", "GPT"],
             "unknown_policy": ["--policy", "no_such_module:Policy"],
-            "existing_run": ["--out", "done"]}[case]
+            "existing_run": ["--out", "done"],
+            "unknown_policy_arg": ["--policy", "timing", "--policy-arg", "sise=1"],
+            "mistyped_policy_arg": ["--policy", "timing", "--policy-arg", "size=big"]}[case]
     policy = [] if "--policy" in args else ["--policy", "oracle"]
     before = sorted(p.name for p in tmp_path.iterdir())
     assert ev.main([*policy, "--tasks", "lamp_on", "--quiet", *args]) == 2

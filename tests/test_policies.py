@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -135,7 +136,6 @@ class FullPolicy(Policy):
 
     def reset(self, view: Round) -> None:
         self.log.setdefault("seeds", []).extend(view.episode_seeds)
-        self.end_reasons = np.zeros(view.batch, np.int32)
 
     def act(self, view: Round) -> KeyActions:
         raise AssertionError("the evaluator must use act_steps")
@@ -148,8 +148,9 @@ class FullPolicy(Policy):
         future: concurrent.futures.Future = concurrent.futures.Future()
         future.set_result(None)
         yield future
-        self.end_reasons[:] = Outcome.BAD_LLM_OUTPUT  # why no world gets an action
-        return no_actions(len(self.end_reasons))
+        # Why no world gets an action travels with the answer (B = 2 here).
+        return no_actions(view.batch)._replace(
+            end_reason=np.array([Outcome.LLM_ERROR, Outcome.BAD_LLM_OUTPUT], np.int32))
 
     def episode_info(self, world: int) -> dict:
         return {"world": world}
@@ -196,7 +197,8 @@ def test_defaults_of_a_minimal_policy(tmp_path: Path) -> None:
     with pytest.raises(StopIteration) as stop:  # act blocks: nothing to wait on
         next(steps)
     assert stop.value.value.valid.tolist() == [False, False]
-    assert policy.end_reason_codes(2).tolist() == [0, 0]
+    assert stop.value.value.end_reason is None  # plain no_action
+    assert no_actions(2, Outcome.LLM_ERROR).end_reason.tolist() == [Outcome.LLM_ERROR] * 2
     results = _evaluate("MinimalPolicy", tmp_path)
     assert [r["outcome"] for r in results["episodes"]] == ["no_action"] * 2
     assert all(r["policy"] == f"{__name__}:MinimalPolicy" for r in results["episodes"])
@@ -240,15 +242,18 @@ def test_the_evaluator_uses_every_optional_part(tmp_path: Path) -> None:
     assert log["seeds"] == [policy_seed(3, 0), policy_seed(3, 1)]
     assert log["observation_worlds"] == 2 and log["gripper_pose"] == (2, 7)
     episodes = results["episodes"]
-    assert [r["outcome"] for r in episodes] == ["bad_llm_output"] * 2
+    assert [r["outcome"] for r in episodes] == ["llm_error", "bad_llm_output"]
     assert [r["policy_info"] for r in episodes] == [{"world": 0}, {"world": 1}]
     assert results["llm"]["calls"] >= 1
 
 
-@pytest.mark.parametrize("module", ["agnostos_mjx.sim.actions", "agnostos_mjx.policies"])
+@pytest.mark.parametrize("module", ["agnostos_mjx.sim.actions", "agnostos_mjx.policies",
+                                    "agnostos_mjx.policies.learned_options",
+                                    "agnostos_mjx.remote.options"])
 def test_the_policy_contract_imports_neither_jax_nor_mujoco(module: str) -> None:
     """A policy (or a client of a served one) writes its `act` against the contract and
-    `KeyActions` without loading the simulator's libraries."""
+    `KeyActions` without loading the simulator's libraries; the built-in policies' options
+    load without them too (checked and listed before JAX starts)."""
     code = f"import sys, {module}; print(sorted({{'jax', 'mujoco'}} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, cwd=Path(__file__).resolve().parents[1])
@@ -262,4 +267,87 @@ def test_key_actions_are_a_pytree() -> None:
     acts = KeyActions(np.zeros((2, 3)), np.ones((2, 4)), np.ones(2), np.ones(2, bool))
     doubled = jax.tree.map(lambda x: 2 * x, acts)
     assert isinstance(doubled, KeyActions) and doubled.quat.shape == (2, 4)
-    assert len(jax.tree.leaves(acts)) == 4
+    assert len(jax.tree.leaves(acts)) == 4 and doubled.end_reason is None  # an empty subtree
+    reasoned = acts._replace(end_reason=np.array([0, 3], np.int32))
+    assert len(jax.tree.leaves(reasoned)) == 5
+    assert jax.jit(lambda a: a.pos)(acts).shape == (2, 3)
+
+
+# ---- options of the built-in policies (--policy-arg) --------------------------------------
+def free_kwargs_factory(**kwargs) -> Policy:
+    policy = InvalidPolicy()
+    policy.kwargs = kwargs
+    return policy
+
+
+def test_policy_args_fill_a_built_in_policys_typed_options() -> None:
+    """--policy-arg pairs become the policy's options dataclass: types coerced where the
+    meaning is plain (an int for a float, a number for text, JSON text for an object) and
+    checked; a user policy's factory still gets them as free keyword arguments."""
+    from agnostos_mjx.policies.base import options_type
+    from agnostos_mjx.policies.options import OptionsError, parse_options
+    from agnostos_mjx.remote.options import PRESET
+
+    remote = parse_options(options_type("remote"), {
+        "timeout_s": 5, "url": "ws://h:1", "keys": '{"image": "front_rgb"}',
+        "gripper_threshold": None, "height": 32}, "remote")
+    assert remote.timeout_s == 5.0 and isinstance(remote.timeout_s, float)
+    assert remote.keys == {"image": "front_rgb"} and remote.width is PRESET
+    assert remote.adapter_options() == {"height": 32, "gripper_threshold": None}
+    timing = parse_options(options_type("timing"), {"cameras": "front", "size": 64}, "timing")
+    assert (timing.cameras, timing.size, timing.chunk) == ("front", 64, 1)
+    assert parse_options(options_type("dense-replay"), {"every": 4}, "x").every == 4
+    assert parse_options(options_type("reference-vla"), {"checkpoint": 7}, "x").checkpoint == "7"
+    for args, message in (({"relative": "yes"}, 'relative="yes": expected true or false'),
+                          ({"every": None}, "every=null: expected an integer or text"),
+                          ({"chunk": 0}, "chunk=0: must be an integer >= 1")):
+        with pytest.raises(OptionsError, match=re.escape(message)):
+            parse_options(options_type("dense-replay"), args, "dense-replay")
+    with pytest.raises(OptionsError, match="takes no --policy-arg model; its options: none"):
+        make_policy("oracle", model="qwen")  # make_policy parses as the command line does
+    with pytest.raises(OptionsError, match="objects=pixels: must be one of"):
+        options_type("xicm")(objects="pixels")  # built directly: checked alike
+    assert options_type(f"{__name__}:free_kwargs_factory") is None
+    assert make_policy(f"{__name__}:free_kwargs_factory", model="qwen", k=[1]).kwargs == {
+        "model": "qwen", "k": [1]}
+
+
+def test_xicm_and_retrieval_options_come_from_their_flags() -> None:
+    """X-ICM's and retrieval's own flags fill their options (XicmOptions.from_config), the
+    --policy-arg pairs override them; --policy-url fills a served policy's url only."""
+    from agnostos_mjx.evaluation.config import parse_config, resolve_policy
+
+    flags = ["--selection", "text", "--memory", "m.npz", "--ddim-steps", "20", "--llm-url",
+             "http://x/v1", "--llm-model", "m", "--num-demos", "5", "--llm-timeout", "30",
+             "--llm-concurrency", "2", "--llm-server-kind", "llamacpp", "--out", "run"]
+    spec, xicm, _ = resolve_policy(parse_config(["--policy", "xicm", *flags]))
+    assert spec == "xicm" and {k: xicm[k] for k in (
+        "selection", "memory", "sample_steps", "llm_url", "llm_model", "num_demos",
+        "timeout_s", "concurrency", "server_kind", "llm_cache")} == {
+        "selection": "text", "memory": "m.npz", "sample_steps": 20, "llm_url": "http://x/v1",
+        "llm_model": "m", "num_demos": 5, "timeout_s": 30.0, "concurrency": 2,
+        "server_kind": "llamacpp", "llm_cache": str(Path("run") / "llm_cache")}
+    _, xicm, _ = resolve_policy(parse_config(
+        ["--policy", "xicm", *flags, "--policy-arg", "num_demos=3"]))
+    assert xicm["num_demos"] == 3  # --policy-arg wins over the flag
+    _, retrieval, note = resolve_policy(parse_config(flags[:6]))  # auto without an LLM
+    assert retrieval == {"selection": "text", "memory": "m.npz", "sample_steps": 20}
+    assert "retrieval baseline" in note
+    url = ["--policy-url", "ws://h:1"]
+    assert resolve_policy(parse_config(["--policy", "remote", *url]))[1]["url"] == "ws://h:1"
+    assert resolve_policy(parse_config(["--policy", "oracle", *url]))[1] == {}
+
+
+def test_policy_arg_help_lists_the_options(capsys: pytest.CaptureFixture) -> None:
+    """``--policy-arg help`` prints the policy's options (eval and serve alike) and exits 0,
+    loading no policy; for a user policy, the signature its pairs go to."""
+    from agnostos_mjx import serve
+
+    assert main(["--policy", "timing", "--policy-arg", "help"]) == 0
+    out = capsys.readouterr().out
+    assert "--policy timing options" in out and "  size=128  (an integer) image" in out
+    assert serve.main(["--policy", "xicm", "--policy-arg", "help=1"]) == 0
+    out = capsys.readouterr().out
+    assert "num_demos=18" in out and "(--num-demos)" in out
+    assert main(["--policy", f"{__name__}:free_kwargs_factory", "--policy-arg", "help"]) == 0
+    assert "keyword arguments: (**kwargs)" in capsys.readouterr().out

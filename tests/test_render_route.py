@@ -109,10 +109,10 @@ def test_timing_policy_runs_the_dense_loop_and_the_split_names_rendering(lamp, t
 
 
 def test_timing_policy_refuses_a_bad_chunk() -> None:
-    from agnostos_mjx.policies.timing import TimingPolicy
+    from agnostos_mjx.policies.timing import TimingOptions
 
     with pytest.raises(ValueError, match="chunk"):
-        TimingPolicy(chunk=0)
+        TimingOptions(chunk=0)
 
 
 def test_dense_periods_scan_their_conditions_in_short_chunks() -> None:

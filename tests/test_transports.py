@@ -383,7 +383,7 @@ def test_http_client_failures_on_a_fake_runner() -> None:
         policy.reset(runner.view(policy, prompts))
         actions = policy.act(runner.view(policy, prompts))
     assert actions.valid.tolist() == [False] * 6 + [True]
-    labels = [Outcome(int(c)).label if c else None for c in policy.end_reasons]
+    labels = [Outcome(int(c)).label if c else None for c in actions.end_reason]
     assert labels == ["remote_error", "remote_timeout", "bad_remote_output", "remote_error",
                       "bad_remote_output", "remote_error", None]
     errors = [policy.episode_info(w).get("error", "") for w in range(len(plan))]

@@ -21,7 +21,6 @@ from dataclasses import MISSING, Field, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx.infra import settings
 from agnostos_mjx.infra.cli import HelpFormatter, atomic_write, prog
 from agnostos_mjx.infra.mps import MODES as MPS_MODES
 from agnostos_mjx.llm.client import DEFAULT_TIMEOUT_S
@@ -81,7 +80,10 @@ def variation_mode(text: str) -> str:
 
 
 def policy_arg(text: str) -> tuple[str, Any]:
-    """KEY=VALUE, VALUE parsed as JSON where it can be (``--policy-arg model="qwen"``)."""
+    """KEY=VALUE, VALUE parsed as JSON where it can be (``--policy-arg model="qwen"``);
+    ``help`` alone asks for the policy's options (`policy_help`)."""
+    if text == "help":
+        return "help", True
     key, sep, value = text.partition("=")
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
@@ -170,8 +172,8 @@ class PolicyConfig:
                 "oracle, or 'module:attr' / 'file.py:attr' naming a Policy class, factory or "
                 "instance (see agnostos_mjx/policies/base.py)", name="policy")
     args: dict[str, Any] = option(
-        {}, "keyword argument for the policy factory (VALUE parsed as JSON if it can be); "
-            "repeatable", name="policy_args", flag="--policy-arg", type=policy_arg,
+        {}, "an option of the policy (VALUE parsed as JSON if it can be); repeatable; "
+            "--policy-arg help lists a policy's options and exits", name="policy_args", flag="--policy-arg", type=policy_arg,
         metavar="KEY=VALUE")
     url: str | None = option(
         None, "the policy server of --policy remote or openvla: ws://... speaks openpi's "
@@ -427,27 +429,30 @@ def read_spec(path: Path) -> EvalConfig:
         raise UsageError(f"--spec {path}: {e}") from None
 
 
-def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
-    """(policy spec, factory kwargs, a one-line explanation) for `cfg`; fills in
-    the built-in policies' arguments from the command line."""
+def policy_spec(cfg: EvalConfig) -> tuple[str, str]:
+    """(the policy `cfg` runs, a one-line explanation of auto's choice or "")."""
     from agnostos_mjx.llm.client import LLMConfig
 
-    spec, note, llm = cfg.policy.spec, "", cfg.xicm
-    if spec == "auto":
-        configured = LLMConfig.from_env(llm.llm_url, llm.llm_model) is not None
-        spec = "xicm" if configured else "retrieval"
-        note = ("an LLM is configured: running X-ICM" if configured else
-                "no LLM configured (set --llm-url/--llm-model or AGNOSTOS_LLM_URL/"
-                "AGNOSTOS_LLM_MODEL for X-ICM): running the retrieval baseline")
-    kwargs: dict[str, Any] = {}
-    if spec in ("xicm", "retrieval"):
-        kwargs.update(selection=llm.selection, memory=llm.memory, sample_steps=llm.ddim_steps)
-    if spec == "xicm":
-        cache = llm.llm_cache or str(Path(cfg.run.out or ".") / "llm_cache")
-        kwargs.update(llm_url=llm.llm_url, llm_model=llm.llm_model, llm_cache=cache,
-                      concurrency=llm.llm_concurrency, timeout_s=llm.llm_timeout,
-                      server_kind=llm.llm_server_kind, num_demos=llm.num_demos)
-    if spec in ("remote", "openvla"):
-        kwargs["url"] = cfg.policy.url or settings.POLICY_URL.get()
-    kwargs.update(cfg.policy.args)
-    return spec, kwargs, note
+    if cfg.policy.spec != "auto":
+        return cfg.policy.spec, ""
+    llm = cfg.xicm
+    if LLMConfig.from_env(llm.llm_url, llm.llm_model) is not None:
+        return "xicm", "an LLM is configured: running X-ICM"
+    return "retrieval", ("no LLM configured (set --llm-url/--llm-model or AGNOSTOS_LLM_URL/"
+                         "AGNOSTOS_LLM_MODEL for X-ICM): running the retrieval baseline")
+
+
+def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:
+    """(policy spec, factory kwargs, a one-line explanation) for `cfg`.  A built-in policy's
+    options are those its options type takes from the run's flags (`from_config`), then
+    the --policy-arg pairs, checked here (an OptionsError in one line); any other policy
+    gets the --policy-arg pairs as they are."""
+    from agnostos_mjx.policies.base import options_type
+    from agnostos_mjx.policies.options import parse_options
+
+    spec, note = policy_spec(cfg)
+    kind = options_type(spec)
+    if kind is None:
+        return spec, dict(cfg.policy.args), note
+    options = parse_options(kind, {**kind.from_config(cfg), **cfg.policy.args}, spec)
+    return spec, options.values(), note

@@ -3,7 +3,7 @@ per world per control step for `Episodes.step_dense`.
 
 A dense policy's `act` returns one row per world (KeyActions of pos (B, 3), quat (B, 4),
 gripper (B,), valid (B,)) or an action chunk (pos (B, H, 3), quat (B, H, 4), gripper
-(B, H), valid (B, H)).  The first ``--execute K`` rows of a chunk (default: all of them)
+(B, H), valid (B, H)); its end_reason (B,), if any, goes with each of the chunk's rows.  The first ``--execute K`` rows of a chunk (default: all of them)
 run open loop, one per control step, then the policy is asked again (the way LeRobot's
 ACT / diffusion policies and openpi's clients execute chunks).  A policy that declares
 ``relative = True`` gives deltas: the target is the tip pose measured when the row starts
@@ -72,7 +72,7 @@ def check_answer(actions: Any, batch: int, policy_name: str, chunks: bool = Fals
     PolicyAnswerError naming the shapes expected and given unless it is KeyActions of one
     row per world (or, with `chunks`, a chunk per world).  Checked here because a wrong
     shape otherwise broadcasts in the control code (an unbatched quaternion) or fails deep
-    inside it."""
+    inside it.  An end_reason must be None or (B,) integer Outcome codes, whatever H."""
     expected = f"{ROW_SHAPES} or a chunk {CHUNK_SHAPES}" if chunks else ROW_SHAPES
     if not isinstance(actions, KeyActions):
         raise PolicyAnswerError(f"policy {policy_name} answered {type(actions).__name__}, "
@@ -84,16 +84,23 @@ def check_answer(actions: Any, batch: int, policy_name: str, chunks: bool = Fals
         raise PolicyAnswerError(
             f"policy {policy_name} answered pos {got[0]}, quat {got[1]}, gripper {got[2]}, "
             f"valid {got[3]}; expected KeyActions of {expected}, B = {batch} worlds")
+    reason = actions.end_reason
+    if reason is not None and (np.shape(reason) != (batch,) or
+                               not np.issubdtype(np.asarray(reason).dtype, np.integer)):
+        raise PolicyAnswerError(
+            f"policy {policy_name} answered end_reason {np.shape(reason)} "
+            f"{np.asarray(reason).dtype}; expected None or ({batch},) integer Outcome codes")
     return h
 
 
 def as_chunk(actions: KeyActions, batch: int, policy_name: str) -> KeyActions:
     """A dense policy's answer, checked (check_answer), as a chunk (B, H, ...) of numpy
-    arrays."""
+    arrays (its end_reason, per world, as it is)."""
     h = check_answer(actions, batch, policy_name, chunks=True)
     rows = (np.asarray(actions.pos, np.float64), np.asarray(actions.quat, np.float64),
             np.asarray(actions.gripper, np.float64), np.asarray(actions.valid, bool))
-    return KeyActions(*(rows if h else (x[:, None] for x in rows)))
+    return KeyActions(*(rows if h else (x[:, None] for x in rows)),
+                      end_reason=actions.end_reason)
 
 
 class DenseDriver:
@@ -126,4 +133,4 @@ class DenseDriver:
             obs = env.obs
             pos, quat = apply_delta(np.asarray(obs["tip.pos"], np.float64),
                                     np.asarray(obs["tip.quat"], np.float64), pos, quat)
-        return KeyActions(pos, quat, c.gripper[:, r], c.valid[:, r])
+        return KeyActions(pos, quat, c.gripper[:, r], c.valid[:, r], c.end_reason)

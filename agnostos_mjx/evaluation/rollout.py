@@ -255,32 +255,34 @@ class Batch:
             split.rounds += 1
             started = time.perf_counter(), runner.observer.render_s  # the policy's turn
             view = view.at(self.env)
-            yield from self.act(view, driver, started, split, pool)
+            reasons = yield from self.act(view, driver, started, split, pool)
             env = self.env
             if videos is not None:
                 videos.capture(env)
-            # A policy may say why a world got no action (bad LLM output, LLM error).
-            reasons = policy.end_reason_codes(env.batch)
-            ended = running & (env.outcome == Outcome.NO_ACTION) & (reasons > 0)
-            self.env = env = replace(env, outcome=np.where(ended, reasons, env.outcome))
+            if reasons is not None:  # why a world got no action (bad LLM output, ...)
+                codes = np.asarray(reasons)
+                ended = running & (env.outcome == Outcome.NO_ACTION) & (codes > 0)
+                self.env = env = replace(env, outcome=np.where(ended, codes, env.outcome))
             self.record(np.where(env.done, env.outcome, Outcome.RUNNING))
             self.report(rounds + 1)
 
     def act(self, view: Round, driver: DenseDriver | None, started: tuple[float, float],
             split: TimeSplit, pool: Executor | None) -> Generator:
         """One round: the policy's answer for `view` (through `driver` in dense mode), then
-        the physics that carries it out; `started`: the clock and render time at its start."""
+        the physics that carries it out; `started`: the clock and render time at its start.
+        Returns the answer's end_reason (B,) or None; the physics never sees it."""
         policy, runner = self.policy, self.runner
         t_policy, rendered = started
         if driver is not None:
             actions = yield from driver.next(policy, view, self.env)
             split.policy_turn(t_policy, runner.observer.render_s - rendered)
             with split.measure("physics"):
-                self.env, _ = yield from on_pool(pool, runner.step_dense, self.env, actions,
-                                                 self.ctl)
-            return
+                self.env, _ = yield from on_pool(pool, runner.step_dense, self.env,
+                                                 actions._replace(end_reason=None), self.ctl)
+            return actions.end_reason
         actions = yield from policy.act_steps(view)
         check_answer(actions, self.env.batch, policy.name)
+        reasons, actions = actions.end_reason, actions._replace(end_reason=None)
         split.policy_turn(t_policy, runner.observer.render_s - rendered)
         with split.measure("physics"):
             plan = runner.plan_request(self.env, actions)  # gathers with other tasks'
@@ -288,6 +290,7 @@ class Batch:
                 yield plan
                 plan = plan.result()
             self.env, _ = yield from on_pool(pool, runner.step, self.env, actions, False, plan)
+        return reasons
 
 
 def on_pool(pool: Executor | None, fn: Callable, *args) -> Generator:

@@ -26,16 +26,16 @@ per batch).  Class (or instance) attributes declare the rest, each with a defaul
   "dense": its `act` then returns one end-effector target per world per control step, or a
   chunk (B, H, ...) of them (evaluation/dense.py), and ``relative = True`` makes its rows
   deltas of the current tip pose.
-* ``end_reasons``: per world, the `Outcome` code that explains an invalid action (bad LLM
-  output, LLM error, ...); None or 0 leaves it ``no_action``.
-
 and these methods: ``act_steps`` (`act` as a generator that yields the futures it waits on,
 LLM batches or a policy server's answers, so that other tasks simulate meanwhile),
 ``episode_info(world)`` (what to store as the episode record's ``policy_info``) and
 ``report()`` (the run's request statistics, as sections of results.json).
 
 A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that is how a
-policy says "I have nothing to execute".  Worlds that already finished ignore their action.
+policy says "I have nothing to execute".  Why travels with the action: ``end_reason`` of the
+returned `KeyActions`, (B,) `Outcome` codes (``Outcome.BAD_LLM_OUTPUT``, ``LLM_ERROR``, a
+server's ``REMOTE_ERROR``, ...; 0: plain ``no_action``) that the world's record then shows
+(`no_actions(batch, reason)`).  Worlds that already finished ignore their action.
 
 Policies are found by name with `make_policy`: a registered name ("oracle") or a
 "module:attr" / "path/to/file.py:attr" string naming a class, a factory function or a
@@ -50,14 +50,16 @@ import copy
 import functools
 import importlib
 import importlib.util
+import inspect
 import sys
 from collections.abc import Callable, Generator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from agnostos_mjx.infra.gather import send_alone
+from agnostos_mjx.policies.options import PolicyOptions, describe, parse_options
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:  # the runner imports physics and JAX; keep this module light
@@ -176,7 +178,6 @@ class Policy:
     privileged: bool = False
     action_modes: tuple[str, ...] = ("keyaction",)
     relative: bool = False
-    end_reasons: np.ndarray | None = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -191,8 +192,9 @@ class Policy:
     def act(self, view: Round) -> KeyActions:
         """The next key action of every world: pos (B, 3) tip position in world
         coordinates, quat (B, 4) wxyz, gripper (B,) open amount in [0, 1] and valid (B,)
-        bool; valid=False ends that world with Outcome.NO_ACTION.  Default: `act_steps`,
-        waiting on each future."""
+        bool; valid=False ends that world with Outcome.NO_ACTION, or with the Outcome code
+        of end_reason (B,) where that is given and not 0.  Default: `act_steps`, waiting on
+        each future."""
         return run_blocking(self.act_steps(view))
 
     def act_steps(self, view: Round) -> ActSteps:
@@ -220,37 +222,50 @@ class Policy:
         client, a model), its own per-batch state, which reset() replaces."""
         return copy.copy(self)
 
-    def end_reason_codes(self, batch: int) -> np.ndarray:
-        """`end_reasons` as (batch,) codes, zeros where the policy gives none."""
-        reasons = self.end_reasons
-        return np.zeros(batch, np.int32) if reasons is None else np.asarray(reasons)
 
-
-def no_actions(batch: int) -> KeyActions:
-    """A batch of invalid key actions (every world ends with NO_ACTION)."""
+def no_actions(batch: int, reason: int = 0) -> KeyActions:
+    """A batch of invalid key actions: every world ends with NO_ACTION, or with the Outcome
+    code `reason` when it is not 0."""
     quat = np.zeros((batch, 4), np.float32)
     quat[:, 0] = 1.0
     return KeyActions(pos=np.zeros((batch, 3), np.float32), quat=quat,
-                      gripper=np.ones(batch, np.float32), valid=np.zeros(batch, bool))
+                      gripper=np.ones(batch, np.float32), valid=np.zeros(batch, bool),
+                      end_reason=np.full(batch, reason, np.int32) if reason else None)
 
 
-# Built-in policies by name, as "module:attr" so that a policy's dependencies
-# (an LLM client, a model) load only when it is used.
-_REGISTRY: dict[str, str | Callable[..., Policy]] = {
-    "oracle": "agnostos_mjx.policies.oracle:OraclePolicy",
-    "dense-replay": "agnostos_mjx.policies.dense_replay:DenseReplayPolicy",
-    "xicm": "agnostos_mjx.policies.xicm:XICMPolicy",
-    "retrieval": "agnostos_mjx.policies.retrieval:RetrievalPolicy",
-    "remote": "agnostos_mjx.remote.client:RemotePolicy",
-    "openvla": "agnostos_mjx.remote.client:OpenVLAPolicy",
-    "reference-vla": "agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
-    "timing": "agnostos_mjx.policies.timing:TimingPolicy",
+class Builtin(NamedTuple):
+    """A built-in policy: its class and its options type (policies/options.py), as
+    "module:attr" so that a policy's dependencies (an LLM client, a model, JAX) load only
+    when it is used, and its options without them."""
+
+    policy: str
+    options: str
+
+
+_REGISTRY: dict[str, Builtin | str | Callable[..., Policy]] = {
+    "oracle": Builtin("agnostos_mjx.policies.oracle:OraclePolicy",
+                      "agnostos_mjx.policies.oracle:OracleOptions"),
+    "dense-replay": Builtin("agnostos_mjx.policies.dense_replay:DenseReplayPolicy",
+                            "agnostos_mjx.policies.learned_options:DenseReplayOptions"),
+    "xicm": Builtin("agnostos_mjx.policies.xicm:XICMPolicy",
+                    "agnostos_mjx.policies.learned_options:XicmOptions"),
+    "retrieval": Builtin("agnostos_mjx.policies.retrieval:RetrievalPolicy",
+                         "agnostos_mjx.policies.learned_options:RetrievalOptions"),
+    "remote": Builtin("agnostos_mjx.remote.client:RemotePolicy",
+                      "agnostos_mjx.remote.options:RemoteOptions"),
+    "openvla": Builtin("agnostos_mjx.remote.client:OpenVLAPolicy",
+                       "agnostos_mjx.remote.options:OpenVLAOptions"),
+    "reference-vla": Builtin("agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
+                             "agnostos_mjx.policies.learned_options:ReferenceVLAOptions"),
+    "timing": Builtin("agnostos_mjx.policies.timing:TimingPolicy",
+                      "agnostos_mjx.policies.timing:TimingOptions"),
 }
 
 
 def register_policy(name: str, factory: str | Callable[..., Policy]) -> None:
     """Make `name` usable with `make_policy` / ``--policy``: `factory` is a
-    class, a function returning a Policy, or a "module:attr" string."""
+    class, a function returning a Policy, or a "module:attr" string; it gets the
+    --policy-arg pairs as keyword arguments."""
     _REGISTRY[name] = factory
 
 
@@ -283,13 +298,41 @@ def load_object(spec: str) -> Any:
     return obj
 
 
+def options_type(spec: str) -> type[PolicyOptions] | None:
+    """The options type of a built-in policy; None for any other, whose factory takes the
+    --policy-arg pairs as free keyword arguments."""
+    entry = _REGISTRY.get(spec)
+    return load_object(entry.options) if isinstance(entry, Builtin) else None
+
+
+def policy_help(spec: str) -> str:
+    """What ``--policy-arg help`` prints: a built-in policy's options, else the signature
+    its --policy-arg pairs are passed to."""
+    kind = options_type(spec)
+    if kind is not None:
+        return describe(kind, spec)
+    target = _REGISTRY.get(spec, spec)
+    if isinstance(target, str):
+        target = load_object(target)
+    try:
+        signature = str(inspect.signature(target))
+    except (TypeError, ValueError):  # an instance, or a builtin without one
+        signature = "(none: it is a ready instance)" if isinstance(target, Policy) else "(?)"
+    return f"--policy {spec} takes its --policy-arg pairs as keyword arguments: {signature}"
+
+
 def make_policy(spec: str, **kwargs: Any) -> Policy:
     """A policy from a registered name or a "module:attr" / "file.py:attr" string.
 
-    The target may be a `Policy` subclass or a factory (called with `kwargs`) or a
-    `Policy` instance (used as is; kwargs must then be empty).  A policy that keeps the
-    default name is named after `spec`."""
+    A built-in policy is constructed from its options, `kwargs` parsed into its options
+    type (`parse_options`: an OptionsError for an unknown key or a wrong type).  Any other
+    target may be a `Policy` subclass or a factory (called with `kwargs`) or a `Policy`
+    instance (used as is; kwargs must then be empty).  A policy that keeps the default
+    name is named after `spec`."""
     target = _REGISTRY.get(spec, spec)
+    if isinstance(target, Builtin):
+        options = parse_options(load_object(target.options), kwargs, spec)
+        target, kwargs = load_object(target.policy), {"options": options}
     if isinstance(target, str):
         if ":" not in target:
             raise KeyError(f"unknown policy {spec!r}; registered policies: "

@@ -9,10 +9,10 @@ t+1's gripper pose and gripper_open (`next_frame_actions`).  Control step k exec
 k's action; past the last frame it holds the last one.  It checks that dense control can
 execute the demonstrations a LeRobot-trained policy learns from.
 
-Options (``--policy-arg``): ``every`` (the export's --every, default "rlbench": 20 Hz),
-``chunk`` (rows per answer, default 1: an action chunk of the next H actions, for the
-evaluator's --execute) and ``relative`` (rows as deltas: the first of a chunk from the
-tip pose measured now, the others from the previous row's target).
+Options (``--policy-arg``, `DenseReplayOptions`): ``every`` (the export's --every, default
+"rlbench": 20 Hz), ``chunk`` (rows per answer, default 1: an action chunk of the next H
+actions, for the evaluator's --execute) and ``relative`` (rows as deltas: the first of a
+chunk from the tip pose measured now, the others from the previous row's target).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 
 from agnostos_mjx.data.expert_frames import frame_every, next_frame_actions, proprio_frames
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.policies.learned_options import DenseReplayOptions
 from agnostos_mjx.sim.actions import KeyActions
 from agnostos_mjx.sim.math3d import pose_delta
 
@@ -33,14 +34,10 @@ class DenseReplayPolicy(Policy):
     action_modes = ("dense",)
     privileged = True
 
-    def __init__(self, every: int | str = "rlbench", chunk: int = 1, relative: bool = False
-                 ) -> None:
-        frame_every(every, 0.005)  # a ValueError for a bad --every now, not at reset
-        if not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1:
-            raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
-        if not isinstance(relative, bool):
-            raise ValueError(f"relative must be true or false, got {relative!r}")
-        self.every, self.chunk, self.relative = every, chunk, relative
+    def __init__(self, options: DenseReplayOptions | None = None) -> None:
+        o = options or DenseReplayOptions()
+        frame_every(o.every, 0.005)  # a ValueError for a bad --every now, not at reset
+        self.every, self.chunk, self.relative = o.every, o.chunk, o.relative
         self.pose = np.zeros((0, 1, 7))
         self.gripper = np.zeros((0, 1))
         self.frames = np.zeros(0, np.int64)

@@ -5,10 +5,18 @@ with the runtime's control stack (X-ICM's demos come from the same expert)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.policies.options import PolicyOptions
 from agnostos_mjx.sim.actions import KeyActions
+
+
+@dataclass
+class OracleOptions(PolicyOptions):
+    """The oracle takes no options: the expert decides everything."""
 
 
 class OraclePolicy(Policy):
@@ -20,7 +28,7 @@ class OraclePolicy(Policy):
     name = "oracle"
     privileged = True
 
-    def __init__(self) -> None:
+    def __init__(self, options: OracleOptions | None = None) -> None:
         self._plan: KeyActions | None = None
         self._cursor = np.zeros(0, np.int64)
 

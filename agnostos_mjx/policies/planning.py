@@ -43,7 +43,6 @@ class PlanningPolicy(Policy):
     def __init__(self) -> None:
         self._queues: list[deque] = []
         self._logs: list[list[dict]] = []
-        self.end_reasons = np.zeros(0, np.int32)
         self._seeds: tuple[int, ...] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -69,7 +68,6 @@ class PlanningPolicy(Policy):
         self._logs = [[] for _ in range(b)]
         self._replans = np.zeros(b, np.int32)
         self._seeds = view.episode_seeds
-        self.end_reasons = np.zeros(b, np.int32)
 
     def plan_seed(self, world: int) -> int:
         """A reproducible seed per (episode, replan)."""
@@ -81,6 +79,7 @@ class PlanningPolicy(Policy):
         running = view.running
         need = np.array([running[i] and not self._queues[i] for i in range(b)])
         worlds = np.nonzero(need)[0]
+        reasons = np.zeros(b, np.int32)  # why a world got no new plan
         if len(worlds):
             results = yield from self.plan_steps(view, worlds)
             for w, result in zip(worlds, results):
@@ -89,7 +88,7 @@ class PlanningPolicy(Policy):
                 if result.size:
                     self._queues[w].extend(zip(result.pos, result.quat, result.gripper))
                 else:
-                    self.end_reasons[w] = result.end_reason
+                    reasons[w] = result.end_reason
         pos = np.zeros((b, 3), np.float32)
         quat = np.tile(np.array([1.0, 0, 0, 0], np.float32), (b, 1))
         grip = np.ones(b, np.float32)
@@ -98,7 +97,7 @@ class PlanningPolicy(Policy):
             if queue and running[i]:
                 pos[i], quat[i], grip[i] = queue.popleft()
                 valid[i] = True
-        return KeyActions(pos, quat, grip, valid)
+        return KeyActions(pos, quat, grip, valid, end_reason=reasons)
 
     def episode_info(self, world: int) -> dict:
         """What the evaluator stores with the episode record."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.policies.learned_options import ReferenceVLAOptions
 from agnostos_mjx.runtime.observation import ObservationSpec
 from agnostos_mjx.sim.actions import KeyActions
 
@@ -30,9 +31,9 @@ class ReferenceVLAPolicy(Policy):
 
     name = "reference-vla"
 
-    def __init__(self, checkpoint: str | None = None, renderer: str = "auto",
-                 max_steps: int | None = None, chunk: int = 25) -> None:
-        if not checkpoint:
+    def __init__(self, options: ReferenceVLAOptions | None = None) -> None:
+        o = options or ReferenceVLAOptions()
+        if not o.checkpoint:
             raise ValueError("reference-vla needs its run directory: --policy-arg "
                              "checkpoint=RUN (python -m agnostos_mjx.train.vla --out RUN)")
         import jax
@@ -44,20 +45,16 @@ class ReferenceVLAPolicy(Policy):
         from agnostos_mjx.vla.views import render_views
 
         try:
-            model, self.meta = load(checkpoint)
+            model, self.meta = load(o.checkpoint)
         except CheckpointError as err:
             raise ValueError(str(err)) from None
-        self.max_steps = int(max_steps or self.meta.get("max_key_actions") or MAX_STEPS)
-        if self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-        self.chunk = int(chunk)
-        if self.chunk < 1:
-            raise ValueError(f"chunk must be >= 1, got {chunk}")
+        self.max_steps = int(o.max_steps or self.meta.get("max_key_actions") or MAX_STEPS)
+        self.chunk = o.chunk
         obs = self.meta["observation"]
         self.cameras = tuple(obs["cameras"])
         self.observation_spec = ObservationSpec(
             cameras=self.cameras, height=obs["size"], width=obs["size"],
-            modalities=("rgb", "point_cloud"), renderer=renderer)
+            modalities=("rgb", "point_cloud"), renderer=o.renderer)
         self.cfg = model.cfg
         graphdef, params = nnx.split(model)
         size = self.cfg.view_size

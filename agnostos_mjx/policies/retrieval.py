@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.policies.base import Round
+from agnostos_mjx.policies.learned_options import RetrievalOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.policies.xicm import queries_for
 from agnostos_mjx.sim.control import ACTION_BOUNDS
@@ -40,12 +41,12 @@ class RetrievalPolicy(PlanningPolicy):
     name = "retrieval"
     privileged = True
 
-    def __init__(self, selection: str = "auto", memory: str | None = None,
-                 sample_steps: int | None = None) -> None:
+    def __init__(self, options: RetrievalOptions | None = None) -> None:
         super().__init__()
-        self.memory = DemoMemory.load(memory or default_memory_path())
-        self.selection = resolve_selection(selection, self.memory)
-        self.selector = make_selector(self.selection, self.memory, sample_steps=sample_steps)
+        o = options or RetrievalOptions()
+        self.memory = DemoMemory.load(o.memory or default_memory_path())
+        self.selection = resolve_selection(o.selection, self.memory)
+        self.selector = make_selector(self.selection, self.memory, sample_steps=o.sample_steps)
         self.name = f"retrieval[{self.selection}]"
 
     def plan_steps(self, view: Round, worlds: np.ndarray):

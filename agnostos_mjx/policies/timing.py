@@ -10,15 +10,35 @@ action to the current pose.  tools/closed_loop_bench.py drives it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from agnostos_mjx.policies.base import Policy, Round
+from agnostos_mjx.policies.options import OptionsError, PolicyOptions, option
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:
     from agnostos_mjx.runtime.observation import RLBenchObservation
+
+
+@dataclass
+class TimingOptions(PolicyOptions):
+    """What the timing policy looks at, and how many rows it answers."""
+
+    cameras: str = option("front,wrist", "comma-separated cameras it declares")
+    size: int = option(128, "image height and width, pixels")
+    chunk: int = option(1, "dense mode: rows per answer (asked again every chunk steps)")
+    modalities: str = option("rgb", "comma-separated: rgb, depth, point_cloud, segmentation")
+    numpy: bool = option(True, "images as numpy arrays (false: device arrays)")
+    renderer: str = option("auto", "its ObservationSpec.renderer: auto, cpu or warp")
+
+    def check(self) -> None:
+        if self.chunk < 1:
+            raise OptionsError(f"chunk={self.chunk}: must be a positive number of rows")
+        if self.size < 1:
+            raise OptionsError(f"size={self.size}: must be a positive number of pixels")
 
 
 class TimingPolicy(Policy):
@@ -27,19 +47,15 @@ class TimingPolicy(Policy):
     name = "timing"
     action_modes = ("keyaction", "dense")
 
-    def __init__(self, cameras: str | list[str] = "front,wrist", size: int = 128,
-                 chunk: int = 1, modalities: str | list[str] = "rgb", numpy: bool = True,
-                 renderer: str = "auto") -> None:
+    def __init__(self, options: TimingOptions | None = None) -> None:
         from agnostos_mjx.runtime.observation import ObservationSpec
 
-        names = cameras.split(",") if isinstance(cameras, str) else list(cameras)
-        kinds = modalities.split(",") if isinstance(modalities, str) else list(modalities)
-        if int(chunk) < 1:
-            raise ValueError(f"chunk must be a positive number of rows, got {chunk}")
-        self.chunk = int(chunk)
+        o = options or TimingOptions()
+        self.chunk = o.chunk
         self.observation_spec = ObservationSpec(
-            cameras=tuple(n.strip() for n in names), height=int(size), width=int(size),
-            modalities=tuple(k.strip() for k in kinds), renderer=renderer, numpy=bool(numpy))
+            cameras=tuple(n.strip() for n in o.cameras.split(",")), height=o.size,
+            width=o.size, modalities=tuple(k.strip() for k in o.modalities.split(",")),
+            renderer=o.renderer, numpy=o.numpy)
         self.pixels = 0  # pixels seen, so that no image goes unused
 
     def act(self, view: Round) -> KeyActions:

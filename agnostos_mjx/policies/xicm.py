@@ -18,7 +18,6 @@ import logging
 import numpy as np
 
 from agnostos_mjx.llm.client import (
-    DEFAULT_TIMEOUT_S,
     ChatClient,
     LLMConfig,
     LLMConfigError,
@@ -26,6 +25,7 @@ from agnostos_mjx.llm.client import (
 )
 from agnostos_mjx.llm.server import context_advice
 from agnostos_mjx.policies.base import Round
+from agnostos_mjx.policies.learned_options import XicmOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.runtime.observation import CAMERAS, ObservationSpec
 from agnostos_mjx.sim.textualise import decode_action
@@ -36,8 +36,6 @@ from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
 
 log = logging.getLogger("agnostos_mjx.xicm")
 
-
-OBJECT_SOURCES = ("ground_truth", "segmented")
 # X-ICM's cameras and resolution (xicm_reference.md 3): what its object positions come from.
 SEGMENTED_SPEC = ObservationSpec(cameras=CAMERAS, height=128, width=128,
                                  modalities=("point_cloud", "segmentation"))
@@ -65,24 +63,18 @@ class XICMPolicy(PlanningPolicy):
     name = "xicm"
     privileged = True
 
-    def __init__(self, llm_url: str | None = None, llm_model: str | None = None,
-                 selection: str = "auto", num_demos: int = 18,
-                 memory: str | None = None, llm_cache: str | None = None,
-                 concurrency: int | None = None, timeout_s: float = DEFAULT_TIMEOUT_S,
-                 retries: int = 4, server_kind: str = "auto",
-                 temperature: float = 0.1, top_p: float = 0.001,
-                 repetition_penalty: float = 1.05, max_tokens: int = 256,
-                 client: ChatClient | None = None, sample_steps: int | None = None,
-                 objects: str = "ground_truth") -> None:
+    def __init__(self, options: XicmOptions | None = None, client: ChatClient | None = None
+                 ) -> None:
+        """`client`: an LLM client to use instead of the one the options describe."""
         super().__init__()
-        if objects not in OBJECT_SOURCES:
-            raise ValueError(f"objects must be one of {OBJECT_SOURCES}, got {objects!r}")
-        self.objects = objects
+        o = options or XicmOptions()
+        self.objects = o.objects
         if client is None:
             config = LLMConfig.from_env(
-                llm_url, llm_model, concurrency=concurrency, timeout_s=timeout_s,
-                retries=retries, server_kind=server_kind, cache_dir=llm_cache,
-                sampling=SamplingParams(temperature, top_p, repetition_penalty, max_tokens))
+                o.llm_url, o.llm_model, concurrency=o.concurrency, timeout_s=o.timeout_s,
+                retries=o.retries, server_kind=o.server_kind, cache_dir=o.llm_cache,
+                sampling=SamplingParams(o.temperature, o.top_p, o.repetition_penalty,
+                                        o.max_tokens))
             if config is None:
                 raise LLMConfigError("X-ICM needs an LLM: pass --llm-url and --llm-model or set "
                                      "AGNOSTOS_LLM_URL and AGNOSTOS_LLM_MODEL")
@@ -94,11 +86,11 @@ class XICMPolicy(PlanningPolicy):
                 client = ChatClient(config)
             client.preflight()
         self.client = client
-        self.memory = DemoMemory.load(memory or default_memory_path())
-        self.selection = resolve_selection(selection, self.memory)
-        self.selector = make_selector(self.selection, self.memory, sample_steps=sample_steps)
-        self.num_demos = num_demos
-        self.name = f"xicm[{self.selection},k={num_demos}]"
+        self.memory = DemoMemory.load(o.memory or default_memory_path())
+        self.selection = resolve_selection(o.selection, self.memory)
+        self.selector = make_selector(self.selection, self.memory, sample_steps=o.sample_steps)
+        self.num_demos = o.num_demos
+        self.name = f"xicm[{self.selection},k={o.num_demos}]"
         self.check_context()
 
     def check_context(self) -> None:

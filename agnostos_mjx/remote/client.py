@@ -55,12 +55,12 @@ from agnostos_mjx.remote.adapter import (
     request,
 )
 from agnostos_mjx.remote.adapter import sim_state as world_sim_state
+from agnostos_mjx.remote.options import OpenVLAOptions, RemoteOptions
 from agnostos_mjx.sim.actions import KeyActions
 
 if TYPE_CHECKING:
     from agnostos_mjx.runtime.observation import RLBenchObservation
 
-DEFAULT_TIMEOUT_S = 60.0  # first requests may wait for a model's compilation
 SCHEMES = ("ws", "wss", "http", "https")
 
 
@@ -289,37 +289,36 @@ class RemotePolicy(Policy):
     executes the key actions in its answers.  Privileged only with the ``sim`` preset,
     which sends the simulator's state (for a server that runs a privileged policy).
 
-    `preset`: rlbench, libero, droid, xicm, openvla, openvla_oft, sim, or auto (what the
-    server's metadata names as ``agnostos_preset``, else rlbench over websockets and
-    openvla over HTTP); `keys`: a server key -> source mapping (or its JSON) replacing the
-    preset's; other keyword arguments set Adapter fields (height, width, action_key,
-    action_index, execute, rotation, quat_order, relative, gripper, gripper_threshold,
-    constants)."""
+    Its options (`RemoteOptions`): the URL (else $AGNOSTOS_POLICY_URL), the preset
+    (rlbench, libero, droid, xicm, openvla, openvla_oft, sim, or auto: what the server's
+    metadata names as ``agnostos_preset``, else rlbench over websockets and openvla over
+    HTTP), `keys` (a server key -> source mapping replacing the preset's), the Adapter
+    fields that override the preset's, and the timeouts."""
 
     name = "remote"
+    Options = RemoteOptions  # its options' type, and their defaults
     # In dense mode each row is one control step's target (the adapter's execute and
     # relative options apply as for key actions).
     action_modes = ("keyaction", "dense")
 
-    def __init__(self, url: str | None = None, preset: str = "auto",
-                 keys: dict[str, str] | str | None = None,
-                 timeout_s: float = DEFAULT_TIMEOUT_S, connect_timeout_s: float = 30.0,
-                 **adapter_options: Any) -> None:
-        self.url = check_url(url, self.name)
-        self.timeout_s = float(timeout_s)
+    def __init__(self, options: RemoteOptions | None = None) -> None:
+        o = options or self.Options()
+        self.url = check_url(o.url or settings.POLICY_URL.get(), self.name)
+        self.timeout_s = o.timeout_s
         self.transport = make_transport(self.url)
         self._loop = _Loop.get()
         try:
-            self.metadata = self._loop.submit(self._probe(connect_timeout_s)).result()
+            self.metadata = self._loop.submit(self._probe(o.connect_timeout_s)).result()
         except Exception as e:  # noqa: BLE001 - any failure means "cannot use it"
             raise RemotePolicyError(f"cannot reach the policy server at {self.url}: "
                                     f"{type(e).__name__}: {e}") from None
         meta = self.metadata if isinstance(self.metadata, dict) else {}
+        preset = o.preset
         if preset == "auto":
             default = "openvla" if self.transport.kind == "http" else "rlbench"
             preset = str(meta.get("agnostos_preset", default))
         self.preset = preset
-        self.adapter = make_adapter(preset, keys, **adapter_options)
+        self.adapter = make_adapter(preset, o.keys, **o.adapter_options())
         self.observation_spec = self.adapter.spec()
         self.privileged = self.adapter.wants_sim_state
         served = meta.get("policy")
@@ -328,7 +327,7 @@ class RemotePolicy(Policy):
         self.stats: collections.Counter = collections.Counter()
         self._conns: dict[int, Any] = {}
         self._queue: dict[int, collections.deque] = {}
-        self.end_reasons = np.zeros(0, np.int32)
+        self._failed = np.zeros(0, np.int32)  # each world's Outcome code once it failed
         self._errors: dict[int, str] = {}
 
     async def _probe(self, timeout_s: float) -> Any:
@@ -344,13 +343,14 @@ class RemotePolicy(Policy):
         self._conns = {}
         self._queue = {}
         self._errors = {}
-        self.end_reasons = np.zeros(b, np.int32)
+        self._failed = np.zeros(b, np.int32)
 
     def act_steps(self, view: Round) -> Generator[concurrent.futures.Future, Any, KeyActions]:
         """`act` as a generator that yields the future of the step's requests.  Worlds
-        with rows left of their last chunk execute the next one without a request."""
-        b = len(self.end_reasons)
-        running = np.nonzero(view.running[:b] & (self.end_reasons == 0))[0]
+        with rows left of their last chunk execute the next one without a request; a world
+        whose request failed gets no action, its end_reason the failure's Outcome code."""
+        b = len(self._failed)
+        running = np.nonzero(view.running[:b] & (self._failed == 0))[0]
         ask = np.array([w for w in running if not self._queue.get(int(w))], np.int64)
         sources = None
         if len(ask) or (self.adapter.relative and len(running)):
@@ -372,12 +372,12 @@ class RemotePolicy(Policy):
         valid = np.zeros(b, bool)
         for w in running:
             queue = self._queue.get(int(w))
-            if self.end_reasons[w] or not queue:  # failed, or an empty chunk: no action
+            if self._failed[w] or not queue:  # failed, or an empty chunk: no action
                 continue
             pose = sources["gripper_pose"][w] if sources is not None else None
             pos[w], quat[w], grip[w] = apply_row(self.adapter, queue.popleft(), pose)
             valid[w] = True
-        return KeyActions(pos, quat, grip, valid)
+        return KeyActions(pos, quat, grip, valid, end_reason=self._failed.copy())
 
     def episode_info(self, world: int) -> dict:
         return {"error": self._errors[world]} if world in self._errors else {}
@@ -461,7 +461,7 @@ class RemotePolicy(Policy):
     def _fail(self, world: int, code: int, why: str) -> None:
         from agnostos_mjx.runtime.outcome import Outcome
 
-        self.end_reasons[world] = code
+        self._failed[world] = code
         self._errors[world] = why
         self._queue.pop(world, None)
         self.stats[Outcome(code).label] += 1
@@ -473,8 +473,4 @@ class OpenVLAPolicy(RemotePolicy):
     comes from ``url`` (``--policy-arg url=...``), else $AGNOSTOS_POLICY_URL."""
 
     name = "openvla"
-
-    def __init__(self, url: str | None = None, preset: str = "openvla", **options: Any
-                 ) -> None:
-        super().__init__(url or settings.POLICY_URL.get(), preset=preset,
-                         **options)
+    Options = OpenVLAOptions
