@@ -145,3 +145,49 @@ def test_warp_preload_starts_once_and_is_waited_for(monkeypatch) -> None:
     release.set()
     thread.join(5)
     assert started == ["warp-preload"]
+
+
+def test_a_smaller_batch_reuses_a_larger_warp_renderer() -> None:
+    """A Warp render context has a fixed world count and costs seconds to build: a batch of
+    fewer worlds (an export's retries, the last chunk) renders on the smallest one built
+    for at least as many, its rows padded with the first one's; nothing smaller is built."""
+    from agnostos_mjx.runtime.observe import Observer, pad_rows
+
+    spec = ob.ObservationSpec(cameras=("front", "wrist"), height=SIZE, width=SIZE)
+    observer = Observer(None, None, "native")
+    attrs = (spec.height, spec.width, spec.cameras)
+    flags = (spec.needs_depth, spec.wants("segmentation"))
+    assert observer._warp_worlds(spec, 24) == 24  # none built yet
+    observer._renderers[("warp", *attrs, 24, *flags)] = object()
+    observer._renderers[("warp", *attrs, 75, *flags)] = object()
+    observer._renderers[("warp", SIZE * 2, SIZE * 2, spec.cameras, 8, *flags)] = object()
+    assert [observer._warp_worlds(spec, n) for n in (3, 24, 25, 75, 76)] == [24, 24, 75, 75, 76]
+    x = np.arange(6.0).reshape(3, 2)
+    padded = pad_rows(x, 5)
+    assert padded.shape == (5, 2) and (padded[:3] == x).all() and (padded[3:] == x[0]).all()
+    assert pad_rows(x, 3) is x
+    assert np.asarray(pad_rows(jax.numpy.asarray(x), 4))[3].tolist() == [0.0, 1.0]
+
+
+@pytest.mark.slow  # Warp's kernels build for its CPU backend (minutes on a fresh machine)
+def test_padded_warp_observation_equals_the_direct_one() -> None:
+    """On the Warp route (here on Warp's CPU backend, where warp-lang is installed) a
+    sub-batch rendered on a larger context, padded, equals the full batch's rows: every
+    modality of every camera, and no second context is built."""
+    pytest.importorskip("warp")
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    runner = Episodes(get_task("lamp_on"), "native", renderer="warp")
+    env = runner.reset(jax.random.split(jax.random.PRNGKey(0), 3), np.zeros(3, np.int32))
+    spec = ob.ObservationSpec(cameras=("front", "wrist"), height=16, width=16,
+                              modalities=("rgb", "depth", "point_cloud", "segmentation"))
+    full = runner.observe(env, spec)
+    part = runner.observe(jax.tree.map(
+        lambda x: x[1:] if getattr(x, "ndim", 0) and x.shape[0] == 3 else x, env), spec)
+    assert [k[4] for k in runner.observer._renderers if k[0] == "warp"] == [3]
+    for cam in spec.cameras:
+        for field in ("rgb", "depth", "point_cloud", "segmentation", "extrinsics"):
+            got = np.asarray(getattr(part.cameras[cam], field))
+            assert got.shape[0] == 2
+            np.testing.assert_array_equal(got, np.asarray(getattr(full.cameras[cam], field))[1:])

@@ -30,6 +30,14 @@ from agnostos_mjx.tasks.base import Task
 GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
 
 
+def pad_rows(x: Any, rows: int) -> Any:
+    """`x` (numpy or JAX, leading axis the worlds) with its first row repeated up to `rows`."""
+    if len(x) == rows:
+        return x
+    xp = np if isinstance(x, np.ndarray) else jnp
+    return xp.concatenate([x, xp.repeat(x[:1], rows - len(x), axis=0)])
+
+
 class Observer:
     """Renders and assembles observations of one task's worlds; owns its renderers."""
 
@@ -125,9 +133,11 @@ class Observer:
         from agnostos_mjx.render.warp import captured
 
         p = state.physics
-        renderer = self.renderer(spec, "warp", len(p.qpos))
+        n = len(p.qpos)
+        nworld = self._warp_worlds(spec, n)
+        renderer = self.renderer(spec, "warp", nworld)
         constants = camera_constants(self.scene.model, spec)
-        key = (spec, len(p.qpos))
+        key = (spec, nworld)
         if key not in self._programs:
             def observe_all(qpos: Any, mocap_pos: Any, mocap_quat: Any,
                             rgba: Any) -> dict[str, dict[str, Any]]:
@@ -139,12 +149,24 @@ class Observer:
                 return out
 
             self._programs[key] = jax.jit(observe_all)
-        arrays = captured(self._programs[key], p.qpos, p.mocap_pos, p.mocap_quat,
-                          jnp.asarray(state.geom_rgba, jnp.float32))
+        state_arrays = (p.qpos, p.mocap_pos, p.mocap_quat, state.geom_rgba)
+        arrays = captured(self._programs[key], *(pad_rows(x, nworld) for x in state_arrays))
         if spec.numpy:  # one transfer for all: an np.asarray per array waits once each
             arrays = jax.device_get(arrays)
+        if nworld != n:
+            arrays = jax.tree.map(lambda x: x[:n], arrays)
         return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
                 for name, (k, near, far) in constants.items()}
+
+    def _warp_worlds(self, spec: ObservationSpec, n: int) -> int:
+        """The world count to render `n` worlds of `spec` with: the smallest Warp renderer
+        already built for at least `n` (the rest padded), else `n`.  A render context is
+        built for a fixed count, and building one with its program costs seconds: a
+        smaller batch (the last chunk, an export's retries) reuses a larger one."""
+        built = [k[4] for k in self._renderers
+                 if k[0] == "warp" and k[1:4] == (spec.height, spec.width, spec.cameras)
+                 and k[5:] == (spec.needs_depth, spec.wants("segmentation")) and k[4] >= n]
+        return min(built, default=n)
 
     # ---- observations -----------------------------------------------------------------
     def gripper_open(self, state: EnvState) -> np.ndarray:
