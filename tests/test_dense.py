@@ -366,7 +366,7 @@ def test_dense_device_step_matches_host_path_on_mjx() -> None:
 def test_a_gripper_held_still_solves_no_task(name: str) -> None:
     """A policy that holds the gripper where it starts, open, for the whole dense budget
     succeeds on no task: nothing in a scene drifts into its success state by itself (a USB
-    stick once crept out of its port and fell within 30 s)."""
+    stick once crept out of its port and fell within 6,000 physics steps)."""
     ep = episodes_for(name)
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
     env = ep.reset(keys, np.zeros(1, np.int32))

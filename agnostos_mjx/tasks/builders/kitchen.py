@@ -33,8 +33,8 @@ def hidden(geom: mujoco.MjsGeom, mass: float | None = None) -> mujoco.MjsGeom:
 
 # solimp (dmin, dmax) of `stiff` contacts, and of harder ones for a pin that must stay in its
 # port under its own weight for a whole episode: at STIFF a USB stick left alone crept out of
-# its port and fell within 30 s; at HOLDING it moves under a millimetre in 50 s (a dmax of
-# 0.999 made the contacts unstable when a gripper pushed the stick).
+# its port and fell within 6,000 physics steps; at HOLDING it moves under a millimetre in
+# 10,000 physics steps (a dmax of 0.999 made the contacts unstable when a gripper pushed it).
 STIFF = (0.95, 0.99)
 HOLDING = (0.99, 0.99)
 
