@@ -209,6 +209,7 @@ def _expert_steps(ep: Episodes, env) -> list[KeyActions]:
     return [jax.tree.map(lambda x, k=k: x[:, k], expert) for k in range(expert.pos.shape[1])]
 
 
+@pytest.mark.slow  # a GPU host's property, checked here with the device planner's programs
 def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Episodes.plan_rows: a task's seeds that run apart (task_queue.split_by_seed) plan in
@@ -248,6 +249,7 @@ def test_device_plans_of_a_seed_apart_equal_its_plans_in_the_whole_batch(
     assert checked == [whole]
 
 
+@pytest.mark.slow  # a GPU host's property (the default device), compiled here on the CPU
 def test_a_host_key_action_runs_its_helpers_on_the_cpu(monkeypatch):
     """Native physics runs on the CPU, so a host key action's jitted helpers (the condition
     scan, grasps) run there too, with the CPU as JAX's default device: on a GPU host they
