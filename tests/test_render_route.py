@@ -151,23 +151,23 @@ def test_warp_preload_starts_once_and_is_waited_for(monkeypatch) -> None:
 def test_a_smaller_batch_reuses_a_larger_warp_renderer() -> None:
     """A Warp render context has a fixed world count and costs seconds to build: a batch of
     fewer worlds (an export's retries, the last chunk) renders on the smallest one built
-    for at least as many, its rows padded with the first one's; nothing smaller is built."""
-    from agnostos_mjx.runtime.observe import Observer, pad_rows
+    for at least as many, its rows padded; nothing smaller is built."""
+    from agnostos_mjx.infra.sharding import pad
+    from agnostos_mjx.runtime.observe import Observer
 
     spec = ob.ObservationSpec(cameras=("front", "wrist"), height=SIZE, width=SIZE)
     observer = Observer(None, None, "native")
-    attrs = (spec.height, spec.width, spec.cameras)
-    flags = (spec.needs_depth, spec.wants("segmentation"))
     assert observer._warp_worlds(spec, 24) == 24  # none built yet
-    observer._renderers[("warp", *attrs, 24, *flags)] = object()
-    observer._renderers[("warp", *attrs, 75, *flags)] = object()
-    observer._renderers[("warp", SIZE * 2, SIZE * 2, spec.cameras, 8, *flags)] = object()
+    observer._renderers[Observer._warp_key(spec, 24)] = object()
+    observer._renderers[Observer._warp_key(spec, 75)] = object()
+    observer._renderers[Observer._warp_key(replace(spec, height=SIZE * 2, width=SIZE * 2),
+                                           8)] = object()
     assert [observer._warp_worlds(spec, n) for n in (3, 24, 25, 75, 76)] == [24, 24, 75, 75, 76]
     x = np.arange(6.0).reshape(3, 2)
-    padded = pad_rows(x, 5)
-    assert padded.shape == (5, 2) and (padded[:3] == x).all() and (padded[3:] == x[0]).all()
-    assert pad_rows(x, 3) is x
-    assert np.asarray(pad_rows(jax.numpy.asarray(x), 4))[3].tolist() == [0.0, 1.0]
+    padded = pad(x, 5)
+    assert padded.shape == (5, 2) and (padded[:3] == x).all() and (padded[3:] == x[-1]).all()
+    assert pad(x, 3) is x
+    assert np.asarray(pad(jax.numpy.asarray(x), 4))[3].tolist() == [4.0, 5.0]
 
 
 @pytest.mark.slow  # Warp's kernels build for its CPU backend (minutes on a fresh machine)
@@ -186,7 +186,7 @@ def test_padded_warp_observation_equals_the_direct_one() -> None:
     full = runner.observe(env, spec)
     part = runner.observe(jax.tree.map(
         lambda x: x[1:] if getattr(x, "ndim", 0) and x.shape[0] == 3 else x, env), spec)
-    assert [k[4] for k in runner.observer._renderers if k[0] == "warp"] == [3]
+    assert [k[-1] for k in runner.observer._renderers if k[0] == "warp"] == [3]
     for cam in spec.cameras:
         for field in ("rgb", "depth", "point_cloud", "segmentation", "extrinsics"):
             got = np.asarray(getattr(part.cameras[cam], field))

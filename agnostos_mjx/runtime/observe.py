@@ -30,14 +30,6 @@ from agnostos_mjx.tasks.base import Task
 GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
 
 
-def pad_rows(x: Any, rows: int) -> Any:
-    """`x` (numpy or JAX, leading axis the worlds) with its first row repeated up to `rows`."""
-    if len(x) == rows:
-        return x
-    xp = np if isinstance(x, np.ndarray) else jnp
-    return xp.concatenate([x, xp.repeat(x[:1], rows - len(x), axis=0)])
-
-
 class Observer:
     """Renders and assembles observations of one task's worlds; owns its renderers."""
 
@@ -75,8 +67,7 @@ class Observer:
                 self._renderers[key] = cpu_renderer(model, spec.width, spec.height, samples=0,
                                                     threads=threads)
         else:
-            key = ("warp", spec.height, spec.width, spec.cameras, nworld, spec.needs_depth,
-                   spec.wants("segmentation"))
+            key = self._warp_key(spec, nworld)
             if key not in self._renderers:
                 self._renderers[key] = WarpRenderer(
                     model, nworld, spec.width, spec.height, cameras=spec.cameras,
@@ -130,6 +121,7 @@ class Observer:
         """Every camera of `spec` on MJX-Warp as one device program: pose (kinematics and
         camera poses), trace, then depth clipping, extrinsics and point clouds; numpy arrays
         when the spec asks for them."""
+        from agnostos_mjx.infra.sharding import pad
         from agnostos_mjx.render.warp import captured
 
         p = state.physics
@@ -149,8 +141,8 @@ class Observer:
                 return out
 
             self._programs[key] = jax.jit(observe_all)
-        state_arrays = (p.qpos, p.mocap_pos, p.mocap_quat, state.geom_rgba)
-        arrays = captured(self._programs[key], *(pad_rows(x, nworld) for x in state_arrays))
+        state_arrays = pad((p.qpos, p.mocap_pos, p.mocap_quat, state.geom_rgba), nworld)
+        arrays = captured(self._programs[key], *state_arrays)
         if spec.numpy:  # one transfer for all: an np.asarray per array waits once each
             arrays = jax.device_get(arrays)
         if nworld != n:
@@ -163,10 +155,15 @@ class Observer:
         already built for at least `n` (the rest padded), else `n`.  A render context is
         built for a fixed count, and building one with its program costs seconds: a
         smaller batch (the last chunk, an export's retries) reuses a larger one."""
-        built = [k[4] for k in self._renderers
-                 if k[0] == "warp" and k[1:4] == (spec.height, spec.width, spec.cameras)
-                 and k[5:] == (spec.needs_depth, spec.wants("segmentation")) and k[4] >= n]
-        return min(built, default=n)
+        kind = self._warp_key(spec, 0)[:-1]
+        return min((k[-1] for k in self._renderers if k[:-1] == kind and k[-1] >= n), default=n)
+
+    @staticmethod
+    def _warp_key(spec: ObservationSpec, nworld: int) -> tuple:
+        """A Warp renderer's key among the cached ones: what its context renders, then how
+        many worlds."""
+        return ("warp", spec.height, spec.width, spec.cameras, spec.needs_depth,
+                spec.wants("segmentation"), nworld)
 
     # ---- observations -----------------------------------------------------------------
     def gripper_open(self, state: EnvState) -> np.ndarray:
