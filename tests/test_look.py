@@ -28,7 +28,8 @@ def _scenes(tmp_path: Path, old: str = "", new: str = "") -> Path:
     return dest
 
 
-TOP_LIGHT = '<light name="top" pos="0.2 0 3.0" dir="0 0 -1" directional="true" diffuse="0.5 0.5 0.5"/>'
+TOP_LIGHT = ('<light name="top" pos="0.2 0 3.0" dir="0 0 -1" directional="true" '
+             'diffuse="0.5 0.5 0.5" specular="0 0 0"/>')
 
 
 def test_scene_version_follows_the_look(tmp_path) -> None:
@@ -36,13 +37,15 @@ def test_scene_version_follows_the_look(tmp_path) -> None:
     assert len(base) == 12 and int(base, 16) >= 0 and scene_version(scenes_dir()) == base
     assert scene_version(_scenes(tmp_path)) == base  # a copy: the same
     # comments and formatting are no part of the look
-    note = ("<worldbody>\n    <light", "<worldbody>\n\n    <!-- a note -->\n    <light")
+    note = ('<include file="panda.xml"/>', '<include file="panda.xml"/>\n\n  <!-- a note -->')
     assert scene_version(_scenes(tmp_path, *note)) == base
     changes = {  # a light's colour, direction or kind, the headlight, a camera, a colour
         "diffuse": (TOP_LIGHT, TOP_LIGHT.replace('diffuse="0.5 0.5 0.5"', 'diffuse="0.6 0.6 0.6"')),
         "dir": (TOP_LIGHT, TOP_LIGHT.replace('dir="0 0 -1"', 'dir="0.1 0 -1"')),
         "directional": (TOP_LIGHT, TOP_LIGHT.replace('directional="true"', 'directional="false"')),
+        "specular": (TOP_LIGHT, TOP_LIGHT.replace('specular="0 0 0"', 'specular="0.3 0.3 0.3"')),
         "headlight": ('ambient="0.45 0.45 0.45"', 'ambient="0.4 0.4 0.4"'),
+        "tessellation": ('numslices="48"', 'numslices="28"'),
         "camera": ('fovy="40"/>\n    <camera name="left_shoulder"',
                    'fovy="45"/>\n    <camera name="left_shoulder"'),
         "table": ('rgba="0.78 0.68 0.55 1"', 'rgba="0.7 0.68 0.55 1"'),
