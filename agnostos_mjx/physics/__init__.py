@@ -42,14 +42,13 @@ def cuda_gpu() -> bool:
 
 @functools.cache
 def warp_available() -> bool:
-    """True when JAX sees a CUDA GPU and mujoco-warp's dependency imports."""
-    if not cuda_gpu():
-        return False
-    try:
-        import warp  # noqa: F401
-    except Exception:  # noqa: BLE001 - any import failure means "not available"
-        return False
-    return True
+    """True when JAX sees a CUDA GPU and warp-lang (mujoco-warp's dependency) is installed.
+    Looked up, not imported: the import takes seconds, and a run on the warp route makes it
+    on a thread of its own (render.warp.preload); a broken install fails when the renderer
+    loads."""
+    import importlib.util
+
+    return cuda_gpu() and importlib.util.find_spec("warp") is not None
 
 
 def resolve_renderer(name: str, backend: str = "native") -> str:

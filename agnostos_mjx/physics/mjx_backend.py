@@ -14,11 +14,9 @@ which wants a multi-GPU test first.
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import gc
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import jax
@@ -27,6 +25,7 @@ import mujoco
 import numpy as np
 
 from agnostos_mjx.infra import sharding
+from agnostos_mjx.infra.gc_pause import gc_paused
 from agnostos_mjx.physics.base import (
     STATE_FIELDS,
     PhysicsState,
@@ -246,23 +245,3 @@ def direct_warp_physics(model: mujoco.MjModel, batch: int, naconmax: int, njmax:
                          step=lambda _, d, u: chunk(d, u[None])[0],
                          poses=lambda _, d: chunk.poses(d), save=lambda state, d: d.saved(state),
                          steps=lambda _, d, ctrl: chunk(d, ctrl))
-
-
-@contextlib.contextmanager
-def gc_paused() -> Iterator[None]:
-    """Keep Python's cyclic garbage collector off while Warp captures CUDA graphs.
-
-    Warp runs the MJX step as Python code inside an XLA FFI callback and captures it
-    into a CUDA graph.  A collection there may free an old XLA executable (e.g. the
-    previous task's runner); XLA then unloads its CUDA module, which is illegal while a
-    stream captures, and the capture fails ("Warp CUDA error 901 ... during capture").
-    The caller waits for the result inside this block, so the callback has finished before
-    collection resumes.
-    """
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()

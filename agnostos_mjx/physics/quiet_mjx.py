@@ -4,7 +4,9 @@ Without warp-lang (every CPU install; it is the ``gpu`` extra) mujoco-mjx's impo
 ``Failed to import warp: No module named 'warp'`` and the same for ``mujoco_warp`` to
 stdout.  The CPU path never uses Warp, and the Warp backend checks for it itself, so those
 two lines only alarm; any other output of the import (e.g. warp installed but failing to
-load) still gets through.
+load) still gets through.  The import runs with the garbage collector paused: where warp-lang
+is installed it builds mujoco_warp's thousands of kernel objects, and collections (each also
+running JAX's callback) doubled its time (infra.gc_pause).
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 import contextlib
 import io
 import sys
+
+from agnostos_mjx.infra.gc_pause import gc_paused
 
 _NOT_INSTALLED = ("Failed to import warp: No module named 'warp'",
                   "Failed to import mujoco_warp: No module named 'warp'")
@@ -23,7 +27,7 @@ def _import_quietly():
 
         return mjx
     printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
+    with contextlib.redirect_stdout(printed), gc_paused():
         from mujoco import mjx
     sys.stdout.write("".join(line for line in printed.getvalue().splitlines(keepends=True)
                              if line.rstrip("\n") not in _NOT_INSTALLED))

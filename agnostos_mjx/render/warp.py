@@ -14,16 +14,15 @@ from typing import Any, Self
 import mujoco
 import numpy as np
 
+from agnostos_mjx.infra.gc_pause import gc_paused
 from agnostos_mjx.render.common import CameraImages, camera_names, clip_planes, unknown_camera
 
 
 def captured(program: Any, *args: Any) -> Any:
     """`program(*args)` run to its end with Python's garbage collector paused: Warp captures
     its kernels into a CUDA graph, and a collection meanwhile may free an old XLA program,
-    whose unloading fails the capture (physics.mjx_backend.gc_paused)."""
+    whose unloading fails the capture (infra.gc_pause)."""
     import jax
-
-    from agnostos_mjx.physics.mjx_backend import gc_paused
 
     with gc_paused():
         return jax.block_until_ready(program(*args))

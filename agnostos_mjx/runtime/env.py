@@ -348,7 +348,7 @@ class Episodes:
     def _run_program(self, program: Callable, dev: EnvState, acts: KeyActions, plan: tuple,
                      n: int) -> EnvState:
         """`program(dev, acts, plan)` to its end; the host's view of its first `n` worlds."""
-        from agnostos_mjx.physics.mjx_backend import gc_paused
+        from agnostos_mjx.infra.gc_pause import gc_paused
 
         with gc_paused() if self.capabilities.captures_graphs else contextlib.nullcontext():
             new = jax.block_until_ready(program(dev, acts, plan))
