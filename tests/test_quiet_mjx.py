@@ -8,6 +8,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 # What a CPU evaluation imports (runtime -> the MJX backend), then a tiny MJX model built.
 TINY_RUN = textwrap.dedent("""
     import mujoco
@@ -29,3 +31,21 @@ def test_mjx_import_prints_no_warp_complaint() -> None:
     assert run.returncode == 0, run.stderr[-2000:]
     assert "Failed to import" not in run.stdout + run.stderr
     assert run.stdout == "nq 7\n"  # the program's own output still gets through
+
+
+def test_with_warp_installed_stdout_is_left_alone() -> None:
+    """With warp-lang there is no complaint to drop, and the import (often on the Warp
+    loading thread) must not capture the process's stdout, which other threads print to."""
+    pytest.importorskip("warp")
+    code = textwrap.dedent("""
+        import contextlib
+        def capture(*args):
+            raise AssertionError("stdout captured")
+        contextlib.redirect_stdout = capture
+        from agnostos_mjx.physics.quiet_mjx import mjx
+        print("imported")
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.endswith("imported\n")

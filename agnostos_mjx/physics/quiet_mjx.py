@@ -12,6 +12,7 @@ running JAX's callback) doubled its time (infra.gc_pause).
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import sys
 
@@ -25,6 +26,10 @@ def _import_quietly():
     if "mujoco.mjx" in sys.modules:  # imported before: it prints nothing more
         from mujoco import mjx
 
+        return mjx
+    if importlib.util.find_spec("warp") is not None:  # nothing to hide; and stdout is the
+        with gc_paused():  # whole process's, so a capture would hold other threads' lines
+            from mujoco import mjx
         return mjx
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed), gc_paused():
