@@ -9,8 +9,8 @@ Two reasons to pause it:
   capture").  The caller waits for the result inside the block, so the callback has
   finished before collection resumes.
 * **Importing MJX-Warp.** mujoco_warp builds thousands of Warp kernel objects at import;
-  with JAX loaded, every collection also runs JAX's collection callback, which doubled the
-  import's time.
+  with JAX loaded, every collection also runs JAX's collection callback, which made the
+  import up to twice as slow.
 
 The collector is one switch for the whole process, so a pause is counted: it resumes when
 the last block (of any thread) ends, and only if it was on when the first one began.

@@ -6,7 +6,7 @@ stdout.  The CPU path never uses Warp, and the Warp backend checks for it itself
 two lines only alarm; any other output of the import (e.g. warp installed but failing to
 load) still gets through.  The import runs with the garbage collector paused: where warp-lang
 is installed it builds mujoco_warp's thousands of kernel objects, and collections (each also
-running JAX's callback) doubled its time (infra.gc_pause).
+running JAX's callback) made it up to twice as slow (infra.gc_pause).
 """
 
 from __future__ import annotations
