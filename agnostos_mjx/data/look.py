@@ -4,7 +4,7 @@ The export records them under the key ``"agnostos"`` of a LeRobot dataset's
 ``meta/info.json`` and of an RLBench export's ``manifest.json`` (its root, beside the task
 folders; RLBench's readers never open it)::
 
-    "agnostos": {"renderer": "cpu", "scene_version": "3f2a9c1b0d4e", "package_version": "0.1.0"}
+    "agnostos": {"renderer": "cpu", "scene_version": "1bdc9034a3a9", "package_version": "0.1.0"}
 
 A policy trained on images of one renderer and evaluated on another's sees slightly
 different pixels (docs/finetune.md gives the figures); :func:`check_look` says so in one
