@@ -306,8 +306,11 @@ def test_interrupt_stops_the_daemons(sig: int, machine, tmp_path: Path) -> None:
     child.write_text(CHILD)
     out = tmp_path / "run"
     script = textwrap.dedent(f"""
-        import sys
+        import signal, sys
         from pathlib import Path
+        # Ctrl-C raises here even when the tests run in a background shell's job, which
+        # passes SIGINT on as ignored
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from agnostos_mjx.infra import mps
         from agnostos_mjx.evaluation import processes
         mps.PROBE = "pass"
