@@ -1,10 +1,11 @@
 """The measuring tools the performance reports cite (tools/task_cost.py, thread_cpu.py,
-rollout_threads.py) give what their docstrings say."""
+rollout_threads.py, sample_threads.py) give what their docstrings say."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -106,3 +107,31 @@ def test_rollout_threads_reports_each_configuration() -> None:
 def test_task_cost_times_the_physics_step_under_the_expert() -> None:
     us = _tool("task_cost").step_us("lamp_on", 2)
     assert 1.0 < us < 1000.0  # one world's step on one thread, in microseconds
+
+
+def test_sample_threads_sees_every_process_and_thread(tmp_path: Path) -> None:
+    """A parent that starts a child Python, whose named thread sleeps in `napping` and which
+    ends by os._exit: both processes' samples are written, the thread and its function are
+    in the summary, and an image's own sitecustomize still loads."""
+    own = tmp_path / "own_site"
+    own.mkdir()
+    (own / "sitecustomize.py").write_text("import os\nos.environ['OWN_SITE'] = 'loaded'\n")
+    child = ("import os, threading, time\n"
+             "def napping():\n    time.sleep(0.6)\n"
+             "t = threading.Thread(target=napping, name='napper'); t.start(); t.join()\n"
+             "print(os.environ.get('OWN_SITE'), flush=True)\n"
+             "os._exit(0)\n")
+    parent = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {child!r}])"
+    out = tmp_path / "out"
+    env = {"PYTHONPATH": str(own)}
+    run = subprocess.run([sys.executable, str(TOOLS / "sample_threads.py"), str(out), "--min-s",
+                          "0.2", "--", sys.executable, "-c", parent],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, **env})
+    assert run.returncode == 0, run.stderr
+    assert len(list((out / "samples").glob("*.txt"))) == 2
+    assert run.stdout.startswith("loaded\n")  # the image's sitecustomize ran too
+    report = run.stdout
+    assert "thread napper:" in report
+    napping = [line for line in report.splitlines() if line.endswith(":napping")]
+    assert napping and float(napping[0].split()[0]) >= 0.4
