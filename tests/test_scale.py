@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -150,11 +151,17 @@ EVAL = ["--policy", "oracle", "--tasks", "lamp_on,lamp_off", "--seeds", "0", "--
         "--batch", "2", "--backend", "native", "--quiet"]
 
 
+def _default_sigint() -> None:
+    """In the child before Python starts: SIGINT's default action, so that Python installs
+    its Ctrl-C handler (a background shell job passes SIGINT on as ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _eval(*args: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.Popen([sys.executable, "-m", "agnostos_mjx.eval", *EVAL, *args], cwd=REPO,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+                            text=True, preexec_fn=_default_sigint)
 
 
 def _finish(proc: subprocess.Popen) -> None:
@@ -367,7 +374,6 @@ def test_local_processes_report_a_failure_once(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_local_processes_ctrl_c_stops_every_process(tmp_path: Path) -> None:
     """Ctrl-C of --local-processes reaches each process once and ends the run with 130."""
-    import signal
     import time
 
     out = tmp_path / "run"
