@@ -13,8 +13,8 @@ line, for the LeRobot plug-in and any other consumer.
 The scene version (:func:`scene_version`) is a digest of the shared world as compiled
 (scenes/world.xml with the Panda): the fields that decide how it looks (geoms' type, size,
 colour, material, placement; materials and textures; lights; cameras; the headlight; the
-depth clip planes; OpenGL's shadows and tessellation) and RLBench's colour list (colors.py) that task builders paint objects
-with.  It is the part every task's images share, so a dataset of the seen tasks and an
+depth clip planes; OpenGL's shadows and tessellation) and RLBench's colour list (colors.py)
+that task builders paint objects with.  It is the part every task's images share, so a dataset of the seen tasks and an
 evaluation of the unseen ones compare; a task's own objects are its builder's and are not
 in it.  Comments and formatting of the XML do not change it; the package version does not
 either (recorded beside it, for the reader)."""
@@ -42,7 +42,8 @@ MODEL_FIELDS = (
     "cam_pos", "cam_quat", "cam_fovy", "cam_mode",
 )
 VIS_FIELDS = {"headlight": ("active", "ambient", "diffuse", "specular"),
-              "map": ("znear", "zfar"), "quality": ("shadowsize", "numslices", "numstacks", "numquads")}
+              "map": ("znear", "zfar"),
+              "quality": ("shadowsize", "numslices", "numstacks", "numquads")}
 DIGITS = 12  # hex digits of the scene version
 
 
