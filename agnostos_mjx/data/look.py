@@ -14,10 +14,10 @@ The scene version (:func:`scene_version`) is a digest of the shared world as com
 (scenes/world.xml with the Panda): the fields that decide how it looks (geoms' type, size,
 colour, material, placement; materials and textures; lights; cameras; the headlight; the
 depth clip planes; OpenGL's shadows and tessellation) and RLBench's colour list (colors.py)
-that task builders paint objects with.  It is the part every task's images share, so a dataset of the seen tasks and an
-evaluation of the unseen ones compare; a task's own objects are its builder's and are not
-in it.  Comments and formatting of the XML do not change it; the package version does not
-either (recorded beside it, for the reader)."""
+that task builders paint objects with.  It is the part every task's images share, so a
+dataset of the seen tasks and an evaluation of the unseen ones compare; a task's own
+objects are its builder's and are not in it.  Comments and formatting of the XML do not
+change it; the package version does not either (recorded beside it, for the reader)."""
 
 from __future__ import annotations
 

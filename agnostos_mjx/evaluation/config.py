@@ -173,7 +173,8 @@ class PolicyConfig:
                 "instance (see agnostos_mjx/policies/base.py)", name="policy")
     args: dict[str, Any] = option(
         {}, "an option of the policy (VALUE parsed as JSON if it can be); repeatable; "
-            "--policy-arg help lists a policy's options and exits", name="policy_args", flag="--policy-arg", type=policy_arg,
+            "--policy-arg help lists a policy's options and exits", name="policy_args",
+        flag="--policy-arg", type=policy_arg,
         metavar="KEY=VALUE")
     url: str | None = option(
         None, "the policy server of --policy remote or openvla: ws://... speaks openpi's "

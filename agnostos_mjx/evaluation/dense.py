@@ -3,9 +3,10 @@ per world per control step for `Episodes.step_dense`.
 
 A dense policy's `act` returns one row per world (KeyActions of pos (B, 3), quat (B, 4),
 gripper (B,), valid (B,)) or an action chunk (pos (B, H, 3), quat (B, H, 4), gripper
-(B, H), valid (B, H)); its end_reason (B,), if any, goes with each of the chunk's rows.  The first ``--execute K`` rows of a chunk (default: all of them)
-run open loop, one per control step, then the policy is asked again (the way LeRobot's
-ACT / diffusion policies and openpi's clients execute chunks).  A policy that declares
+(B, H), valid (B, H)); its end_reason (B,), if any, goes with each of the chunk's rows.
+The first ``--execute K`` rows of a chunk (default: all of them) run open loop, one per
+control step, then the policy is asked again (the way LeRobot's ACT / diffusion policies and
+openpi's clients execute chunks).  A policy that declares
 ``relative = True`` gives deltas: the target is the tip pose measured when the row starts
 plus the row's position, the row's rotation composed on the left (math3d.apply_delta), so
 the rows of a chunk chain through the poses actually reached.

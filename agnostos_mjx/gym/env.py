@@ -50,9 +50,10 @@ sequence: g + num_envs.
 ``renderer``: where the images render (auto: MJX-Warp's ray tracer wherever a GPU with
 warp-lang is, else MuJoCo's OpenGL on the CPU; cpu; warp), as the evaluator's
 ``--renderer``.  The export renders as the evaluator does on its machine (its
-``--renderer``); its datasets record the renderer and the scene version (data/look.py).  An env given its policy's ``training_data`` (the dataset's
-meta/info.json as a dict; the plug-in passes it) logs one warning line, once per process,
-at its first reset when it renders otherwise (:func:`look_warning`; ``renderer="cpu"``
+``--renderer``); its datasets record the renderer and the scene version (data/look.py).
+An env given its policy's ``training_data`` (the dataset's meta/info.json as a dict; the
+plug-in passes it) logs one warning line, once per process, at its first reset when it
+renders otherwise (:func:`look_warning`; ``renderer="cpu"``
 renders as the export did).  Not before: resolving ``auto`` starts JAX, whose GPU memory
 pool would then be taken before LeRobot loads its policy.
 

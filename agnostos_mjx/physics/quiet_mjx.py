@@ -27,12 +27,12 @@ def _import_quietly():
         from mujoco import mjx
 
         return mjx
-    if importlib.util.find_spec("warp") is not None:  # nothing to hide; and stdout is the
-        with gc_paused():  # whole process's, so a capture would hold other threads' lines
-            from mujoco import mjx
-        return mjx
+    # Only without warp-lang is there a complaint to drop; with it, stdout (the whole
+    # process's, so a capture would hold other threads' lines) is left alone.
+    complains = importlib.util.find_spec("warp") is None
     printed = io.StringIO()
-    with contextlib.redirect_stdout(printed), gc_paused():
+    with contextlib.redirect_stdout(printed) if complains else contextlib.nullcontext(), \
+            gc_paused():
         from mujoco import mjx
     sys.stdout.write("".join(line for line in printed.getvalue().splitlines(keepends=True)
                              if line.rstrip("\n") not in _NOT_INSTALLED))

@@ -331,7 +331,7 @@ def make_policy(spec: str, **kwargs: Any) -> Policy:
     name is named after `spec`."""
     target = _REGISTRY.get(spec, spec)
     if isinstance(target, Builtin):
-        options = parse_options(load_object(target.options), kwargs, spec)
+        options = parse_options(options_type(spec), kwargs, spec)
         target, kwargs = load_object(target.policy), {"options": options}
     if isinstance(target, str):
         if ":" not in target:

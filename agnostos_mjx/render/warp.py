@@ -221,8 +221,8 @@ class WarpRenderer:
 
         self._buffers_fn = _buffers
         self._views_fn = _views
-        make = lambda _: mjx.make_data(self._model, impl="warp", naconmax=64 * self.nworld,  # noqa: E731
-                                       njmax=256)
+        make = lambda _: mjx.make_data(  # noqa: E731
+            self._model, impl="warp", naconmax=64 * self.nworld, njmax=256)
         self._template = jax.jit(jax.vmap(make))(jnp.arange(self.nworld))  # state replaced
         self._programs: dict[str, Any] = {}
         self._camlight = FixedCamLight(model) if FixedCamLight.supports(model) else None
