@@ -95,18 +95,12 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     if cfg.run.local_processes is None:
         argv = default_processes(cfg, argv)
     # What every process of a run would compile alike, once per machine and before them.
-    default_selection = (cfg.policy.spec in ("auto", "retrieval", "xicm")
-                         and cfg.xicm.selection == "auto")
-    protocol = cfg.protocol
-    if warmup.builds_kernels(protocol.backend) and cfg.run.num_processes == 1:
+    if warmup.builds_kernels(cfg.protocol.backend) and cfg.run.num_processes == 1:
         setup_logging(cfg.run.quiet)
-        warmup.ensure_warp_kernels(protocol.tasks, protocol.batch, protocol.planner,
-                                   selection=default_selection,
-                                   one_gpu=cfg.run.local_processes > 1)
+        warmup.ensure_warp_kernels(cfg)
     elif cfg.run.local_processes > 1:
         setup_logging(cfg.run.quiet)
-        warmup.ensure_shared_programs(protocol.tasks, protocol.batch, protocol.planner,
-                                      selection=default_selection)
+        warmup.ensure_shared_programs(cfg)
     if cfg.run.local_processes > 1:
         setup_logging(cfg.run.quiet)
         if guard is not None and cfg.run.out:  # the resume hint even if stopping takes long

@@ -10,9 +10,9 @@ persistent cache (agnostos_mjx.infra.settings.configure_jax), so this command do
 once, two things at the same time:
 - on warp, every kernel module of the tasks' scenes, found by a dry run and built by
   `--kernel-jobs` processes, each its share (physics/warp_build.py);
-- the default policies' demo selection once (X-ICM's lang+vis.out dynamics features, which
-  the retrieval baseline uses too): its networks are one set of programs per machine, and
-  without this every process of the first run compiled them at once;
+- the run's policy's programs that are the same at every task (`Policy.warm_up`: the
+  default policies' demo selection, the reference VLA's network), once: without this
+  every process of the first run compiled them at once;
 - the device planner's programs (a key action's plan, the reset's reachability checks),
   which every task shares: the robot is the same in every scene.
 Then, with `--task-runs` (the default off warp), tasks run once in parallel processes
@@ -36,8 +36,9 @@ import time
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
-from agnostos_mjx.evaluation.config import positive_int
+from agnostos_mjx.evaluation.config import EvalConfig, policy_arg, positive_int, resolve_policy
 from agnostos_mjx.infra.cli import HelpFormatter, prog
 from agnostos_mjx.infra.settings import (
     cache_root,
@@ -46,26 +47,34 @@ from agnostos_mjx.infra.settings import (
     usable_cores,
 )
 from agnostos_mjx.physics import CAPABILITIES
+from agnostos_mjx.policies.base import shares_programs
 
 log = logging.getLogger("agnostos_mjx.warmup")
 
 
-SELECTION_WORKER = "(selection)"  # --worker name of the selection step
+POLICY_WORKER = "(policy)"  # --worker name of the policy's step
 PLANNER_WORKER = "(planner)"  # --worker name of the planner step
 
 
-def warm_selection() -> None:
-    """The default policies' demo selection (`--selection auto` with the shipped memory, as
-    the retrieval baseline and X-ICM run it): one query with a blank front frame.  Its
-    networks run at one batch shape whatever the task, batch or frame
-    (dynamics/batching.py), so this compiles all of them, with no scene or physics."""
-    import numpy as np
+def warm_policy(spec: str, args: Mapping[str, Any], batch: int) -> dict:
+    """The policy's programs that are the same at every task (`Policy.warm_up`), its
+    options resolved as a run's processes resolve them (``auto``: the default policy);
+    no scene, no physics."""
+    from agnostos_mjx.policies.base import warm_up_policy
 
-    from agnostos_mjx.policies.retrieval import RetrievalPolicy
-    from agnostos_mjx.xicm.query import Query
+    spec, kwargs, _ = resolve_policy(EvalConfig.of(policy=spec, policy_args=dict(args)))
+    return {"policy": spec, "compiled": warm_up_policy(spec, batch, **kwargs)}
 
-    frame = np.zeros((128, 128, 3), np.uint8)  # the size policies.xicm.queries_for renders
-    RetrievalPolicy().selector.select([Query("press the button", 0, frame)], 1)
+
+def policy_flags(cfg: EvalConfig) -> list[str]:
+    """This command's --policy flags for the run `cfg`: its policy with every option as
+    the run's processes resolve them (JSON values, as --policy-arg reads them), or
+    ``--policy none`` for a policy with no programs shared by its tasks."""
+    spec, kwargs, _ = resolve_policy(cfg)
+    if not shares_programs(spec):
+        return ["--policy", "none"]
+    pairs = [f"{key}={json.dumps(value)}" for key, value in sorted(kwargs.items())]
+    return ["--policy", spec, *(flag for pair in pairs for flag in ("--policy-arg", pair))]
 
 
 def warm_planner(batch: int, planner: str = "auto") -> dict:
@@ -156,10 +165,12 @@ def one_per_size(names: list[str]) -> list[str]:
 
 def _worker(name: str, args: argparse.Namespace) -> dict:
     """warm_task (or with name "kernels:I/N", part I of N of build_kernels of args.tasks;
-    SELECTION_WORKER, warm_selection; PLANNER_WORKER, warm_planner) in its own process
+    POLICY_WORKER, warm_policy; PLANNER_WORKER, warm_planner) in its own process
     (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
-           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner]
+           "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner,
+           "--policy", args.policy,
+           *(f"--policy-arg={k}={json.dumps(v)}" for k, v in args.policy_args or [])]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
     if not any(v in env for v in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION")):
@@ -205,9 +216,9 @@ def device_planner_possible(planner: str) -> bool:
     return planner == "device" or (planner == "auto" and gpu_plugin_installed())
 
 
-def shared_marker(batch: int, selection: bool) -> Path:
+def shared_marker(batch: int, policy: list[str]) -> Path:
     """The file that says this machine compiled the programs every process of a run at
-    `batch` shares (the device planner's; with `selection`, the demo selection's networks)
+    `batch` shares (the device planner's, and those of the policy `policy_flags` gives)
     into JAX's persistent cache (keyed by the jax and agnostos-mjx versions and the cache's
     folder; a wiped cache only makes the processes compile again as they go)."""
     from agnostos_mjx.infra.settings import JAX_CACHE
@@ -215,27 +226,27 @@ def shared_marker(batch: int, selection: bool) -> Path:
     # "one GPU": the warm-up sees one GPU (one_gpu_env); a marker of a warm-up that saw
     # several names programs the processes do not find.
     key = json.dumps([_installed("jax"), _installed("agnostos-mjx"), JAX_CACHE.get(), batch,
-                      "planner", selection, "one GPU"])
+                      "planner", policy, "one GPU"])
     return cache_root() / "warm_shared" / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
 
 
-def ensure_shared_programs(tasks: str, batch: int, planner: str = "auto",
-                           selection: bool = True) -> int | None:
-    """Before a run of several processes (on a backend without Warp's kernel step, which
-    does this too): the programs every process would compile alike, compiled once in a
-    process of its own: the device planner's (warm_planner) and, with `selection` (the
-    default policies), the demo selection's networks (warm_selection), unless this machine
-    did it already (shared_marker).  Returns its exit code, None if skipped; on failure
-    the processes compile as they go."""
-    if not device_planner_possible(planner) and not selection:
+def ensure_shared_programs(cfg: EvalConfig) -> int | None:
+    """Before the run `cfg` of several processes (on a backend without Warp's kernel step,
+    which does this too): the programs every process would compile alike, compiled once in
+    a process of its own: the device planner's (warm_planner) and its policy's
+    (warm_policy), unless this machine did it already (shared_marker).  Returns its exit
+    code, None if skipped; on failure the processes compile as they go."""
+    tasks, batch, planner = cfg.protocol.tasks, cfg.protocol.batch, cfg.protocol.planner
+    policy = policy_flags(cfg)
+    if not device_planner_possible(planner) and policy[1] == "none":
         return None
-    marker = shared_marker(batch, selection)
+    marker = shared_marker(batch, policy)
     if marker.exists():
         return None
     log.info("compiling the programs every process shares once, before them "
              "(python -m agnostos_mjx.warmup does it ahead of time)")
     t0 = time.perf_counter()
-    code = _warmup_process(tasks, "native", batch, planner, selection=selection,
+    code = _warmup_process(tasks, "native", batch, planner, policy,
                            what="compiling the shared programs", env=one_gpu_env(os.environ))
     if code == 0:
         _write_marker(marker, {"wall_s": round(time.perf_counter() - t0, 2)})
@@ -254,15 +265,14 @@ def one_gpu_env(environ: Mapping[str, str]) -> dict[str, str]:
     return {**environ, "CUDA_VISIBLE_DEVICES": gpus[0]} if len(gpus) > 1 else dict(environ)
 
 
-def _warmup_process(tasks: str, backend: str, batch: int, planner: str, selection: bool,
+def _warmup_process(tasks: str, backend: str, batch: int, planner: str, policy: list[str],
                     what: str, env: Mapping[str, str] | None = None) -> int:
-    """This command's kernel, planner and selection step (no task runs) in a process of its
-    own (with `env`, default this one's); its exit code, a failure logged (the run then
-    does `what` as it goes)."""
+    """This command's kernel, planner and policy step (no task runs; `policy`: its
+    --policy flags) in a process of its own (with `env`, default this one's); its exit
+    code, a failure logged (the run then does `what` as it goes)."""
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", backend,
-           "--batch", str(batch), "--planner", planner, "--task-runs", "none",
-           *([] if selection else ["--no-selection"])]
+           "--batch", str(batch), "--planner", planner, "--task-runs", "none", *policy]
     code = subprocess.run(cmd, env=None if env is None else dict(env)).returncode
     if code:
         log.warning("%s ahead failed (exit %d); the run does it as it goes", what, code)
@@ -284,22 +294,22 @@ def builds_kernels(backend: str) -> bool:
     return backend in CAPABILITIES and CAPABILITIES[backend].kernels
 
 
-def ensure_warp_kernels(tasks: str, batch: int, planner: str = "auto", selection: bool = False,
-                        one_gpu: bool = False) -> int | None:
-    """Before a warp run: this command's kernel step (Warp's kernels of `tasks` in parallel
-    processes, and with `selection` the demo selection's networks meanwhile) in a process
-    of its own, unless this machine did it already (kernels_marker); with `one_gpu` (a run
-    of --local-processes) seeing one GPU as each process does (`one_gpu_env`).  Returns its
-    exit code, None if skipped.  A failed build is logged and the run goes on (it then
-    builds what it needs as it goes)."""
+def ensure_warp_kernels(cfg: EvalConfig) -> int | None:
+    """Before the warp run `cfg`: this command's kernel step (Warp's kernels of its tasks in
+    parallel processes, its policy's shared programs meanwhile) in a process of its own,
+    unless this machine did it already (kernels_marker); for a run of --local-processes
+    seeing one GPU as each process does (`one_gpu_env`).  Returns its exit code, None if
+    skipped.  A failed build is logged and the run goes on (it then builds what it needs as
+    it goes)."""
+    tasks, batch = cfg.protocol.tasks, cfg.protocol.batch
     if importlib.util.find_spec("warp") is None or kernels_marker(tasks, batch).exists():
         return None  # without warp-lang the run says what is missing
     log.info("warp: building Warp's kernels of the tasks' scenes in %d processes first, once "
              "per machine (python -m agnostos_mjx.warmup does it ahead of time)",
              default_kernel_jobs())
-    return _warmup_process(tasks, "warp", batch, planner, selection,
+    return _warmup_process(tasks, "warp", batch, cfg.protocol.planner, policy_flags(cfg),
                            what="warp: building the kernels",
-                           env=one_gpu_env(os.environ) if one_gpu else None)
+                           env=one_gpu_env(os.environ) if (cfg.run.local_processes or 1) > 1 else None)
 
 
 def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor | None = None
@@ -321,17 +331,16 @@ def build_kernels_in_parallel(args: argparse.Namespace, pool: ThreadPoolExecutor
     return result
 
 
-def kernels_and_shared_programs(args: argparse.Namespace, selection: bool) -> list[dict]:
+def kernels_and_shared_programs(args: argparse.Namespace) -> list[dict]:
     """At once, each in processes of its own: on warp every scene's Warp kernels (many
-    processes), the device planner's programs (warm_planner), and with `selection` the
-    default policies' demo selection (warm_selection: no scene, no physics).  The
-    results, logged."""
+    processes), the device planner's programs (warm_planner), and the --policy's shared
+    programs (warm_policy: no scene, no physics).  The results, logged."""
     results = []
     with ThreadPoolExecutor((args.kernel_jobs or default_kernel_jobs()) + 2) as pool:
         shared = ([pool.submit(_worker, PLANNER_WORKER, args)]
                   if device_planner_possible(args.planner) else [])
-        if selection:
-            shared.append(pool.submit(_worker, SELECTION_WORKER, args))
+        if args.policy != "none":
+            shared.append(pool.submit(_worker, POLICY_WORKER, args))
         if builds_kernels(args.backend):
             results.append(build_kernels_in_parallel(args, pool))
             log.info("warmup: %s", results[-1])
@@ -371,10 +380,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "scene size, or every task.  auto: none on warp (its kernels are "
                         "built directly, and a run compiles a task's own programs in seconds), "
                         "per-size otherwise")
-    p.add_argument("--no-selection", action="store_true",
-                   help="skip the default policies' demo selection (its networks; for runs "
-                        "of other policies, e.g. --policy oracle or reference-vla); the "
-                        "device planner's programs are compiled either way")
+    p.add_argument("--policy", default="auto",
+                   help="the run's policy, as eval's --policy, whose programs that are the "
+                        "same at every task are compiled (the default policies' demo "
+                        "selection, the reference VLA's network; auto: the default policy); "
+                        "none: no policy step.  The device planner's programs are compiled "
+                        "either way")
+    p.add_argument("--policy-arg", dest="policy_args", metavar="KEY=VALUE", type=policy_arg,
+                   action="append", help="an option of --policy, as eval's --policy-arg "
+                                         "(repeat for more)")
     p.add_argument("--worker", metavar="TASK", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
@@ -386,11 +400,11 @@ def main(argv: list[str] | None = None) -> int:
         part, parts = (int(x) for x in args.worker.removeprefix("kernels:").split("/"))
         print(json.dumps(build_kernels(_task_names(args.tasks), args.batch, part, parts)))
         return 0
-    if args.worker == SELECTION_WORKER:
+    if args.worker == POLICY_WORKER:
         t0 = time.perf_counter()
-        warm_selection()
-        print(json.dumps({"task": SELECTION_WORKER,
-                          "selection_s": round(time.perf_counter() - t0, 2)}))
+        done = warm_policy(args.policy, dict(args.policy_args or []), args.batch)
+        print(json.dumps({"task": POLICY_WORKER, **done,
+                          "policy_s": round(time.perf_counter() - t0, 2)}))
         return 0
     if args.worker == PLANNER_WORKER:
         t0 = time.perf_counter()
@@ -404,14 +418,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     runs = args.task_runs if args.task_runs != "auto" else (
         "none" if builds_kernels(args.backend) else "per-size")
-    try:  # the planner and the selection are the same for every task: no names needed
+    try:  # the planner and the policy's step are the same for every task: no names needed
         names = _task_names(args.tasks) if runs != "none" or builds_kernels(args.backend) else []
     except (KeyError, ValueError) as err:
         print(f"warmup: {err.args[0] if err.args else err}", file=sys.stderr)
         return 2
     todo = {"none": [], "per-size": one_per_size(names), "every": names}[runs]
     t0 = time.perf_counter()
-    results = kernels_and_shared_programs(args, selection=not args.no_selection)
+    results = kernels_and_shared_programs(args)
     with ThreadPoolExecutor(args.jobs) as pool:
         for result in pool.map(lambda n: _worker(n, args), todo):
             log.info("warmup: %s", result)

@@ -45,7 +45,7 @@ def test_heatmaps_decode_to_their_target():
 
 
 @pytest.mark.slow
-def test_quick_train_reload_evaluate(tmp_path, capsys):
+def test_quick_train_reload_evaluate(tmp_path, capsys, monkeypatch):
     """The smoke path: a tiny model trained for a few steps on 2 tasks (data generated on
     the fly), saved, reloaded as the policy (from the run and from its float16 export) and
     evaluated on 2 episodes; rerunning the training command resumes instead of starting
@@ -95,6 +95,16 @@ def test_quick_train_reload_evaluate(tmp_path, capsys):
     np.testing.assert_array_equal(chunked[1], whole[1])
     np.testing.assert_array_equal(chunked[2], whole[2])
 
+    # The warm-up (agnostos_mjx.warmup) runs the network on what `act` gives it: the same
+    # shapes and dtypes, so the program it leaves in JAX's cache is the run's.
+    from agnostos_mjx.policies.base import warm_up_policy
+    from agnostos_mjx.policies.reference_vla import ReferenceVLAPolicy
+
+    inputs = []
+    predict = ReferenceVLAPolicy._predict
+    monkeypatch.setattr(ReferenceVLAPolicy, "_predict", lambda self, *xs: (
+        inputs.append([(x.shape, x.dtype) for x in xs]), predict(self, *xs))[1])
+    assert warm_up_policy("reference-vla", 2, checkpoint=str(run))
     out = tmp_path / "eval"
     rc = eval_main(["--policy", "reference-vla", "--policy-arg", f"checkpoint={run}",
                     "--tasks", "turn_tap", "--episodes", "2", "--seeds", "0",
@@ -103,6 +113,7 @@ def test_quick_train_reload_evaluate(tmp_path, capsys):
     rows = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and {r["policy"] for r in rows} == {"reference-vla"}
     assert all(r["key_actions"] <= policies[0].max_steps for r in rows)
+    assert len(inputs) > 1 and all(step == inputs[0] for step in inputs[1:])
 
 
 def test_usage_errors(tmp_path, capsys):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from agnostos_mjx import warmup
+from agnostos_mjx.evaluation.config import EvalConfig
 
 
 def test_warm_task_runs_what_a_run_runs():
@@ -68,8 +69,8 @@ def test_the_planner_warm_up_leaves_what_a_first_reset_and_key_action_plan(tmp_p
 
 
 @pytest.mark.slow
-def test_warm_selection_compiles_what_the_default_policy_runs():
-    """After warm_selection (one blank query, no scene), the retrieval policy's (= X-ICM's)
+def test_the_policy_step_compiles_what_the_default_policy_runs():
+    """After the default policy's warm-up (one blank query, no scene), its (= X-ICM's)
     first plan of a task's batch compiles nothing: the networks every process of a first
     run would otherwise compile at once are the ones the warm-up left in the cache."""
     import jax
@@ -81,12 +82,12 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
     from agnostos_mjx.tasks import get_task
     from tests.test_compile_once import count_compiles
 
-    jax.clear_caches()  # so that only warm_selection can have compiled them in this process
+    jax.clear_caches()  # so that only the warm-up can have compiled them in this process
     task = get_task("lamp_on")
     episodes = Episodes(task, "native")
     env = episodes.reset(jax.random.split(jax.random.PRNGKey(0), 2), np.zeros(2, np.int32))
     with count_compiles() as warmed:
-        warmup.warm_selection()
+        assert warmup.warm_policy("auto", {}, 2) == {"policy": "retrieval", "compiled": True}
     assert warmed  # the networks were compiled (or fetched from the disk cache) here
     policy = RetrievalPolicy()
     view = Round.for_policy(policy, episodes, env, [task.descriptions(0)[0]] * 2)
@@ -98,7 +99,7 @@ def test_warm_selection_compiles_what_the_default_policy_runs():
 
 
 def test_task_runs_choice(caplog, monkeypatch):
-    """--task-runs none with --no-selection warms the device planner's programs alone
+    """--task-runs none with --policy none warms the device planner's programs alone
     (nothing with the host planner, and says so); a bad choice is a usage error, not a
     trace."""
     import logging
@@ -107,13 +108,13 @@ def test_task_runs_choice(caplog, monkeypatch):
 
     with caplog.at_level(logging.INFO, logger="agnostos_mjx.warmup"):
         assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
-                            "--no-selection", "--planner", "host"]) == 0
+                            "--policy", "none", "--planner", "host"]) == 0
     assert "0 of 0 steps done" in caplog.text
     # (the planner step's compile is tested by the slow test above; here, that it runs)
     monkeypatch.setattr(warmup, "_worker", lambda name, args: {"task": name, "programs": 5})
     with caplog.at_level(logging.INFO, logger="agnostos_mjx.warmup"):
         assert warmup.main(["--tasks", "lamp_on", "--backend", "native", "--task-runs", "none",
-                            "--no-selection", "--planner", "device"]) == 0
+                            "--policy", "none", "--planner", "device"]) == 0
     assert "1 of 1 steps done" in caplog.text and "(planner)" in caplog.text
     with pytest.raises(SystemExit) as exit_:
         warmup.parse_args(["--task-runs", "sometimes"])
@@ -135,11 +136,12 @@ def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
     commands = []
     monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: (
         commands.append(cmd), types.SimpleNamespace(returncode=0))[1])
-    assert warmup.ensure_warp_kernels("lamp_on,lamp_off", 75, selection=False) == 0
+    run = EvalConfig.of(tasks="lamp_on,lamp_off", policy="oracle")
+    assert warmup.ensure_warp_kernels(run) == 0
     assert commands[-1][1:3] == ["-m", "agnostos_mjx.warmup"]
-    assert "--no-selection" in commands[-1] and "none" in commands[-1]
-    warmup.ensure_warp_kernels("lamp_on,lamp_off", 75, selection=True)
-    assert "--no-selection" not in commands[-1]
+    assert commands[-1][-2:] == ["--policy", "none"]  # the oracle compiles nothing of its own
+    warmup.ensure_warp_kernels(run.with_options(policy="auto"))
+    assert commands[-1][commands[-1].index("--policy") + 1] == "retrieval"
 
     # the kernel step (its parts faked) writes the marker; then the run skips it
     monkeypatch.setattr(warmup, "_worker", lambda name, *a, **k: {
@@ -149,7 +151,7 @@ def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
     assert warmup.build_kernels_in_parallel(args)["modules"] == 7
     assert warmup.kernels_marker("lamp_on,lamp_off", 75).exists()
     n = len(commands)
-    assert warmup.ensure_warp_kernels("lamp_on,lamp_off", 75) is None and len(commands) == n
+    assert warmup.ensure_warp_kernels(run) is None and len(commands) == n
     assert not warmup.kernels_marker("lamp_on,lamp_off", 16).exists()  # per batch
     monkeypatch.setattr(warmup, "_worker", lambda *a, **k: {"task": "kernels:0/2",
                                                             "error": "exit 1", "stderr_tail": ""})
@@ -160,7 +162,7 @@ def test_ensure_warp_kernels_builds_once_per_machine(tmp_path, monkeypatch):
 
 def test_a_run_of_several_processes_compiles_the_shared_programs_once(tmp_path, monkeypatch):
     """eval --local-processes N first compiles the programs every process shares (the
-    device planner's; the selection's networks with the default selection) in one warm-up
+    device planner's; the policy's, here the default selection's networks) in one warm-up
     process (native physics, no task runs), once per machine: a success writes the marker
     and the next run skips it; a failure writes none."""
     import subprocess
@@ -174,23 +176,50 @@ def test_a_run_of_several_processes_compiles_the_shared_programs_once(tmp_path, 
         commands.append(cmd), types.SimpleNamespace(returncode=codes.pop(0)))[1])
     monkeypatch.setattr(ev.processes, "main", lambda cfg: 0)  # not the processes
     args = ["--tasks", "lamp_on,lamp_off", "--local-processes", "2", "--out", str(tmp_path / "r")]
-    assert ev.main(args) == 0 and not warmup.shared_marker(75, True).exists()  # failed
-    assert ev.main(args) == 0 and warmup.shared_marker(75, True).exists()
+    markers = lambda: sorted((tmp_path / "warm_shared").glob("*.json"))  # noqa: E731
+    assert ev.main(args) == 0 and not markers()  # failed
+    assert ev.main(args) == 0 and len(markers()) == 1
     assert commands[-1][1:3] == ["-m", "agnostos_mjx.warmup"]
     assert commands[-1][commands[-1].index("--backend") + 1] == "native"
-    assert "--no-selection" not in commands[-1] and "none" in commands[-1]
+    assert commands[-1][commands[-1].index("--policy") + 1] == "retrieval"
+    assert "--policy-arg" in commands[-1] and "none" in commands[-1]  # --task-runs none
     n = len(commands)
     assert ev.main(args) == 0 and len(commands) == n  # this machine did it
-    # Without the selection, the device planner's programs alone, once; the host planner
-    # (numpy, the CPU's auto) compiles nothing: no warm-up.
-    assert ev.main([*args, "--selection", "text", "--planner", "host"]) == 0
-    assert len(commands) == n
+    # Other options are another policy step (its own marker).
     codes.append(0)
-    assert ev.main([*args, "--selection", "text", "--planner", "device"]) == 0
-    assert len(commands) == n + 1 and "--no-selection" in commands[-1]
-    assert ev.main([*args, "--selection", "text", "--planner", "device"]) == 0
+    assert ev.main([*args, "--ddim-steps", "4"]) == 0 and len(commands) == n + 1
+    assert 'sample_steps=4' in commands[-1] and len(markers()) == 2
+    # A policy without shared programs: the device planner's programs alone, once; the
+    # host planner (numpy, the CPU's auto) compiles nothing: no warm-up.
+    assert ev.main([*args, "--policy", "oracle", "--planner", "host"]) == 0
     assert len(commands) == n + 1
-    assert not warmup.shared_marker(16, True).exists()  # per batch
+    codes.append(0)
+    assert ev.main([*args, "--policy", "oracle", "--planner", "device"]) == 0
+    assert len(commands) == n + 2 and commands[-1][-2:] == ["--policy", "none"]
+    assert ev.main([*args, "--policy", "oracle", "--planner", "device"]) == 0
+    assert len(commands) == n + 2
+    codes.append(0)
+    assert ev.main([*args, "--batch", "16"]) == 0 and len(commands) == n + 3  # per batch
+
+
+def test_policy_flags_give_the_warm_up_the_runs_own_options():
+    """The warm-up's policy step resolves the policy's options as the run's processes do
+    (the run's flags, e.g. --ddim-steps, included), and only built-in policies whose class
+    has a warm-up say they share programs."""
+    from agnostos_mjx.evaluation.config import resolve_policy
+    from agnostos_mjx.policies.base import _REGISTRY, Builtin, Policy, load_object, shares_programs
+
+    run = EvalConfig.of(tasks="lamp_on", ddim_steps=4, selection="lang+vis.out")
+    args = warmup.parse_args(["--tasks", "lamp_on", *warmup.policy_flags(run)])
+    again = EvalConfig.of(policy=args.policy, policy_args=dict(args.policy_args))
+    assert resolve_policy(again)[:2] == resolve_policy(run)[:2]
+    assert resolve_policy(run)[1]["sample_steps"] == 4
+    assert warmup.policy_flags(run.with_options(policy="timing")) == ["--policy", "none"]
+    for name, entry in _REGISTRY.items():
+        if isinstance(entry, Builtin):
+            cls = load_object(entry.policy)
+            overrides = cls.warm_up.__func__ is not Policy.warm_up.__func__
+            assert shares_programs(name) == overrides, name
 
 
 def test_the_shared_programs_compile_where_one_gpu_is_visible(tmp_path, monkeypatch):
@@ -207,7 +236,7 @@ def test_the_shared_programs_compile_where_one_gpu_is_visible(tmp_path, monkeypa
         envs.append(env), types.SimpleNamespace(returncode=0))[1])
     monkeypatch.setattr(mps, "visible_gpus", lambda environ: (["2", "3"], "test"))
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
-    warmup.ensure_shared_programs("lamp_on", 75, "device")
+    warmup.ensure_shared_programs(EvalConfig.of(tasks="lamp_on", planner="device"))
     assert envs[-1]["CUDA_VISIBLE_DEVICES"] == "2"
     monkeypatch.setattr(mps, "visible_gpus", lambda environ: (["3"], "test"))
     assert warmup.one_gpu_env({"CUDA_VISIBLE_DEVICES": "3", "A": "b"}) == {
@@ -228,7 +257,8 @@ def test_the_parent_of_a_warp_run_does_not_start_jax():
         "subprocess.run = lambda *a, **k: types.SimpleNamespace(returncode=0)\n"
         "from agnostos_mjx import eval as _\n"
         "from agnostos_mjx import warmup\n"
-        "assert warmup.ensure_warp_kernels('unseen', 75, selection=True) == 0\n"
+        "from agnostos_mjx.evaluation.config import EvalConfig\n"
+        "assert warmup.ensure_warp_kernels(EvalConfig.of(tasks='unseen')) == 0\n"
         "from jax._src import xla_bridge\n"
         "print('backends', sorted(xla_bridge._backends))\n")
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,

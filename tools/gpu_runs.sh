@@ -91,7 +91,7 @@ case "$1" in
     for n in ${KJOBS:-16 8}; do
       t0=$SECONDS
       WARP_CACHE_PATH=$R/kcache_p$n CUDA_VISIBLE_DEVICES=0 pin python3 -m agnostos_mjx.warmup \
-        --task-runs none --no-selection --tasks unseen --kernel-jobs $n 2>&1 | quiet | tail -1 | tee -a $OUT/kbuild.log
+        --task-runs none --policy none --tasks unseen --kernel-jobs $n 2>&1 | quiet | tail -1 | tee -a $OUT/kbuild.log
       echo "kernels of the unseen scenes, $n processes, wall $((SECONDS - t0)) s" | tee -a $OUT/walls.txt
     done ;;
   fresh)

@@ -217,6 +217,15 @@ class Policy:
         as results are written.  Default: none."""
         return {}
 
+    @classmethod
+    def warm_up(cls, options: Any, batch: int) -> bool:
+        """Compile, from the policy's options alone, the programs it runs alike at every
+        task, so that the processes of a run load them from JAX's persistent cache instead
+        of each compiling them at once (agnostos_mjx.warmup does it once per machine, for
+        built-in policies whose registry entry says `shared_programs`).  Returns whether
+        there was anything to compile; default: nothing."""
+        return False
+
     def fork(self) -> Policy:
         """A shallow copy for a task running beside others: shared heavy parts (an LLM
         client, a model), its own per-batch state, which reset() replaces."""
@@ -236,10 +245,12 @@ def no_actions(batch: int, reason: int = 0) -> KeyActions:
 class Builtin(NamedTuple):
     """A built-in policy: its class and its options type (policies/options.py), as
     "module:attr" so that a policy's dependencies (an LLM client, a model, JAX) load only
-    when it is used, and its options without them."""
+    when it is used, and its options without them; `shared_programs`: its class overrides
+    `Policy.warm_up` (said here so that a run's launcher knows without importing JAX)."""
 
     policy: str
     options: str
+    shared_programs: bool = False
 
 
 _REGISTRY: dict[str, Builtin | str | Callable[..., Policy]] = {
@@ -248,15 +259,17 @@ _REGISTRY: dict[str, Builtin | str | Callable[..., Policy]] = {
     "dense-replay": Builtin("agnostos_mjx.policies.dense_replay:DenseReplayPolicy",
                             "agnostos_mjx.policies.learned_options:DenseReplayOptions"),
     "xicm": Builtin("agnostos_mjx.policies.xicm:XICMPolicy",
-                    "agnostos_mjx.policies.learned_options:XicmOptions"),
+                    "agnostos_mjx.policies.learned_options:XicmOptions", shared_programs=True),
     "retrieval": Builtin("agnostos_mjx.policies.retrieval:RetrievalPolicy",
-                         "agnostos_mjx.policies.learned_options:RetrievalOptions"),
+                         "agnostos_mjx.policies.learned_options:RetrievalOptions",
+                         shared_programs=True),
     "remote": Builtin("agnostos_mjx.remote.client:RemotePolicy",
                       "agnostos_mjx.remote.options:RemoteOptions"),
     "openvla": Builtin("agnostos_mjx.remote.client:OpenVLAPolicy",
                        "agnostos_mjx.remote.options:OpenVLAOptions"),
     "reference-vla": Builtin("agnostos_mjx.policies.reference_vla:ReferenceVLAPolicy",
-                             "agnostos_mjx.policies.learned_options:ReferenceVLAOptions"),
+                             "agnostos_mjx.policies.learned_options:ReferenceVLAOptions",
+                             shared_programs=True),
     "timing": Builtin("agnostos_mjx.policies.timing:TimingPolicy",
                       "agnostos_mjx.policies.timing:TimingOptions"),
 }
@@ -303,6 +316,24 @@ def options_type(spec: str) -> type[PolicyOptions] | None:
     --policy-arg pairs as free keyword arguments."""
     entry = _REGISTRY.get(spec)
     return load_object(entry.options) if isinstance(entry, Builtin) else None
+
+
+def shares_programs(spec: str) -> bool:
+    """Whether `spec` is a built-in policy with programs to compile once per machine
+    (`Policy.warm_up`); found without importing the policy."""
+    entry = _REGISTRY.get(spec)
+    return isinstance(entry, Builtin) and entry.shared_programs
+
+
+def warm_up_policy(spec: str, batch: int, **kwargs: Any) -> bool:
+    """`Policy.warm_up` of the built-in policy `spec`, its options parsed from `kwargs` as
+    `make_policy` parses them; False for a policy without shared programs."""
+    if not shares_programs(spec):
+        return False
+    entry = _REGISTRY[spec]
+    assert isinstance(entry, Builtin)
+    options = parse_options(options_type(spec), kwargs, spec)
+    return bool(load_object(entry.policy).warm_up(options, batch))
 
 
 def policy_help(spec: str) -> str:

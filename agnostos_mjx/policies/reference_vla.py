@@ -67,10 +67,25 @@ class ReferenceVLAPolicy(Policy):
         self._forward, self._params = forward, params
         self.steps = np.zeros(0, np.int32)
 
-    def reset(self, view: Round) -> None:
+    @classmethod
+    def warm_up(cls, options: ReferenceVLAOptions, batch: int) -> bool:
+        """Its network's one program (`chunk` worlds, `_predict`) on a blank observation."""
+        policy = cls(options)
+        size, n = min(policy.chunk, batch), len(policy.cameras) * policy.observation_spec.height \
+            * policy.observation_spec.width
+        ids, mask = policy._tokenize(["press the button"] * size)
+        policy._predict(np.zeros((size, n, 3), np.float32), np.zeros((size, n, 3), np.uint8),
+                        np.zeros((size, 3), np.float32), ids, mask, np.ones(size, np.float32),
+                        np.zeros(size, np.int32))
+        return True
+
+    def _tokenize(self, instructions: list[str]) -> tuple[np.ndarray, np.ndarray]:
         from agnostos_mjx.dynamics.text import tokenize
 
-        self.ids, self.mask = tokenize(list(view.instructions), self.cfg.text_len)
+        return tokenize(instructions, self.cfg.text_len)
+
+    def reset(self, view: Round) -> None:
+        self.ids, self.mask = self._tokenize(list(view.instructions))
         self.steps = np.zeros(view.batch, np.int32)
 
     def act(self, view: Round) -> KeyActions:

@@ -16,7 +16,7 @@ import numpy as np
 from agnostos_mjx.policies.base import Round
 from agnostos_mjx.policies.learned_options import RetrievalOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
-from agnostos_mjx.policies.xicm import queries_for
+from agnostos_mjx.policies.xicm import queries_for, warm_selection
 from agnostos_mjx.sim.control import ACTION_BOUNDS
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.selection import make_selector, resolve_selection
@@ -48,6 +48,10 @@ class RetrievalPolicy(PlanningPolicy):
         self.selection = resolve_selection(o.selection, self.memory)
         self.selector = make_selector(self.selection, self.memory, sample_steps=o.sample_steps)
         self.name = f"retrieval[{self.selection}]"
+
+    @classmethod
+    def warm_up(cls, options: RetrievalOptions, batch: int) -> bool:
+        return warm_selection(options)
 
     def plan_steps(self, view: Round, worlds: np.ndarray):
         task, env = view.episodes.task, view.env

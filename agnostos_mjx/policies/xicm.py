@@ -25,7 +25,7 @@ from agnostos_mjx.llm.client import (
 )
 from agnostos_mjx.llm.server import context_advice
 from agnostos_mjx.policies.base import Round
-from agnostos_mjx.policies.learned_options import XicmOptions
+from agnostos_mjx.policies.learned_options import RetrievalOptions, XicmOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.runtime.observation import CAMERAS, ObservationSpec
 from agnostos_mjx.sim.textualise import decode_action
@@ -41,8 +41,25 @@ SEGMENTED_SPEC = ObservationSpec(cameras=CAMERAS, height=128, width=128,
                                  modalities=("point_cloud", "segmentation"))
 
 
+QUERY_FRAME = 128  # pixels: the front frame a selection query renders
+
+
 def needs_frames(selection: str) -> bool:
     return "vis" in selection
+
+
+def warm_selection(options: RetrievalOptions) -> bool:
+    """The demo selection's programs, compiled with one query of a blank front frame: its
+    networks run at one batch shape whatever the task, batch or frame
+    (dynamics/batching.py), so this is every program the selection will run.  Built from
+    the options alone: no LLM is asked (X-ICM shares retrieval's selection)."""
+    memory = DemoMemory.load(options.memory or default_memory_path())
+    selection = resolve_selection(options.selection, memory)
+    selector = make_selector(selection, memory, sample_steps=options.sample_steps)
+    frame = np.zeros((QUERY_FRAME, QUERY_FRAME, 3), np.uint8) if needs_frames(selection) \
+        else None
+    selector.select([Query("press the button", 0, frame)], 1)
+    return True
 
 
 def queries_for(policy: PlanningPolicy, view: Round, worlds: np.ndarray, selection: str
@@ -51,7 +68,8 @@ def queries_for(policy: PlanningPolicy, view: Round, worlds: np.ndarray, selecti
     per (episode, replan) and, for dynamics features, the current front frame."""
     frames = None
     if needs_frames(selection):  # only the worlds being replanned
-        frames = view.episodes.render(view.env, "front", 128, 128, worlds=worlds)
+        frames = view.episodes.render(view.env, "front", QUERY_FRAME, QUERY_FRAME,
+                                      worlds=worlds)
     return [Query(policy.instructions[w], policy.plan_seed(w),
                   None if frames is None else frames[i]) for i, w in enumerate(worlds)]
 
@@ -92,6 +110,10 @@ class XICMPolicy(PlanningPolicy):
         self.num_demos = o.num_demos
         self.name = f"xicm[{self.selection},k={o.num_demos}]"
         self.check_context()
+
+    @classmethod
+    def warm_up(cls, options: XicmOptions, batch: int) -> bool:
+        return warm_selection(options)
 
     def check_context(self) -> None:
         """Measure prompts of `num_demos` demos (of median length, and the longest) against
