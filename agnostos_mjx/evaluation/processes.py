@@ -213,6 +213,7 @@ def run(cfg: EvalConfig, poll_s: float = 5.0, command: Sequence[str] | None = No
         merged = None
         if all(_wrote_results(out, i) for i in range(n)):
             merged = _merge(out, n, t0)
+        daemons.stop()  # MPS quits as its clients end: the two teardowns overlap
         for p in procs:
             p.wait()
     except KeyboardInterrupt:
