@@ -35,6 +35,17 @@ def test_graph_jit_asks_for_cuda_graphs_only_where_the_backend_is_a_gpu(monkeypa
     assert options == [None, GPU_GRAPH_OPTIONS] and set(fn.programs) == {"cpu", "gpu"}
 
 
+def test_lower_compiles_the_program_a_call_runs():
+    """`lower` (the warm-up's ahead-of-time compile) lowers the very program a call runs:
+    one jitted function per backend, the same text."""
+    fn = graph_jit(_doubling, static_argnums=1)
+    lowered = fn.lower(jnp.ones(3), 4)
+    assert set(fn.programs) == {"cpu"}
+    np.testing.assert_array_equal(lowered.compile()(jnp.ones(3)), fn(jnp.ones(3), 4))
+    assert set(fn.programs) == {"cpu"}
+    assert lowered.as_text() == fn.programs["cpu"].lower(jnp.ones(3), 4).as_text()
+
+
 def test_the_planner_runs_its_loops_as_cuda_graphs():
     """Without graphs a GPU host's thread waiting for a plan spins on every iteration's
     predicate."""

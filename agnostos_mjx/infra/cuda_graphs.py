@@ -23,16 +23,21 @@ GPU_GRAPH_OPTIONS = {
 def graph_jit(fn: Callable, **jit_kwargs: Any) -> Callable:
     """`jax.jit(fn, **jit_kwargs)`, compiled with GPU_GRAPH_OPTIONS where JAX's default
     backend is a GPU. The backend is read at each call (wrapping starts no backend); the
-    wrapper's `programs` holds the jitted function per backend."""
+    wrapper's `programs` holds the jitted function per backend, its `lower` lowers for
+    the current one (ahead-of-time compiles: agnostos_mjx.warmup)."""
     programs: dict[str, Callable] = {}
 
-    @functools.wraps(fn)
-    def call(*args: Any, **kwargs: Any) -> Any:
+    def program() -> Callable:
         backend = jax.default_backend()
         if backend not in programs:
             options = GPU_GRAPH_OPTIONS if backend == "gpu" else None
             programs[backend] = jax.jit(fn, compiler_options=options, **jit_kwargs)
-        return programs[backend](*args, **kwargs)
+        return programs[backend]
+
+    @functools.wraps(fn)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return program()(*args, **kwargs)
 
     call.programs = programs  # type: ignore[attr-defined]
+    call.lower = lambda *args, **kwargs: program().lower(*args, **kwargs)  # type: ignore[attr-defined]
     return call
