@@ -95,12 +95,15 @@ def main(argv: Sequence[str] | None = None, guard: InterruptGuard | None = None)
     if cfg.run.local_processes is None:
         argv = default_processes(cfg, argv)
     # What every process of a run would compile alike, once per machine and before them.
+    code = None
     if warmup.builds_kernels(cfg.protocol.backend) and cfg.run.num_processes == 1:
         setup_logging(cfg.run.quiet)
-        warmup.ensure_warp_kernels(cfg)
+        code = warmup.ensure_warp_kernels(cfg)
     elif cfg.run.local_processes > 1:
         setup_logging(cfg.run.quiet)
-        warmup.ensure_shared_programs(cfg)
+        code = warmup.ensure_shared_programs(cfg)
+    if code == warmup.USAGE_ERROR:  # e.g. a policy that cannot load: said, in one line
+        return 2
     if cfg.run.local_processes > 1:
         setup_logging(cfg.run.quiet)
         if guard is not None and cfg.run.out:  # the resume hint even if stopping takes long

@@ -38,7 +38,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx.evaluation.config import EvalConfig, policy_arg, positive_int, resolve_policy
+from agnostos_mjx.evaluation.config import (
+    EvalConfig,
+    UsageError,
+    loading_policy,
+    policy_arg,
+    positive_int,
+    resolve_policy,
+)
 from agnostos_mjx.infra.cli import HelpFormatter, prog
 from agnostos_mjx.infra.settings import (
     cache_root,
@@ -53,17 +60,19 @@ log = logging.getLogger("agnostos_mjx.warmup")
 
 
 POLICY_WORKER = "(policy)"  # --worker name of the policy's step
+USAGE_ERROR = 2  # exit code of a step (and then of this command) given input it cannot use
 PLANNER_WORKER = "(planner)"  # --worker name of the planner step
 
 
 def warm_policy(spec: str, args: Mapping[str, Any], batch: int) -> dict:
     """The policy's programs that are the same at every task (`Policy.warm_up`), its
     options resolved as a run's processes resolve them (``auto``: the default policy);
-    no scene, no physics."""
+    no scene, no physics.  A policy that cannot load is a UsageError, as in a run."""
     from agnostos_mjx.policies.base import warm_up_policy
 
     spec, kwargs, _ = resolve_policy(EvalConfig.of(policy=spec, policy_args=dict(args)))
-    return {"policy": spec, "compiled": warm_up_policy(spec, batch, **kwargs)}
+    with loading_policy(spec):
+        return {"policy": spec, "compiled": warm_up_policy(spec, batch, **kwargs)}
 
 
 def policy_flags(cfg: EvalConfig) -> list[str]:
@@ -181,7 +190,8 @@ def _worker(name: str, args: argparse.Namespace) -> dict:
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
     if proc.returncode != 0 or not lines:
         tail = "\n".join(proc.stderr.splitlines()[-15:])
-        return {"task": name, "error": f"exit {proc.returncode}", "stderr_tail": tail}
+        return {"task": name, "error": f"exit {proc.returncode}", "stderr_tail": tail,
+                "code": proc.returncode}
     return json.loads(lines[-1])
 
 
@@ -276,6 +286,8 @@ def _warmup_process(tasks: str, backend: str, batch: int, planner: str, policy: 
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--tasks", tasks, "--backend", backend,
            "--batch", str(batch), "--planner", planner, "--task-runs", "none", *policy]
     code = subprocess.run(cmd, env=None if env is None else dict(env)).returncode
+    if code == USAGE_ERROR:  # it said why in one line; the run would fail the same way
+        return code
     if code:
         log.warning("%s ahead failed (exit %d); the run does it as it goes", what, code)
     else:
@@ -345,10 +357,10 @@ def kernels_and_shared_programs(args: argparse.Namespace) -> list[dict]:
             shared.append(pool.submit(_worker, POLICY_WORKER, args))
         if builds_kernels(args.backend):
             results.append(build_kernels_in_parallel(args, pool))
-            log.info("warmup: %s", results[-1])
-        for future in shared:
-            results.append(future.result())
-            log.info("warmup: %s", results[-1])
+        results.extend(future.result() for future in shared)
+    for result in results:  # the failed ones are reported at the end
+        if "error" not in result:
+            log.info("warmup: %s", result)
     return results
 
 
@@ -404,7 +416,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.worker == POLICY_WORKER:
         t0 = time.perf_counter()
-        done = warm_policy(args.policy, dict(args.policy_args or []), args.batch)
+        try:
+            done = warm_policy(args.policy, dict(args.policy_args or []), args.batch)
+        except UsageError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return USAGE_ERROR
         print(json.dumps({"task": POLICY_WORKER, **done,
                           "policy_s": round(time.perf_counter() - t0, 2)}))
         return 0
@@ -436,6 +452,10 @@ def main(argv: list[str] | None = None) -> int:
     log.info("warmup: %d of %d steps done in %.1f s%s", len(results) - len(failed),
              len(results), time.perf_counter() - t0,
              f"; failed: {', '.join(r['task'] for r in failed)}" if failed else "")
+    usage = [r for r in failed if r.get("code") == USAGE_ERROR]
+    if usage:  # input the run cannot use either (a policy that cannot load): its one line
+        print(usage[0]["stderr_tail"].splitlines()[-1], file=sys.stderr)
+        return USAGE_ERROR
     for r in failed:
         log.error("%s: %s\n%s", r["task"], r["error"], r["stderr_tail"])
     return 1 if failed else 0

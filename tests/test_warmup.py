@@ -265,3 +265,19 @@ def test_the_parent_of_a_warp_run_does_not_start_jax():
                          env={**__import__("os").environ, "AGNOSTOS_CACHE": "/nonexistent/x"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert "backends []" in out.stdout
+
+
+def test_a_policy_that_cannot_load_stops_the_run_in_one_line(tmp_path, monkeypatch, capfd):
+    """The warm-up's policy step builds the run's policy first: one that cannot load (here
+    no checkpoint) ends the run before its processes start, with the processes' one line."""
+    from agnostos_mjx import eval as ev
+
+    monkeypatch.setenv("AGNOSTOS_CACHE", str(tmp_path))
+    started = []
+    monkeypatch.setattr(ev.processes, "main", lambda cfg: started.append(cfg) or 0)
+    assert ev.main(["--policy", "reference-vla", "--tasks", "lamp_on", "--local-processes", "2",
+                    "--planner", "host", "--out", str(tmp_path / "r")]) == 2
+    err = capfd.readouterr().err  # the warm-up process's own stderr
+    assert started == [] and "Traceback" not in err
+    assert "error: cannot load policy 'reference-vla': reference-vla needs its run " in err
+    assert not list((tmp_path / "warm_shared").glob("*.json"))

@@ -15,8 +15,10 @@ back into an EvalConfig.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
+from collections.abc import Iterator
 from dataclasses import MISSING, Field, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -441,6 +443,22 @@ def policy_spec(cfg: EvalConfig) -> tuple[str, str]:
         return "xicm", "an LLM is configured: running X-ICM"
     return "retrieval", ("no LLM configured (set --llm-url/--llm-model or AGNOSTOS_LLM_URL/"
                          "AGNOSTOS_LLM_MODEL for X-ICM): running the retrieval baseline")
+
+
+@contextlib.contextmanager
+def loading_policy(spec: str) -> Iterator[None]:
+    """Errors of building the policy `spec` (its file, its model, its LLM) as a UsageError,
+    one line: the run's processes and the warm-up's policy step report them alike."""
+    from agnostos_mjx.llm.client import LLMConfigError
+    from agnostos_mjx.xicm.memory import MemoryFileError
+
+    try:
+        yield
+    except (LLMConfigError, MemoryFileError) as e:
+        raise UsageError(str(e)) from None
+    except (KeyError, ImportError, ValueError, TypeError) as e:
+        raise UsageError(f"cannot load policy {spec!r}: "
+                         f"{e.args[0] if isinstance(e, KeyError) else e}") from None
 
 
 def resolve_policy(cfg: EvalConfig) -> tuple[str, dict[str, Any], str]:

@@ -18,7 +18,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from agnostos_mjx.evaluation.config import EvalConfig, UsageError, resolve_policy
+from agnostos_mjx.evaluation.config import EvalConfig, UsageError, loading_policy, resolve_policy
 from agnostos_mjx.evaluation.dense import check_action_mode
 from agnostos_mjx.evaluation.protocol import pending_episodes, process_share, select_tasks
 from agnostos_mjx.evaluation.records import (
@@ -107,20 +107,13 @@ def _check_compare(cfg: EvalConfig) -> None:
 
 def load_policy(cfg: EvalConfig) -> tuple[str, str, Policy]:
     """(spec, note, the policy) of `cfg`; a policy that cannot load is a UsageError."""
-    from agnostos_mjx.llm.client import LLMConfigError
     from agnostos_mjx.policies import make_policy
-    from agnostos_mjx.xicm.memory import MemoryFileError
 
     spec, kwargs, note = resolve_policy(cfg)
     if note:
         log.info("%s", note)
-    try:
+    with loading_policy(spec):
         policy = make_policy(spec, **kwargs)
-    except (LLMConfigError, MemoryFileError) as e:
-        raise UsageError(str(e)) from None
-    except (KeyError, ImportError, ValueError, TypeError) as e:
-        raise UsageError(f"cannot load policy {spec!r}: "
-                         f"{e.args[0] if isinstance(e, KeyError) else e}") from None
     return spec, note, policy
 
 

@@ -28,8 +28,10 @@ per batch).  Class (or instance) attributes declare the rest, each with a defaul
   deltas of the current tip pose.
 and these methods: ``act_steps`` (`act` as a generator that yields the futures it waits on,
 LLM batches or a policy server's answers, so that other tasks simulate meanwhile),
-``episode_info(world)`` (what to store as the episode record's ``policy_info``) and
-``report()`` (the run's request statistics, as sections of results.json).
+``episode_info(world)`` (what to store as the episode record's ``policy_info``),
+``report()`` (the run's request statistics, as sections of results.json) and, for a
+built-in policy, the classmethod ``warm_up(options, batch)`` (its programs compiled once
+per machine before a run's processes start).
 
 A world whose action has ``valid=False`` ends with ``Outcome.NO_ACTION``; that is how a
 policy says "I have nothing to execute".  Why travels with the action: ``end_reason`` of the
