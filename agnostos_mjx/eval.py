@@ -193,16 +193,24 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
 
 def cli() -> int:
     """The command (``python -m agnostos_mjx.eval``, ``agnostos-eval``): `main` under a
-    Ctrl-C guard; an interrupted run exits at once with 130."""
+    Ctrl-C guard; an interrupted run exits at once with 130, and so does one of a
+    launcher's processes once its results are written: the launcher waits for it, and the
+    interpreter's teardown of JAX and Warp took ~2 s on a GPU host."""
     with InterruptGuard() as guard:
         try:
             code = main(guard=guard)
         except KeyboardInterrupt:  # outside the run (printing the table, say)
             guard.announce()
             code = 130
-    if code == 130:
+    if code == 130 or launched_process(sys.argv[1:]):
         hard_exit(code)  # threads in native code must not delay the exit
     return code
+
+
+def launched_process(argv: Sequence[str]) -> bool:
+    """Whether `argv` is one of a launcher's processes (evaluation/processes.py starts them
+    with ``--spec FILE --process-id I``)."""
+    return "--spec" in argv and "--process-id" in argv
 
 
 if __name__ == "__main__":

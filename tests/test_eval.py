@@ -761,3 +761,20 @@ def test_a_failing_task_does_not_stop_the_others(tmp_path: Path, monkeypatch,
     assert results["failed_tasks"] == {"lamp_off": "RuntimeError: scene failed to build"}
     assert [r["task"] for r in results["episodes"]] == ["lamp_on", "lamp_on"]
     assert "task lamp_off failed: RuntimeError: scene failed to build" in capsys.readouterr().err
+
+
+def test_a_launchers_process_ends_without_the_interpreters_teardown(monkeypatch):
+    """One of a launcher's processes exits at once once main returns (its results are
+    written; the launcher waits on its exit); a run typed by a user returns its code."""
+    from agnostos_mjx import eval as ev
+
+    exits = []
+    monkeypatch.setattr(ev, "main", lambda guard=None: 0)
+    monkeypatch.setattr(ev, "hard_exit", exits.append)
+    monkeypatch.setattr(sys, "argv", ["agnostos-eval", "--spec", "s.json", "--process-id", "1"])
+    ev.cli()
+    assert exits == [0]
+    monkeypatch.setattr(sys, "argv", ["agnostos-eval", "--tasks", "lamp_on"])
+    assert ev.cli() == 0 and exits == [0]
+    assert ev.launched_process(["--spec", "f", "--process-id", "0"])
+    assert not ev.launched_process(["--spec", "f"])
