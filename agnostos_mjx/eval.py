@@ -194,8 +194,8 @@ def start_devices(cfg: EvalConfig, spec: str) -> None:
 def cli() -> int:
     """The command (``python -m agnostos_mjx.eval``, ``agnostos-eval``): `main` under a
     Ctrl-C guard; an interrupted run exits at once with 130, and so does one of a
-    launcher's processes once its results are written: the launcher waits for it, and the
-    interpreter's teardown of JAX and Warp took ~2 s on a GPU host."""
+    launcher's processes once its results are written: the launcher waits on its exit,
+    which the interpreter's teardown of JAX and Warp would delay (docs/performance.md)."""
     with InterruptGuard() as guard:
         try:
             code = main(guard=guard)

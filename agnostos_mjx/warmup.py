@@ -7,7 +7,7 @@ one module after another (minutes for the first scene, more for each further siz
 docs/performance.md), and every process of a `--local-processes` run would build the same kernels
 at once.  Warp keeps built kernels on disk and JAX keeps compiled programs in its
 persistent cache (agnostos_mjx.infra.settings.configure_jax), so this command does each build
-once, two things at the same time:
+once, three things at the same time:
 - on warp, every kernel module of the tasks' scenes, found by a dry run and built by
   `--kernel-jobs` processes, each its share (physics/warp_build.py);
 - the run's policy's programs that are the same at every task (`Policy.warm_up`: the

@@ -42,8 +42,8 @@ def preload() -> None:
 
 
 def _load_warp() -> None:
-    """Import MJX-Warp and start Warp, the collector paused throughout: Warp's start made
-    ~0.9 s of collections (each running JAX's callback) on an H200 host."""
+    """Import MJX-Warp and start Warp with the collector paused: each collection there
+    also runs JAX's callback (infra.gc_pause; docs/performance.md)."""
     try:
         with gc_paused():
             import warp
