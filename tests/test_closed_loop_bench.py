@@ -31,3 +31,18 @@ def test_the_run_is_typed_as_a_user_would() -> None:
     assert (quick.tasks, quick.batch, quick.renderers) == ("lamp_on", 4, "cpu")
     with pytest.raises(SystemExit):
         bench.parse_args(["--chunk", "0"])
+
+
+@pytest.mark.slow
+def test_quick_run_reports_the_loop_and_the_time_around_it(tmp_path: Path) -> None:
+    """--quick end to end: the loop's split, the bare renderer's rate, and the run's own
+    wall beside the command's (the start-up and teardown around the run)."""
+    import json
+
+    bench = _bench()
+    assert bench.main(["--quick", "--json", str(tmp_path / "b.json")]) == 0
+    (row,) = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert row["route"] == "cpu" and row["frames"] == 4 * 20 * 2
+    assert 0 < row["run_wall_s"] <= row["wall_s"]
+    assert row["bare_frames_per_s"] > 0 and row["render_s"] > 0
+    assert "run's own wall s" in bench.table([row])
