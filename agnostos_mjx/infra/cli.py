@@ -22,8 +22,10 @@ from typing import Any, TextIO
 import numpy as np
 
 
-class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows defaults, except the uninformative None / False."""
+class HelpFormatter(argparse.RawDescriptionHelpFormatter,
+                    argparse.ArgumentDefaultsHelpFormatter):
+    """Shows defaults, except the uninformative None / False, and the description (a
+    module's docstring: its example commands, its lists) with its own line breaks."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         if action.default is None or action.default is False:
