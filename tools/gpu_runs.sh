@@ -5,6 +5,11 @@
 #   carry .gl .whl   bash tools/gpu_setup.sh base  (or gl, then whl)
 #   carry .warp/pK   bash tools/gpu_setup.sh K     (K = 0..3; warp only)
 # Stages (OUT: the folder that comes back; runs live in /tmp/agnostos):
+#   astyped      the README's commands as a user types them, on a fresh machine (its first
+#                stage): the main job (fresh), the 3-task dense image run of
+#                tools/closed_loop_bench.py 4 times (the first builds Warp's render kernels),
+#                the main job again (warm); each command's wall beside the run's own
+#                (results.json wall_s), splits, and fresh-against-warm records
 #   fresh1       GPU 0, a fresh machine: the main job alone (warp, 8 processes, MPS; it builds
 #                Warp's kernels itself first); WARM=1 runs it once more, warm
 #   fresh        GPU 0: python -m agnostos_mjx.warmup (warp), then the main job as fresh1
@@ -73,7 +78,27 @@ vla_collect() {  # vla_collect SPLIT...: the runs, logs, curve and export back i
   OUT=$R/vla_out VLA_ROOT=$R bash train/vla_gpu.sh collect || true
   tar -C $R -czf "$OUT/vla_out.tgz" vla_out
 }
+astyped() {  # astyped LABEL ARGS...: python -m agnostos_mjx.eval ARGS into $R/LABEL, timed
+  local label=$1 d=$R/$1 t0; shift; t0=$(date +%s.%N)
+  timeout ${LIMIT_S:-300} python3 -m agnostos_mjx.eval "$@" --quiet --out $d 2>&1 | quiet | tail -1
+  python3 - "$label" "$t0" "$(date +%s.%N)" "$d" <<'PY' | tee -a $OUT/walls.txt
+import json, sys
+label, t0, t1, d = sys.argv[1:]
+run = json.load(open(f"{d}/results.json")).get("wall_s")
+print(f"{label}: command {float(t1) - float(t0):.1f} s, the run's own wall {run} s")
+PY
+  python3 -m agnostos_mjx.evaluation.timings $d > $OUT/${label}_split.md 2>&1 || true
+}
 case "$1" in
+  astyped)
+    astyped main_fresh --batch 75
+    for i in 0 1 2 3; do
+      astyped loop$i --policy timing --policy-arg cameras=front,wrist --policy-arg size=128 \
+        --policy-arg chunk=1 --action-mode dense --dense-steps 300 --seeds 0 --episodes 75 \
+        --batch 75 --tasks lamp_on,close_microwave,put_knife_on_chopping_board
+    done
+    astyped main_warm --batch 75
+    python3 tools/records_diff.py $R/main_fresh $R/main_warm | tail -1 | tee -a $OUT/walls.txt ;;
   vla_start)  # data, the precision profile and training on GPU 1 (or the only GPU), detached
     rm -rf $R/src && mkdir -p $R/src $R/vla_out
     pkill -f vla_gpu.sh || true; pkill -f vla_step_profile || true
