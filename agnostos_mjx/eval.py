@@ -61,7 +61,13 @@ from agnostos_mjx.evaluation.summary import (
     request_summaries,
 )
 from agnostos_mjx.infra import settings
-from agnostos_mjx.infra.cli import InterruptGuard, hard_exit, remove_empty_dirs, setup_logging
+from agnostos_mjx.infra.cli import (
+    InterruptGuard,
+    hard_exit,
+    quick_exit,
+    remove_empty_dirs,
+    setup_logging,
+)
 from agnostos_mjx.policies.base import policy_help
 from agnostos_mjx.tasks.catalog import parse_task_names
 
@@ -202,8 +208,10 @@ def cli() -> int:
         except KeyboardInterrupt:  # outside the run (printing the table, say)
             guard.announce()
             code = 130
-    if code == 130 or launched_process(sys.argv[1:]):
+    if code == 130:
         hard_exit(code)  # threads in native code must not delay the exit
+    if launched_process(sys.argv[1:]):
+        quick_exit(code)
     return code
 
 

@@ -770,7 +770,7 @@ def test_a_launchers_process_ends_without_the_interpreters_teardown(monkeypatch)
 
     exits = []
     monkeypatch.setattr(ev, "main", lambda guard=None: 0)
-    monkeypatch.setattr(ev, "hard_exit", exits.append)
+    monkeypatch.setattr(ev, "quick_exit", exits.append)
     monkeypatch.setattr(sys, "argv", ["agnostos-eval", "--spec", "s.json", "--process-id", "1"])
     ev.cli()
     assert exits == [0]
@@ -778,3 +778,16 @@ def test_a_launchers_process_ends_without_the_interpreters_teardown(monkeypatch)
     assert ev.cli() == 0 and exits == [0]
     assert ev.launched_process(["--spec", "f", "--process-id", "0"])
     assert not ev.launched_process(["--spec", "f"])
+
+
+def test_quick_exit_runs_the_exit_handlers_first(tmp_path):
+    """A launcher's process skips the interpreter's teardown, not its atexit handlers (a
+    policy's own cleanup, logging's flush)."""
+    import subprocess
+
+    script = ("import atexit, pathlib\n"
+              "from agnostos_mjx.infra.cli import quick_exit\n"
+              f"atexit.register(pathlib.Path({str(tmp_path / 'done')!r}).write_text, 'yes')\n"
+              "quick_exit(3)\n")
+    assert subprocess.run([sys.executable, "-c", script], timeout=60).returncode == 3
+    assert (tmp_path / "done").read_text() == "yes"
