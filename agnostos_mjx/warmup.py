@@ -80,9 +80,15 @@ def policy_flags(cfg: EvalConfig) -> list[str]:
     the run's processes resolve them (JSON values, as --policy-arg reads them), or
     ``--policy none`` for a policy with no programs shared by its tasks."""
     spec, kwargs, _ = resolve_policy(cfg)
-    if not shares_programs(spec):
-        return ["--policy", "none"]
-    pairs = [f"{key}={json.dumps(value)}" for key, value in sorted(kwargs.items())]
+    return _policy_flags(spec, kwargs) if shares_programs(spec) else NO_POLICY
+
+
+NO_POLICY = ["--policy", "none"]
+
+
+def _policy_flags(spec: str, args: Mapping[str, Any]) -> list[str]:
+    """--policy SPEC and a --policy-arg KEY=JSON per option (as --policy-arg reads them)."""
+    pairs = [f"{key}={json.dumps(value)}" for key, value in sorted(args.items())]
     return ["--policy", spec, *(flag for pair in pairs for flag in ("--policy-arg", pair))]
 
 
@@ -180,8 +186,7 @@ def _worker(name: str, args: argparse.Namespace) -> dict:
     (its GPU memory and Warp context go away with it)."""
     cmd = [sys.executable, "-m", "agnostos_mjx.warmup", "--worker", name, "--tasks", args.tasks,
            "--backend", args.backend, "--batch", str(args.batch), "--planner", args.planner,
-           "--policy", args.policy,
-           *(f"--policy-arg={k}={json.dumps(v)}" for k, v in args.policy_args or [])]
+           *_policy_flags(args.policy, dict(args.policy_args or []))]
     # Several JAX processes share the GPU: none may take JAX's default 75% of its memory.
     env = dict(os.environ)
     if not any(v in env for v in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION")):
@@ -250,7 +255,7 @@ def ensure_shared_programs(cfg: EvalConfig) -> int | None:
     code, None if skipped; on failure the processes compile as they go."""
     tasks, batch, planner = cfg.protocol.tasks, cfg.protocol.batch, cfg.protocol.planner
     policy = policy_flags(cfg)
-    if not device_planner_possible(planner) and policy[1] == "none":
+    if not device_planner_possible(planner) and policy == NO_POLICY:
         return None
     marker = shared_marker(batch, policy)
     if marker.exists():

@@ -71,8 +71,8 @@ class ReferenceVLAPolicy(Policy):
     def warm_up(cls, options: ReferenceVLAOptions, batch: int) -> bool:
         """Its network's one program (`chunk` worlds, `_predict`) on a blank observation."""
         policy = cls(options)
-        size, n = min(policy.chunk, batch), len(policy.cameras) * policy.observation_spec.height \
-            * policy.observation_spec.width
+        spec = policy.observation_spec
+        size, n = min(policy.chunk, batch), len(spec.cameras) * spec.height * spec.width
         ids, mask = policy._tokenize(["press the button"] * size)
         policy._predict(np.zeros((size, n, 3), np.float32), np.zeros((size, n, 3), np.uint8),
                         np.zeros((size, 3), np.float32), ids, mask, np.ones(size, np.float32),

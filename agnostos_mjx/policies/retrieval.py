@@ -16,10 +16,8 @@ import numpy as np
 from agnostos_mjx.policies.base import Round
 from agnostos_mjx.policies.learned_options import RetrievalOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
-from agnostos_mjx.policies.xicm import queries_for, warm_selection
+from agnostos_mjx.policies.xicm import demo_selection, queries_for, warm_selection
 from agnostos_mjx.sim.control import ACTION_BOUNDS
-from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
-from agnostos_mjx.xicm.selection import make_selector, resolve_selection
 
 
 def transfer(key_pos: np.ndarray, demo_objects: np.ndarray, query_objects: np.ndarray
@@ -44,9 +42,7 @@ class RetrievalPolicy(PlanningPolicy):
     def __init__(self, options: RetrievalOptions | None = None) -> None:
         super().__init__()
         o = options or RetrievalOptions()
-        self.memory = DemoMemory.load(o.memory or default_memory_path())
-        self.selection = resolve_selection(o.selection, self.memory)
-        self.selector = make_selector(self.selection, self.memory, sample_steps=o.sample_steps)
+        self.memory, self.selection, self.selector = demo_selection(o)
         self.name = f"retrieval[{self.selection}]"
 
     @classmethod

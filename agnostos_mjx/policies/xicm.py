@@ -32,7 +32,7 @@ from agnostos_mjx.sim.textualise import decode_action
 from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.prompt import messages, parse_actions
 from agnostos_mjx.xicm.scene_text import query_texts, segmented_object_voxels
-from agnostos_mjx.xicm.selection import Query, make_selector, resolve_selection
+from agnostos_mjx.xicm.selection import Query, Selector, make_selector, resolve_selection
 
 log = logging.getLogger("agnostos_mjx.xicm")
 
@@ -48,14 +48,20 @@ def needs_frames(selection: str) -> bool:
     return "vis" in selection
 
 
+def demo_selection(options: RetrievalOptions) -> tuple[DemoMemory, str, Selector]:
+    """(the seen-demo memory, the resolved selection, its selector) of the options that
+    retrieval and X-ICM share."""
+    memory = DemoMemory.load(options.memory or default_memory_path())
+    selection = resolve_selection(options.selection, memory)
+    return memory, selection, make_selector(selection, memory, sample_steps=options.sample_steps)
+
+
 def warm_selection(options: RetrievalOptions) -> bool:
     """The demo selection's programs, compiled with one query of a blank front frame: its
     networks run at one batch shape whatever the task, batch or frame
     (dynamics/batching.py), so this is every program the selection will run.  Built from
     the options alone: no LLM is asked (X-ICM shares retrieval's selection)."""
-    memory = DemoMemory.load(options.memory or default_memory_path())
-    selection = resolve_selection(options.selection, memory)
-    selector = make_selector(selection, memory, sample_steps=options.sample_steps)
+    _, selection, selector = demo_selection(options)
     frame = np.zeros((QUERY_FRAME, QUERY_FRAME, 3), np.uint8) if needs_frames(selection) \
         else None
     selector.select([Query("press the button", 0, frame)], 1)
@@ -104,9 +110,7 @@ class XICMPolicy(PlanningPolicy):
                 client = ChatClient(config)
             client.preflight()
         self.client = client
-        self.memory = DemoMemory.load(o.memory or default_memory_path())
-        self.selection = resolve_selection(o.selection, self.memory)
-        self.selector = make_selector(self.selection, self.memory, sample_steps=o.sample_steps)
+        self.memory, self.selection, self.selector = demo_selection(o)
         self.num_demos = o.num_demos
         self.name = f"xicm[{self.selection},k={o.num_demos}]"
         self.check_context()
