@@ -54,7 +54,7 @@ from agnostos_mjx.infra.settings import (
     usable_cores,
 )
 from agnostos_mjx.physics import CAPABILITIES
-from agnostos_mjx.policies.base import shares_programs
+from agnostos_mjx.policies.base import options_type, shares_programs
 
 log = logging.getLogger("agnostos_mjx.warmup")
 
@@ -76,11 +76,15 @@ def warm_policy(spec: str, args: Mapping[str, Any], batch: int) -> dict:
 
 
 def policy_flags(cfg: EvalConfig) -> list[str]:
-    """This command's --policy flags for the run `cfg`: its policy with every option as
-    the run's processes resolve them (JSON values, as --policy-arg reads them), or
-    ``--policy none`` for a policy with no programs shared by its tasks."""
+    """This command's --policy flags for the run `cfg`: its policy with the options its
+    shared programs are built from (`PolicyOptions.program_fields`) as the run's processes
+    resolve them (JSON values, as --policy-arg reads them), or ``--policy none`` for a
+    policy with no programs shared by its tasks."""
     spec, kwargs, _ = resolve_policy(cfg)
-    return _policy_flags(spec, kwargs) if shares_programs(spec) else NO_POLICY
+    if not shares_programs(spec):
+        return NO_POLICY
+    used = options_type(spec).program_fields()
+    return _policy_flags(spec, {k: v for k, v in kwargs.items() if k in used})
 
 
 NO_POLICY = ["--policy", "none"]

@@ -222,6 +222,24 @@ def test_policy_flags_give_the_warm_up_the_runs_own_options():
             assert shares_programs(name) == overrides, name
 
 
+def test_an_xicm_runs_warm_up_is_keyed_by_its_selection_alone(tmp_path):
+    """X-ICM's shared programs are its demo selection's: two runs in other folders (so
+    other LLM caches) or with another LLM share the warm-up's marker; another DDIM step
+    count does not."""
+    llm = {"llm_url": "http://localhost:1/v1", "llm_model": "m"}
+    a = EvalConfig.of(policy="xicm", tasks="lamp_on", out=str(tmp_path / "a"), **llm)
+    b = EvalConfig.of(policy="xicm", tasks="lamp_on", out=str(tmp_path / "b"),
+                      llm_url="http://elsewhere:2/v1", llm_model="other")
+    flags = warmup.policy_flags(a)
+    assert flags == warmup.policy_flags(b)
+    assert not any("llm" in flag or str(tmp_path) in flag for flag in flags)
+    assert warmup.shared_marker(75, flags) == warmup.shared_marker(75, warmup.policy_flags(b))
+    steps = warmup.policy_flags(a.with_options(ddim_steps=4))
+    assert steps != flags and "sample_steps=4" in steps
+    args = warmup.parse_args(["--tasks", "lamp_on", *flags])  # the warm-up takes them
+    assert args.policy == "xicm"
+
+
 def test_the_shared_programs_compile_where_one_gpu_is_visible(tmp_path, monkeypatch):
     """JAX's cache keys a program by the devices JAX sees: the warm-up of a run on several
     GPUs sees the first alone, as each process sees its own; on one GPU nothing changes."""

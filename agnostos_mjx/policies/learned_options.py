@@ -81,6 +81,12 @@ class XicmOptions(RetrievalOptions):
                                f"{', '.join(LLM_SERVER_KINDS)}")
 
     @classmethod
+    def program_fields(cls) -> tuple[str, ...]:
+        """The demo selection's options: the LLM's (its cache in the run's folder, say)
+        compile nothing, so they leave the warm-up's marker alone."""
+        return RetrievalOptions.program_fields()
+
+    @classmethod
     def from_config(cls, cfg: Any) -> dict[str, Any]:
         part = cfg.xicm
         cache = part.llm_cache or str(Path(cfg.run.out or ".") / "llm_cache")

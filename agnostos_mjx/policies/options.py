@@ -55,6 +55,13 @@ class PolicyOptions:
         """Constraints beyond the types, as an OptionsError.  Default: none."""
 
     @classmethod
+    def program_fields(cls) -> tuple[str, ...]:
+        """The options the policy's shared programs (`Policy.warm_up`) are built from: the
+        warm-up gets these alone, and its once-per-machine marker is keyed by them.
+        Default: every option."""
+        return tuple(f.name for f in fields(cls))
+
+    @classmethod
     def from_config(cls, cfg: Any) -> dict[str, Any]:
         """The options that the run's own flags set, `cfg` being its EvalConfig (untyped
         here: the evaluator imports this layer, not the other way round); its --policy-arg
