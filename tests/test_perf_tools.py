@@ -135,3 +135,32 @@ def test_sample_threads_sees_every_process_and_thread(tmp_path: Path) -> None:
     assert "thread napper:" in report
     napping = [line for line in report.splitlines() if line.endswith(":napping")]
     assert napping and float(napping[0].split()[0]) >= 0.4
+
+
+def test_sample_threads_summarises_py_spy_samples(tmp_path: Path) -> None:
+    """py-spy's raw lines (--subprocesses --threads; a process's command may span lines)
+    become one sample file per process, summarised as the sampler's own: seconds are
+    counts over --rate, frames are 'dir/file.py:function'."""
+    raw = tmp_path / "raw.txt"
+    run = "/work/agnostos_mjx/evaluation/run.py"
+    raw.write_text(
+        'process 1:"python -m agnostos_mjx.eval";thread (11): MainThread;'
+        f'<module> (agnostos_mjx/eval.py:5);Run.run ({run}:40) 300\n'
+        'process 1:"python -m agnostos_mjx.eval";process 2:"python -c \nimport x";'
+        "thread (21): warp-preload;_load_warp (agnostos_mjx/render/warp.py:51) 100\n")
+    out = tmp_path / "out"
+    done = subprocess.run([sys.executable, str(TOOLS / "sample_threads.py"), str(out),
+                           "--py-spy", str(raw), "--rate", "100", "--min-s", "0.5"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (out / "samples").glob("*.txt")) == ["1.txt", "2.txt"]
+    assert "MainThread;agnostos_mjx/eval.py:<module>;evaluation/run.py:Run.run 3.0000" in (
+        out / "samples" / "1.txt").read_text()
+    assert "thread MainThread: 3.0 s" in done.stdout
+    assert "3.00 s  evaluation/run.py:Run.run" in done.stdout
+    assert "thread warp-preload: 1.0 s" in done.stdout
+    assert "1.00 s  render/warp.py:_load_warp" in done.stdout
+    missing = subprocess.run([sys.executable, str(TOOLS / "sample_threads.py"), str(out),
+                              "--py-spy", str(tmp_path / "none.txt")],
+                             capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 2 and "no such file" in missing.stderr

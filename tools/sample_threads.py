@@ -4,6 +4,14 @@ milliseconds and writes it at exit; then a summary per process and thread.
 
     python tools/sample_threads.py OUT -- python -m agnostos_mjx.eval ...
     python tools/sample_threads.py OUT --report-only        # summarise OUT again
+    python tools/sample_threads.py OUT --py-spy RAW --rate 200   # summarise py-spy's samples
+
+Where observations render through MJX-Warp (a GPU host), use py-spy instead (``py-spy record
+--subprocesses --idle --threads -r 200 -f raw -o RAW -- CMD``, then ``--py-spy RAW``): this
+sampler holds the threads' frames for an instant, and a frame that ends meanwhile is freed on
+the sampler's thread, with its arrays; a GPU buffer freed while Warp captures a CUDA graph on
+another thread fails the capture ("unknown capture stream"), as it did to a 3-task run's
+processes.
 
 The command runs with OUT/site first on PYTHONPATH, whose ``sitecustomize`` starts the
 sampler in every Python process the command starts (the evaluator's workers included) and
@@ -116,10 +124,38 @@ def summarise(samples: Path, min_s: float = 0.3) -> str:
     return "\n".join(lines)
 
 
+def from_py_spy(raw: Path, samples: Path, rate: float) -> None:
+    """py-spy's raw output (``--subprocesses --threads``: ``process P:"cmd";thread (T):
+    name;func (path:line);... count``) as this sampler's files, one per process in
+    `samples`: the same summary for both."""
+    import re
+
+    per: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    argv: dict[str, str] = {}
+    text = raw.read_text(errors="replace")
+    for m in re.finditer(r'^(process \d+:.*?) (\d+)$', text, re.M | re.S):
+        frames = m.group(1).split(";")
+        procs = [f for f in frames if f.startswith("process ")]
+        pid, _, cmd = procs[-1][len("process "):].partition(":")
+        argv[pid] = cmd.strip('"').replace("\n", " ")
+        thread = next((f.split(": ", 1)[-1] for f in frames if f.startswith("thread ")), "?")
+        calls = []
+        for f in frames:
+            call = re.fullmatch(r"(.*) \((.*?)(?::\d+)?\)", f)
+            if call and not f.startswith(("process ", "thread ")):
+                calls.append("/".join(call.group(2).split("/")[-2:]) + ":" + call.group(1))
+        per[pid][";".join([thread, *calls])] += int(m.group(2)) / rate
+    samples.mkdir(parents=True, exist_ok=True)
+    for pid, stacks in per.items():
+        lines = [f"# {argv[pid][:300]} | py-spy"]
+        lines += [f"{stack} {s:.4f}" for stack, s in stacks.most_common()]
+        (samples / f"{pid}.txt").write_text("\n".join(lines) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     command = argv[argv.index("--") + 1:] if "--" in argv else []
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=Path, help="folder for the sampler's site and the samples")
     p.add_argument("--interval", type=float, default=0.005, help="seconds between samples")
@@ -127,8 +163,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="leave out threads and frames under this many seconds")
     p.add_argument("--report-only", action="store_true",
                    help="summarise OUT/samples without running anything")
+    p.add_argument("--py-spy", type=Path, metavar="RAW",
+                   help="py-spy's raw output (--subprocesses --threads -f raw) to summarise: "
+                        "written to OUT/samples first, nothing run")
+    p.add_argument("--rate", type=float, default=100.0,
+                   help="py-spy's samples per second (its -r; default 100, py-spy's own)")
     a = p.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
-    if not a.report_only:
+    if a.py_spy is not None:
+        if not a.py_spy.is_file():
+            p.error(f"no such file: {a.py_spy}")
+        from_py_spy(a.py_spy, a.out / "samples", a.rate)
+    elif not a.report_only:
         if not command:
             p.error("give the command after --")
         site = a.out / "site"
