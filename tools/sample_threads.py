@@ -7,11 +7,10 @@ milliseconds and writes it at exit; then a summary per process and thread.
     python tools/sample_threads.py OUT --py-spy RAW --rate 200   # summarise py-spy's samples
 
 Where observations render through MJX-Warp (a GPU host), use py-spy instead (``py-spy record
---subprocesses --idle --threads -r 200 -f raw -o RAW -- CMD``, then ``--py-spy RAW``): this
-sampler holds the threads' frames for an instant, and a frame that ends meanwhile is freed on
-the sampler's thread, with its arrays; a GPU buffer freed while Warp captures a CUDA graph on
-another thread fails the capture ("unknown capture stream"), as it did to a 3-task run's
-processes.
+--subprocesses --idle --threads -r 200 -f raw -o RAW -- CMD``, then ``--py-spy RAW``): under
+this sampler Warp's CUDA-graph captures failed in a 3-task run's processes ("unknown capture
+stream"), likely because it holds the threads' frames for an instant, so that a frame ending
+meanwhile is freed on the sampler's thread with its arrays, mid-capture.
 
 The command runs with OUT/site first on PYTHONPATH, whose ``sitecustomize`` starts the
 sampler in every Python process the command starts (the evaluator's workers included) and
