@@ -330,9 +330,10 @@ def shares_programs(spec: str) -> bool:
 def warm_up_policy(spec: str, batch: int, **kwargs: Any) -> bool:
     """`Policy.warm_up` of the built-in policy `spec`, its options parsed from `kwargs` as
     `make_policy` parses them; False for a policy without shared programs."""
-    entry = _REGISTRY.get(spec)
-    if not (isinstance(entry, Builtin) and entry.shared_programs):
+    if not shares_programs(spec):
         return False
+    entry = _REGISTRY[spec]
+    assert isinstance(entry, Builtin)  # shares_programs says so
     options = parse_options(options_type(spec), kwargs, spec)
     return bool(load_object(entry.policy).warm_up(options, batch))
 
