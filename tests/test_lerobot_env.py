@@ -590,6 +590,23 @@ def test_env_warns_once_on_another_look(caplog) -> None:
     assert "renderer=" not in texts[0]  # the renderers agree
 
 
+@pytest.mark.parametrize("hz,fps", [(20.0, 20), (10, 10), (7.5, "15/2")])
+def test_dense_render_fps_is_a_rate_pyav_takes(tmp_path, hz, fps) -> None:
+    """lerobot-eval writes its episode videos with ``metadata["render_fps"]`` as PyAV's
+    stream rate, which takes an int or a Fraction but no float: a dense env's 20.0 failed
+    every video (lerobot 0.6.1, io_utils.write_video)."""
+    from fractions import Fraction
+
+    env = AgnostosVectorEnv("lamp_on", 1, EnvOptions(**SMALL, control_mode="dense",
+                                                     control_hz=hz))
+    rate = env.metadata["render_fps"]
+    assert rate == Fraction(fps) and not isinstance(rate, float)
+    av = pytest.importorskip("av")
+    with av.open(str(tmp_path / "v.mp4"), "w") as container:
+        stream = container.add_stream("mpeg4", rate=rate)
+        assert stream.average_rate == Fraction(fps)
+
+
 @pytest.mark.parametrize("call,match", [
     (lambda: EnvOptions(renderer="gl"), "unknown renderer"),
     (lambda: AgnostosVectorEnv("no_such_task", 1), "unknown task 'no_such_task'"),
@@ -671,7 +688,7 @@ def test_dense_rows_of_the_dense_export_replay_to_success() -> None:
 
     env = _env("turn_tap", 2, control_mode="dense", rotation="euler")
     assert env.call("_max_episode_steps") == (1000, 1000)
-    assert env.metadata["render_fps"] == 20.0
+    assert env.metadata["render_fps"] == 20 and isinstance(env.metadata["render_fps"], int)
     env.reset(seed=0)
     replay = DenseReplayPolicy()
     replay.reset(Round.for_policy(replay, env.runner, env._state, ["", ""]))

@@ -70,6 +70,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from fractions import Fraction
 from typing import Any
 
 import gymnasium as gym
@@ -139,6 +140,12 @@ def make_suites(task: str, num_envs: int, training_data: Mapping[str, Any] | Non
             for suite, names in resolve_tasks(task).items()}
 
 
+def video_fps(hz: float) -> int | Fraction:
+    """A control rate as a video's frame rate: an int, or an exact fraction when the rate is
+    not whole (LeRobot's video writer hands it to PyAV, which takes no float)."""
+    return int(hz) if float(hz).is_integer() else Fraction(hz).limit_denominator(1000)
+
+
 def _where_rows(mask: np.ndarray, new: Any, old: Any) -> Any:
     """Per world: `new`'s rows where `mask`, else `old`'s (a pytree of (B, ...) leaves)."""
     import jax
@@ -182,7 +189,7 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         self.render_mode = "rgb_array"
         dense = opts.control_mode == "dense"
         self.metadata = {"render_modes": ["rgb_array"],
-                         "render_fps": opts.control_hz if dense else KEYFRAME_FPS,
+                         "render_fps": video_fps(opts.control_hz) if dense else KEYFRAME_FPS,
                          "autoreset_mode": AUTORESET_MODES[opts.autoreset_mode]}
         self.single_observation_space, self.single_action_space = single_spaces(opts)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
