@@ -590,6 +590,25 @@ def test_env_warns_once_on_another_look(caplog) -> None:
     assert "renderer=" not in texts[0]  # the renderers agree
 
 
+def test_observed_images_are_the_callers_to_change(monkeypatch) -> None:
+    """The GPU route's images come back as read-only JAX host buffers: the env hands out
+    writable arrays (torch.from_numpy in lerobot-eval warned on each), copying only those."""
+    env = AgnostosVectorEnv("lamp_on", 1, EnvOptions(**SMALL, renderer="cpu"))
+    env.reset(seed=0)
+    observe = env.runner.observe
+
+    def read_only(state, spec):
+        obs = observe(state, spec)
+        for cam in obs.cameras.values():
+            cam.rgb.setflags(write=False)
+        return obs
+
+    monkeypatch.setattr(env.runner, "observe", read_only)
+    obs, *_ = env.step(np.asarray(env._last_obs["agent_pos"])[:, :8])
+    assert all(img.flags.writeable for img in obs["pixels"].values())
+    env.close()
+
+
 @pytest.mark.parametrize("hz,fps", [(20.0, 20), (10, 10), (7.5, "15/2")])
 def test_dense_render_fps_is_a_rate_pyav_takes(tmp_path, hz, fps) -> None:
     """lerobot-eval writes its episode videos with ``metadata["render_fps"]`` as PyAV's

@@ -146,6 +146,13 @@ def video_fps(hz: float) -> int | Fraction:
     return int(hz) if float(hz).is_integer() else Fraction(hz).limit_denominator(1000)
 
 
+def _owned(a: np.ndarray) -> np.ndarray:
+    """`a`, or a copy of it where it is read-only (the GPU route's images are JAX's host
+    buffers): an observation is the caller's to change, and ``torch.from_numpy`` (LeRobot's
+    ``preprocess_observation``) warns on every read-only one."""
+    return a if a.flags.writeable else a.copy()
+
+
 def _where_rows(mask: np.ndarray, new: Any, old: Any) -> Any:
     """Per world: `new`'s rows where `mask`, else `old`'s (a pytree of (B, ...) leaves)."""
     import jax
@@ -410,7 +417,7 @@ class AgnostosVectorEnv(gym.vector.VectorEnv):
         state = state_vector(opts.state, np.asarray(obs.gripper_pose, np.float32),
                              np.asarray(obs.gripper_open, np.float32),
                              np.asarray(obs.gripper_joint_positions, np.float32))
-        self._last_obs = {"pixels": {c: np.asarray(obs.cameras[c].rgb, np.uint8)
+        self._last_obs = {"pixels": {c: _owned(np.asarray(obs.cameras[c].rgb, np.uint8))
                                      for c in opts.cameras},
                           "agent_pos": np.asarray(state, np.float32)}
         return self._last_obs
