@@ -106,9 +106,8 @@ def test_unknown_camera(renderer: render.CpuRenderer, model: mujoco.MjModel) -> 
         renderer.render(*_states(model), camera="nope")
 
 
-def test_close_and_factory(model: mujoco.MjModel, renderer: render.CpuRenderer) -> None:
-    r = render.make_renderer(model, nworld=2, backend="cpu", width=SIZE, height=SIZE)
-    assert isinstance(r, render.CpuRenderer)
+def test_close(model: mujoco.MjModel, renderer: render.CpuRenderer) -> None:
+    r = render.CpuRenderer(model, width=SIZE, height=SIZE)
     with r:
         assert r.render(*_states(model), camera="top").shape == (2, SIZE, SIZE, 3)
     with pytest.raises(RuntimeError, match="closed"):

@@ -45,9 +45,22 @@ def test_the_runs_renderer_overrides_the_specs(monkeypatch) -> None:
     monkeypatch.setattr(physics, "warp_available", lambda: False)
     spec = ob.ObservationSpec(renderer="warp")
     observer = Observer(None, None, "native", renderer="cpu")
-    assert observer.renderer_kind(spec) == "cpu"
-    assert Observer(None, None, "native").renderer_kind(spec) == "warp"
-    assert Observer(None, None, "native").renderer_kind(ob.ObservationSpec()) == "cpu"
+    assert observer.route(spec) == physics.RENDER_ROUTES["cpu"]
+    assert Observer(None, None, "native").route(spec).on_device
+    assert not Observer(None, None, "native").route(ob.ObservationSpec()).on_device
+
+
+def test_routes_say_what_they_offer() -> None:
+    """Every route `--renderer` names offers what the layers above read: images on the
+    device or on the host, a slow load to start early, a label for the log."""
+    assert physics.RENDERERS == ("auto", *physics.RENDER_ROUTES)
+    for name, route in physics.RENDER_ROUTES.items():
+        assert route.name == name and route.label
+    cpu, warp = physics.RENDER_ROUTES["cpu"], physics.RENDER_ROUTES["warp"]
+    assert not cpu.on_device and not cpu.preload
+    assert warp.on_device and warp.preload
+    assert physics.render_route("warp") is warp
+    assert physics.render_route("auto", "warp") is warp  # the renderer beside warp physics
 
 
 @pytest.fixture(scope="module")

@@ -159,7 +159,7 @@ def bench_task(task_name: str, batch: int, renderers: Sequence[str], cameras: tu
         seconds = _best(lambda spec=spec: runner.observe(env, spec), repeats)
         rows.append(_row(task_name, batch, kind, len(cameras), seconds))
         if kind == "warp":
-            renderer = runner.observer.renderer(spec, "warp", batch)
+            renderer = runner.observer.warp_renderer(spec, batch)
             p = env.physics
             rgba = jax.numpy.asarray(env.geom_rgba, jax.numpy.float32)
             bare = _best(functools.partial(renderer.state_buffers, p.qpos, p.mocap_pos,

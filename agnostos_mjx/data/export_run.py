@@ -26,6 +26,7 @@ from agnostos_mjx.data.export_demos import export_task
 from agnostos_mjx.data.look import LOOK_KEY
 from agnostos_mjx.data.rlbench_format import FORMAT, RLBENCH_CAMERAS
 from agnostos_mjx.infra.settings import configure_jax, usable_cores
+from agnostos_mjx.physics.capabilities import RENDER_ROUTES
 
 log = logging.getLogger("agnostos_mjx.data.export")
 
@@ -67,7 +68,7 @@ def _worker_init() -> None:
 
 
 @contextlib.contextmanager
-def _worker_env(threads: int, renderer: str) -> Iterator[None]:
+def _worker_env(threads: int, renderer: str) -> Iterator[None]:  # renderer: a route's name
     """Settings for spawned workers (inherited at spawn; the parent renders nothing while
     they run): thread caps for llvmpipe's render threads and OpenMP/BLAS pools, and JAX on
     the CPU when they render there (a worker simulates with native MuJoCo) or, rendering on
@@ -75,7 +76,7 @@ def _worker_env(threads: int, renderer: str) -> Iterator[None]:
     memory would fail (seen on a GPU host with 16 workers).  Values the user set are kept."""
     values = {k: str(threads) for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS",
                                          "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    if renderer == "cpu":
+    if not RENDER_ROUTES[renderer].on_device:
         values["JAX_PLATFORMS"] = "cpu"
     else:
         values["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"

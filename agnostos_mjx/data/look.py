@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from agnostos_mjx.physics.capabilities import RENDER_ROUTES
+
 LOOK_KEY = "agnostos"  # the key of the record in info.json and manifest.json
-ROUTES = ("cpu", "warp")  # physics.RENDERERS less "auto": what a run actually renders with
 # The compiled model's fields that decide the look; a field this MuJoCo lacks is skipped.
 MODEL_FIELDS = (
     "geom_type", "geom_size", "geom_rgba", "geom_matid", "geom_group", "geom_pos", "geom_quat",
@@ -97,8 +98,9 @@ def look_record(renderer: str) -> dict[str, str]:
 
 
 def _check_route(renderer: str) -> None:
-    if renderer not in ROUTES:
-        raise ValueError(f"renderer: the route a run renders with, one of {', '.join(ROUTES)} "
+    if renderer not in RENDER_ROUTES:
+        raise ValueError(f"renderer: the route a run renders with, one of "
+                         f"{', '.join(RENDER_ROUTES)} "
                          f"(physics.resolve_renderer), got {renderer!r}")
 
 

@@ -48,6 +48,7 @@ from agnostos_mjx.infra.cli import (
     progress_bar,
     versions,
 )
+from agnostos_mjx.physics.capabilities import RenderRoute
 from agnostos_mjx.policies.base import Policy
 
 log = logging.getLogger("agnostos_mjx.eval")
@@ -117,18 +118,18 @@ def load_policy(cfg: EvalConfig) -> tuple[str, str, Policy]:
     return spec, note, policy
 
 
-def observation_route(cfg: EvalConfig, policy: Policy, backend: str) -> str | None:
-    """The renderer the policy's observations go through ("cpu" or "warp"; None: it
-    declares none), chosen once for the run and logged."""
-    from agnostos_mjx.physics import resolve_renderer
+def observation_route(cfg: EvalConfig, policy: Policy, backend: str) -> RenderRoute | None:
+    """The route the policy's observations render through (None: it declares none),
+    chosen once for the run and logged."""
+    from agnostos_mjx.physics import render_route
 
     spec = policy.observation_spec
     if spec is None:
         return None
     chosen = cfg.protocol.renderer
-    route = resolve_renderer(chosen if chosen != "auto" else spec.renderer, backend)
+    route = render_route(chosen if chosen != "auto" else spec.renderer, backend)
     log.info("observations: %s at %dx%d rendered by %s", ",".join(spec.cameras), spec.height,
-             spec.width, "MJX-Warp on the GPU" if route == "warp" else "OpenGL on the CPU")
+             spec.width, route.label)
     return route
 
 
@@ -171,8 +172,8 @@ class Run:
         self._plan()
         started = datetime.now().isoformat(timespec="seconds")
         self.t0 = time.perf_counter()
-        renderer = observation_route(cfg, policy, self.backend)
-        if renderer == "warp":  # Warp's start overlaps the first task's build and reset
+        route = observation_route(cfg, policy, self.backend)
+        if route is not None and route.preload:  # overlaps the first task's build and reset
             from agnostos_mjx.render.warp import preload
 
             preload()
@@ -180,7 +181,8 @@ class Run:
                      "policy": {"spec": self.spec, "name": policy.name, "note": self.note,
                                 "class": self.policy_class,
                                 "privileged": bool(policy.privileged)},
-                     "backend": self.backend, "renderer": renderer, "versions": versions(),
+                     "backend": self.backend, "renderer": route and route.name,
+                     "versions": versions(),
                      "started": started, "tasks": self.all_tasks}
 
     def _place(self) -> None:

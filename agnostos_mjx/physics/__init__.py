@@ -12,12 +12,17 @@ if TYPE_CHECKING:  # light at import: the launcher of --local-processes reads BA
     from agnostos_mjx.physics.base import Backend
 
 
-from agnostos_mjx.physics.capabilities import CAPABILITIES, Capabilities
+from agnostos_mjx.physics.capabilities import (
+    CAPABILITIES,
+    RENDER_ROUTES,
+    Capabilities,
+    RenderRoute,
+)
 
 BACKENDS = ("auto", *CAPABILITIES)
 # Where observations are rendered: MuJoCo's OpenGL renderer on CPU threads, or MJX-Warp's
 # batch ray tracer on the GPU (beside any physics backend: the worlds' state goes to it).
-RENDERERS = ("auto", "cpu", "warp")
+RENDERERS = ("auto", *RENDER_ROUTES)
 GPU_RENDERER_HINT = ("a CUDA GPU but no warp-lang: observations render on the CPU; "
                      "pip install -e '.[gpu]' renders them on the GPU")
 # `auto` picks MJX-warp only from this many worlds per batch.  Warp's episodes/s grow with
@@ -70,6 +75,11 @@ def resolve_renderer(name: str, backend: str = "native") -> str:
     return "cpu"
 
 
+def render_route(name: str, backend: str = "native") -> RenderRoute:
+    """The route `name` resolves to (`resolve_renderer`), with what it offers."""
+    return RENDER_ROUTES[resolve_renderer(name, backend)]
+
+
 @functools.cache
 def _hint_once() -> None:
     log.warning("%s", GPU_RENDERER_HINT)
@@ -98,5 +108,6 @@ def make_backend(name: str, model: mujoco.MjModel, threads: int | None = None) -
     return MjxBackend(model, impl=name)
 
 
-__all__ = ["BACKENDS", "CAPABILITIES", "RENDERERS", "WARP_MIN_BATCH", "Capabilities", "cuda_gpu",
-           "make_backend", "resolve_backend", "resolve_renderer", "warp_available"]
+__all__ = ["BACKENDS", "CAPABILITIES", "RENDERERS", "RENDER_ROUTES", "WARP_MIN_BATCH",
+           "Capabilities", "RenderRoute", "cuda_gpu", "make_backend", "render_route",
+           "resolve_backend", "resolve_renderer", "warp_available"]

@@ -1,5 +1,6 @@
-"""What each physics backend offers the layers above: read here, never its name compared.
-A leaf module, so that the backends and the package's face both import it."""
+"""What each physics backend and each render route offers the layers above: read here,
+never a name compared.  A leaf module, so that the backends, the renderers and the
+package's face all import it."""
 
 from __future__ import annotations
 
@@ -37,4 +38,24 @@ CAPABILITIES: dict[str, Capabilities] = {
     "warp": Capabilities(on_device=True, padded_batch=True,
                          steps_per_iteration=WARP_STEPS_PER_ITERATION, renderer="warp",
                          captures_graphs=True, kernels=True),
+}
+
+
+@dataclass(frozen=True)
+class RenderRoute:
+    """Where observations are rendered, as the layers above need to know it (adding a
+    renderer adds its entry to RENDER_ROUTES)."""
+
+    name: str  # as `--renderer` takes it and results and datasets record it
+    label: str  # for the run's log
+    # Images come from one device program with the observation's other arrays (the
+    # worlds' state goes to the GPU); else from CPU threads, as numpy arrays.
+    on_device: bool
+    # Loading its modules takes seconds: a run starts that on a thread (render.warp.preload).
+    preload: bool = False
+
+
+RENDER_ROUTES: dict[str, RenderRoute] = {
+    "cpu": RenderRoute("cpu", "OpenGL on the CPU", on_device=False),
+    "warp": RenderRoute("warp", "MJX-Warp on the GPU", on_device=True, preload=True),
 }

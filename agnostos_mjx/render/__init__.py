@@ -51,8 +51,6 @@ os.environ.setdefault(
     ),
 )
 
-import mujoco
-
 from agnostos_mjx.render.common import (
     GL_INSTALL_HINT,
     CameraImages,
@@ -73,14 +71,6 @@ from agnostos_mjx.render.warp import FixedCamLight, WarpRenderer
 __all__ = [
     "GL_INSTALL_HINT", "MAX_RENDER_THREADS", "RENDER_THREADS_ENV", "CameraImages", "CpuRenderer",
     "FixedCamLight", "ThreadedCpuRenderer", "WarpRenderer", "camera_names", "clip_planes",
-    "cpu_renderer", "gl_backend", "make_renderer", "render_threads",
+    "cpu_renderer", "gl_backend", "render_threads",
 ]
 
-
-def make_renderer(
-    model: mujoco.MjModel, nworld: int, backend: str, width: int = 128, height: int = 128
-) -> CpuRenderer | WarpRenderer:
-    """WarpRenderer when ``backend == "warp"`` (GPU), otherwise CpuRenderer."""
-    if backend == "warp":
-        return WarpRenderer(model, nworld, width=width, height=height)
-    return CpuRenderer(model, width=width, height=height)

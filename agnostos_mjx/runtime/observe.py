@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from agnostos_mjx.physics.capabilities import RenderRoute
 from agnostos_mjx.runtime.observation import (
     CAMERA_ARRAYS,
     CameraObservation,
@@ -47,42 +48,45 @@ class Observer:
         self.frames = 0  # camera frames rendered (one camera of one world)
 
     # ---- the routes -------------------------------------------------------------------
-    def renderer_kind(self, spec: ObservationSpec) -> str:
-        """"cpu" or "warp": the run's renderer when it names one, else the spec's, else the
-        machine's (physics.resolve_renderer)."""
-        from agnostos_mjx.physics import resolve_renderer
+    def route(self, spec: ObservationSpec) -> RenderRoute:
+        """Where `spec` renders: the run's renderer when it names one, else the spec's, else
+        the machine's (physics.render_route)."""
+        from agnostos_mjx.physics import render_route
 
         name = self.run_renderer if self.run_renderer != "auto" else spec.renderer
-        return resolve_renderer(name, self.backend_name)
+        return render_route(name, self.backend_name)
 
-    def renderer(self, spec: ObservationSpec, kind: str, nworld: int) -> Any:
-        """The cached renderer of `spec` on `kind` ("cpu" or "warp") for `nworld` worlds."""
-        from agnostos_mjx.render import WarpRenderer, cpu_renderer, render_threads
+    def cpu_renderer(self, spec: ObservationSpec) -> Any:
+        """The cached OpenGL renderer of `spec`'s size, its worlds split over
+        render_threads() threads (AGNOSTOS_RENDER_THREADS)."""
+        from agnostos_mjx.render import cpu_renderer, render_threads
 
-        model = self.scene.model
-        if kind == "cpu":  # worlds split over render_threads() threads (AGNOSTOS_RENDER_THREADS)
-            threads = render_threads()
-            key: tuple = ("cpu", spec.height, spec.width, threads)
-            if key not in self._renderers:
-                self._renderers[key] = cpu_renderer(model, spec.width, spec.height, samples=0,
-                                                    threads=threads)
-        else:
-            key = self._warp_key(spec, nworld)
-            if key not in self._renderers:
-                self._renderers[key] = WarpRenderer(
-                    model, nworld, spec.width, spec.height, cameras=spec.cameras,
-                    depth=spec.needs_depth, segmentation=spec.wants("segmentation"))
+        threads = render_threads()
+        key: tuple = ("cpu", spec.height, spec.width, threads)
+        if key not in self._renderers:
+            self._renderers[key] = cpu_renderer(self.scene.model, spec.width, spec.height,
+                                                samples=0, threads=threads)
+        return self._renderers[key]
+
+    def warp_renderer(self, spec: ObservationSpec, nworld: int) -> Any:
+        """The cached MJX-Warp renderer of `spec` for `nworld` worlds."""
+        from agnostos_mjx.render import WarpRenderer
+
+        key = self._warp_key(spec, nworld)
+        if key not in self._renderers:
+            self._renderers[key] = WarpRenderer(
+                self.scene.model, nworld, spec.width, spec.height, cameras=spec.cameras,
+                depth=spec.needs_depth, segmentation=spec.wants("segmentation"))
         return self._renderers[key]
 
     def render_views(self, state: EnvState, spec: ObservationSpec) -> dict[str, Any]:
         """The raw images of `spec` for every world of `state` (no point clouds yet)."""
         p = state.physics
-        kind = self.renderer_kind(spec)
-        renderer = self.renderer(spec, kind, len(p.qpos))
-        if kind == "warp":
+        if self.route(spec).on_device:
+            renderer = self.warp_renderer(spec, len(p.qpos))
             return renderer.state_views(p.qpos, p.mocap_pos, p.mocap_quat,
                                         jnp.asarray(state.geom_rgba, jnp.float32))
-        return self._cpu_views(renderer, state, spec)
+        return self._cpu_views(self.cpu_renderer(spec), state, spec)
 
     def _cpu_views(self, renderer: Any, state: EnvState, spec: ObservationSpec
                    ) -> dict[str, Any]:
@@ -127,7 +131,7 @@ class Observer:
         p = state.physics
         n = len(p.qpos)
         nworld = self._warp_worlds(spec, n)
-        renderer = self.renderer(spec, "warp", nworld)
+        renderer = self.warp_renderer(spec, nworld)
         constants = camera_constants(self.scene.model, spec)
         key = (spec, nworld)
         if key not in self._programs:
@@ -188,7 +192,7 @@ class Observer:
     def observe(self, state: EnvState, spec: ObservationSpec) -> RLBenchObservation:
         """Render and assemble `spec`'s observation of every world of `state`."""
         t = time.perf_counter()
-        if self.renderer_kind(spec) == "warp":
+        if self.route(spec).on_device:
             cameras = self._warp_cameras(state, spec)
             self.frames += state.batch * len(spec.cameras)
         else:
