@@ -225,3 +225,44 @@ def test_every_task_renders_on_the_warp_route(name: str) -> None:
         rgb, depth = np.asarray(obs.cameras[cam].rgb), np.asarray(obs.cameras[cam].depth)
         assert rgb.shape == (2, 16, 16, 3) and rgb.std() > 0, (name, cam)  # a scene, not blank
         assert np.isfinite(depth).all() and (depth > 0).all(), (name, cam)
+
+
+@pytest.mark.parametrize("pinned", [None, True, False])
+def test_to_numpy_through_pinned_memory_equals_device_get(pinned) -> None:
+    """A numpy policy's images on the GPU route come through pinned host memory
+    (infra.host_copy); every path gives device_get's numpy arrays, leaves that are not JAX
+    arrays kept.  Here on the CPU, where None takes device_get and True the pinned path."""
+    from agnostos_mjx.infra import host_copy
+
+    tree = {"rgb": jnp_arange((2, 3, 4, 3), np.uint8), "depth": jnp_arange((2, 3, 4), np.float32),
+            "none": None, "host": np.ones(2), "k": 3}
+    assert not host_copy._pinned_here(tree["rgb"])  # CPU arrays: not worth the move
+    out, ref = host_copy.to_numpy(tree, pinned), jax.device_get(tree)
+    assert out.keys() == ref.keys() and out["none"] is None and out["k"] == 3
+    for key in ("rgb", "depth", "host"):
+        assert isinstance(out[key], np.ndarray) and out[key].dtype == ref[key].dtype
+        np.testing.assert_array_equal(out[key], ref[key])
+
+
+def jnp_arange(shape: tuple[int, ...], dtype: type) -> jax.Array:
+    return jax.numpy.arange(int(np.prod(shape))).reshape(shape).astype(dtype)
+
+
+def test_to_numpy_falls_back_when_pinned_memory_is_refused(monkeypatch, caplog) -> None:
+    """A runtime that refuses the move to pinned memory costs one warning, then every copy
+    takes device_get: the observation still arrives, equal."""
+    import logging
+
+    from agnostos_mjx.infra import host_copy
+
+    def refuse(*_args, **_kw):
+        raise RuntimeError("no pinned_host here")
+
+    monkeypatch.setattr(host_copy, "_pinned_failed", False)
+    monkeypatch.setattr(host_copy.jax, "device_put", refuse)
+    x = jnp_arange((2, 3), np.uint8)
+    with caplog.at_level(logging.WARNING, logger="agnostos_mjx.infra.host_copy"):
+        for _ in range(2):
+            np.testing.assert_array_equal(host_copy.to_numpy({"x": x}, pinned=True)["x"],
+                                          np.asarray(x))
+    assert len(caplog.records) == 1 and "no pinned_host here" in caplog.records[0].getMessage()

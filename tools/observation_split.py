@@ -4,7 +4,8 @@ On one task's batch (native physics, the states of --steps dense control steps t
 the gripper still), times the start (imports, Warp's start, the renderer's build, the first
 observation) and then, per call averaged over the states: the evaluator's observation as
 numpy and as device arrays, the bare renderer from a state (pose, BVH refit, trace), the
-images unpacked, and the host-side pieces (proprioception, state to the device).  Needs a
+images unpacked, their copy to numpy (device_get against pinned host memory), and the
+host-side pieces (proprioception, state to the device).  Needs a
 CUDA GPU and warp-lang.  A profile, not a test.
 
     python tools/observation_split.py --json split.json
@@ -111,6 +112,15 @@ def main(argv: list[str] | None = None) -> int:
         {k: c.rgb for k, c in runner.observe(s, on_device).cameras.items()}))
     per_call("bare_renderer", lambda s: renderer.state_buffers(*state(s), rgba(s)))
     per_call("images_unpacked", lambda s: renderer.state_views(*state(s), rgba(s)))
+    # The images' copy to numpy, device_get against pinned host memory (what the numpy
+    # observation takes on a GPU), each from a fresh copy: device_get caches its result.
+    from agnostos_mjx.infra.host_copy import to_numpy
+
+    images = {k: c.rgb for k, c in runner.observe(states[0], on_device).cameras.items()}
+    fresh = jax.jit(lambda t: jax.tree.map(lambda x: x + 0, t))
+    per_call("images_fresh_copy", lambda s: jax.block_until_ready(fresh(images)))
+    per_call("images_device_get", lambda s: jax.device_get(fresh(images)))
+    per_call("images_pinned_host", lambda s: to_numpy(fresh(images), pinned=True))
     per_call("proprioception", lambda s: runner.observer.proprioception(s))
     per_call("qpos_to_device", lambda s: jax.block_until_ready(
         jnp.asarray(s.physics.qpos, jnp.float32)))

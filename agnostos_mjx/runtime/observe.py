@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from agnostos_mjx.infra.host_copy import to_numpy
 from agnostos_mjx.physics.capabilities import RenderRoute
 from agnostos_mjx.runtime.observation import (
     CAMERA_ARRAYS,
@@ -147,8 +148,8 @@ class Observer:
             self._programs[key] = jax.jit(observe_all)
         state_arrays = pad((p.qpos, p.mocap_pos, p.mocap_quat, state.geom_rgba), nworld)
         arrays = captured(self._programs[key], *state_arrays)
-        if spec.numpy:  # one transfer for all: an np.asarray per array waits once each
-            arrays = jax.device_get(arrays)
+        if spec.numpy:  # through pinned host memory, all arrays at once
+            arrays = to_numpy(arrays)
         if nworld != n:
             arrays = jax.tree.map(lambda x: x[:n], arrays)
         return {name: CameraObservation(intrinsics=k, near=near, far=far, **arrays[name])
