@@ -27,6 +27,8 @@
 #                GPU), detached (train/vla_gpu.sh train); poll shows its progress
 #   vla_eval1    the VLA on GPU 0: seen + unseen as one run, 16 processes, --compare RVT2
 #   vla_eval     the VLA: seen tasks on GPU 0, unseen on GPU 1, at once, 10 processes each
+#   lerobot      lerobot-eval through the plug-in, OpenGL against MJX-Warp
+#                (eval/reports/lerobot_eval_h200/bench.py; after gpu_setup.sh lerobot1, lerobot2)
 # Every main job is python -m agnostos_mjx.eval --batch 75 --resume --quiet --compare "X-ICM 7B"
 # plus the stage's flags, into $R/main_LABEL (at most LIMIT_S s; rerun to resume); its wall
 # goes to $OUT/walls.txt and its folder, as a .tgz, to $OUT.
@@ -110,6 +112,10 @@ case "$1" in
       XLA_PYTHON_CLIENT_PREALLOCATE=false setsid nohup taskset -c $cpus bash train/vla_gpu.sh train \
       > $R/vla_bg.log 2>&1 < /dev/null &)
     sleep 20; poll ;;
+  lerobot)
+    HF_HUB_OFFLINE=1 HF_HOME=$R/hf python3 eval/reports/lerobot_eval_h200/bench.py \
+      --dataset /tmp/lrw/agnostos_seen --out $R/lerobot --lerobot-eval /tmp/lerobot-eval 2>&1 | quiet | tail -8
+    cp $R/lerobot/results.json $OUT/lerobot_results.json ;;
   poll) poll ;;
   warmup) warmup; poll ;;
   kbuild)

@@ -14,6 +14,14 @@
 #                   and the other wheels with `whl`)
 #   carry .warp/pK  bash tools/gpu_setup.sh K [N]  part K of warp-lang (K = 0..N, N = 3 by
 #                                                  default); the last part assembles it
+#   carry .lrw/s .lrw/a1  bash tools/gpu_setup.sh lerobot1   lerobot-eval's wheels the image lacks,
+#   carry .lrw/a2         bash tools/gpu_setup.sh lerobot2   then install them (and /tmp/lerobot-eval)
+#                  .lrw/s: pip download --no-deps --only-binary=:all: --python-version 3.12 -d .lrw/s
+#                  lerobot==0.6.1 draccus==0.11.6 mergedeep toml gymnasium==1.4.0
+#                  farama-notifications termcolor datasets==4.8.5 dill multiprocess pytz;
+#                  pip wheel --no-deps -w .lrw/s ./lerobot_env_agnostos; an export in
+#                  .lrw/s/agnostos_seen (eval/reports/lerobot_eval_h200); .lrw/a1, .lrw/a2: the
+#                  av 15.1.0 wheel (40 MB), split -n 2 -d WHEEL av_part_, one part in each
 # Native-only work (no warp backend) needs the first call only. Then
 # export PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl (tools/gpu_runs.sh and
 # train/vla_gpu.sh do).  Making the carried folders (on this machine, all ignored):
@@ -54,5 +62,15 @@ case "$1" in
       cat /tmp/w/part_* | xz -d | tar xf - -C /tmp/site
       PYTHONPATH=/tmp/site python3 -c "import warp, mujoco.mjx; warp.init(); print('warp', warp.__version__, 'CUDA devices', warp.get_cuda_device_count())"
     fi ;;
-  *) echo "usage: bash tools/gpu_setup.sh base|gl|whl|K [N]" >&2; exit 2 ;;
+  lerobot1) mkdir -p /tmp/lrw && cp -r .lrw/s/* .lrw/a1/* /tmp/lrw/ ;;
+  lerobot2)
+    cp .lrw/a2/* /tmp/lrw/ && cat /tmp/lrw/av_part_* > /tmp/lrw/av-15.1.0-cp312-cp312-manylinux_2_28_x86_64.whl
+    rm /tmp/lrw/av_part_*
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+      /tmp/lrw/*.whl 2>&1 | grep -v "already exists" || true
+    # pip's --target keeps an existing bin/: the command as a script of its own
+    printf '#!/bin/sh\nexec python3 -c "import sys; from lerobot.scripts.lerobot_eval import main; sys.argv[0]=\\"lerobot-eval\\"; sys.exit(main())" "$@"\n' > /tmp/lerobot-eval
+    chmod +x /tmp/lerobot-eval
+    PYTHONPATH=/tmp/site python3 -c "import lerobot, torch, av, datasets; print('lerobot', lerobot.__version__, 'torch', torch.__version__, torch.cuda.is_available())" ;;
+  *) echo "usage: bash tools/gpu_setup.sh base|gl|whl|K [N]|lerobot1|lerobot2" >&2; exit 2 ;;
 esac
