@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 
 from agnostos_mjx.policies.base import Round
+from agnostos_mjx.policies.demo_selection import demo_selection, queries_for, warm_selection
 from agnostos_mjx.policies.learned_options import RetrievalOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
-from agnostos_mjx.policies.xicm import demo_selection, queries_for, warm_selection
 from agnostos_mjx.sim.control import ACTION_BOUNDS
 
 

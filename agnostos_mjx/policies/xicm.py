@@ -25,59 +25,19 @@ from agnostos_mjx.llm.client import (
 )
 from agnostos_mjx.llm.server import context_advice
 from agnostos_mjx.policies.base import Round
-from agnostos_mjx.policies.learned_options import RetrievalOptions, XicmOptions
+from agnostos_mjx.policies.demo_selection import demo_selection, queries_for, warm_selection
+from agnostos_mjx.policies.learned_options import XicmOptions
 from agnostos_mjx.policies.planning import PlanningPolicy, PlanResult
 from agnostos_mjx.runtime.observation import CAMERAS, ObservationSpec
 from agnostos_mjx.sim.textualise import decode_action
-from agnostos_mjx.xicm.memory import DemoMemory, default_memory_path
 from agnostos_mjx.xicm.prompt import messages, parse_actions
 from agnostos_mjx.xicm.scene_text import query_texts, segmented_object_voxels
-from agnostos_mjx.xicm.selection import Query, Selector, make_selector, resolve_selection
 
 log = logging.getLogger("agnostos_mjx.xicm")
 
 # X-ICM's cameras and resolution (xicm_reference.md 3): what its object positions come from.
 SEGMENTED_SPEC = ObservationSpec(cameras=CAMERAS, height=128, width=128,
                                  modalities=("point_cloud", "segmentation"))
-
-
-QUERY_FRAME = 128  # pixels: the front frame a selection query renders
-
-
-def needs_frames(selection: str) -> bool:
-    return "vis" in selection
-
-
-def demo_selection(options: RetrievalOptions) -> tuple[DemoMemory, str, Selector]:
-    """(the seen-demo memory, the resolved selection, its selector) of the options that
-    retrieval and X-ICM share."""
-    memory = DemoMemory.load(options.memory or default_memory_path())
-    selection = resolve_selection(options.selection, memory)
-    return memory, selection, make_selector(selection, memory, sample_steps=options.sample_steps)
-
-
-def warm_selection(options: RetrievalOptions) -> bool:
-    """The demo selection's programs, compiled with one query of a blank front frame: its
-    networks run at one batch shape whatever the task, batch or frame
-    (dynamics/batching.py), so this is every program the selection will run.  Built from
-    the options alone: no LLM is asked (X-ICM shares retrieval's selection)."""
-    _, selection, selector = demo_selection(options)
-    frame = np.zeros((QUERY_FRAME, QUERY_FRAME, 3), np.uint8) if needs_frames(selection) \
-        else None
-    selector.select([Query("press the button", 0, frame)], 1)
-    return True
-
-
-def queries_for(policy: PlanningPolicy, view: Round, worlds: np.ndarray, selection: str
-                ) -> list[Query]:
-    """Selection queries of the worlds being (re)planned: instruction, a seed
-    per (episode, replan) and, for dynamics features, the current front frame."""
-    frames = None
-    if needs_frames(selection):  # only the worlds being replanned
-        frames = view.episodes.render(view.env, "front", QUERY_FRAME, QUERY_FRAME,
-                                      worlds=worlds)
-    return [Query(policy.instructions[w], policy.plan_seed(w),
-                  None if frames is None else frames[i]) for i, w in enumerate(worlds)]
 
 
 class XICMPolicy(PlanningPolicy):
