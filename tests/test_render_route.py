@@ -207,6 +207,37 @@ def test_padded_warp_observation_equals_the_direct_one() -> None:
             np.testing.assert_array_equal(got, np.asarray(getattr(full.cameras[cam], field))[1:])
 
 
+@pytest.mark.slow  # Warp's kernels build for its CPU backend (minutes on a fresh machine)
+def test_ended_worlds_look_the_same_on_both_routes() -> None:
+    """A world that has ended gets the same blank observation from MJX-Warp as from
+    OpenGL (every modality and the camera pose); the running worlds keep their images."""
+    pytest.importorskip("warp")
+    from agnostos_mjx.runtime.env import Episodes
+    from agnostos_mjx.tasks import get_task
+
+    spec = ob.ObservationSpec(cameras=("front", "wrist"), height=16, width=16,
+                              modalities=("rgb", "depth", "point_cloud", "segmentation"))
+    obs = {}
+    for route in ("warp", "cpu"):
+        runner = Episodes(get_task("lamp_on"), "native", renderer=route)
+        env = runner.reset(jax.random.split(jax.random.PRNGKey(0), 3), np.zeros(3, np.int32))
+        ended = replace(env, outcome=np.array([Outcome.RUNNING, Outcome.SUCCESS,
+                                               Outcome.RUNNING], np.int32))
+        try:
+            obs[route] = (runner.observe(env, spec), runner.observe(ended, spec))
+        except RuntimeError as err:  # no headless GL
+            pytest.skip(str(err))
+        runner.close()
+    for cam in spec.cameras:
+        for field in ("rgb", "depth", "point_cloud", "segmentation", "extrinsics"):
+            warp_whole, warp_part = (np.asarray(getattr(o.cameras[cam], field))
+                                     for o in obs["warp"])
+            cpu_part = np.asarray(getattr(obs["cpu"][1].cameras[cam], field))
+            np.testing.assert_array_equal(warp_part[1], cpu_part[1], err_msg=f"{cam} {field}")
+            np.testing.assert_array_equal(warp_part[[0, 2]], warp_whole[[0, 2]])
+        assert np.asarray(obs["warp"][0].cameras[cam].rgb)[1].any()  # rendered while running
+
+
 @pytest.mark.slow  # 41 scenes' render contexts (Warp's CPU backend where warp-lang is installed)
 @pytest.mark.parametrize("name", sorted(SEEN + UNSEEN_LEVEL1 + UNSEEN_LEVEL2))
 def test_every_task_renders_on_the_warp_route(name: str) -> None:

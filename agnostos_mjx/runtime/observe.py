@@ -32,6 +32,26 @@ from agnostos_mjx.tasks.base import Task
 GRIPPER_OPEN_THRESHOLD = 0.95  # PerAct fork: gripper_open = open amount > 0.95
 
 
+# What a world that has ended sees on either route, unrendered (its depth: the far plane).
+BLANK = {"pos": 0.0, "mat": np.eye(3), "rgb": 0, "segmentation": -1}
+
+
+def blank_ended(view: Any, live: Any, far: float) -> Any:
+    """`view` (device CameraImages of B worlds) with the worlds that have ended (`live`
+    False) blank, as the CPU route leaves them: the same look on both routes."""
+    from agnostos_mjx.render import CameraImages
+
+    def keep(x: Any, blank: Any) -> Any:
+        if x is None:
+            return None
+        mask = live.reshape(live.shape + (1,) * (x.ndim - 1))
+        return jnp.where(mask, x, jnp.asarray(blank, x.dtype))
+
+    return CameraImages(pos=keep(view.pos, BLANK["pos"]), mat=keep(view.mat, BLANK["mat"]),
+                        rgb=keep(view.rgb, BLANK["rgb"]), depth=keep(view.depth, far),
+                        segmentation=keep(view.segmentation, BLANK["segmentation"]))
+
+
 class Observer:
     """Renders and assembles observations of one task's worlds; owns its renderers."""
 
@@ -81,20 +101,21 @@ class Observer:
         return self._renderers[key]
 
     def render_views(self, state: EnvState, spec: ObservationSpec) -> dict[str, Any]:
-        """The raw images of `spec` for every world of `state` (no point clouds yet)."""
+        """The raw images of `spec` for every world of `state` on its route (no point
+        clouds yet; the tools that compare the routes and time the bare renderer use it)."""
         p = state.physics
         if self.route(spec).on_device:
             renderer = self.warp_renderer(spec, len(p.qpos))
             return renderer.state_views(p.qpos, p.mocap_pos, p.mocap_quat,
                                         jnp.asarray(state.geom_rgba, jnp.float32))
-        return self._cpu_views(self.cpu_renderer(spec), state, spec)
+        return self._cpu_views(state, spec)
 
-    def _cpu_views(self, renderer: Any, state: EnvState, spec: ObservationSpec
-                   ) -> dict[str, Any]:
+    def _cpu_views(self, state: EnvState, spec: ObservationSpec) -> dict[str, Any]:
         """The CPU renderer's images of the worlds still running; a world that has ended
         acts no more, so it gets blank images (and an identity camera pose) unrendered."""
         from agnostos_mjx.render import CameraImages, clip_planes
 
+        renderer = self.cpu_renderer(spec)
         p = state.physics
         rows = np.nonzero(~np.asarray(state.done, bool))[0]
         rgba = state.geom_rgba
@@ -116,9 +137,10 @@ class Observer:
             return out
 
         far = clip_planes(self.scene.model)[1]
-        return {name: CameraImages(pos=scatter(v.pos, 0.0), mat=scatter(v.mat, np.eye(3)),
-                                   rgb=scatter(v.rgb, 0), depth=scatter(v.depth, far),
-                                   segmentation=scatter(v.segmentation, -1))
+        return {name: CameraImages(pos=scatter(v.pos, BLANK["pos"]),
+                                   mat=scatter(v.mat, BLANK["mat"]),
+                                   rgb=scatter(v.rgb, BLANK["rgb"]), depth=scatter(v.depth, far),
+                                   segmentation=scatter(v.segmentation, BLANK["segmentation"]))
                 for name, v in views.items()}
 
     def _warp_cameras(self, state: EnvState, spec: ObservationSpec
@@ -136,17 +158,21 @@ class Observer:
         constants = camera_constants(self.scene.model, spec)
         key = (spec, nworld)
         if key not in self._programs:
-            def observe_all(qpos: Any, mocap_pos: Any, mocap_quat: Any,
-                            rgba: Any) -> dict[str, dict[str, Any]]:
+            blank_far = renderer.far
+
+            def observe_all(qpos: Any, mocap_pos: Any, mocap_quat: Any, rgba: Any,
+                            live: Any) -> dict[str, dict[str, Any]]:
                 views = renderer.views(renderer.pose(qpos, mocap_pos, mocap_quat), rgba)
                 out = {}
                 for name, (k, near, far) in constants.items():
-                    cam = camera_observation(views[name], k, near, far, spec, jnp)
+                    view = blank_ended(views[name], live, blank_far)
+                    cam = camera_observation(view, k, near, far, spec, jnp)
                     out[name] = {f: getattr(cam, f) for f in CAMERA_ARRAYS}
                 return out
 
             self._programs[key] = jax.jit(observe_all)
-        state_arrays = pad((p.qpos, p.mocap_pos, p.mocap_quat, state.geom_rgba), nworld)
+        live = ~np.asarray(state.done, bool)
+        state_arrays = pad((p.qpos, p.mocap_pos, p.mocap_quat, state.geom_rgba, live), nworld)
         arrays = captured(self._programs[key], *state_arrays)
         if spec.numpy:  # through pinned host memory, all arrays at once
             arrays = to_numpy(arrays)
@@ -197,7 +223,7 @@ class Observer:
             cameras = self._warp_cameras(state, spec)
             self.frames += state.batch * len(spec.cameras)
         else:
-            views = self.render_views(state, spec)
+            views = self._cpu_views(state, spec)
             cameras = {name: camera_observation(views[name], k, near, far, spec)
                        for name, (k, near, far) in camera_constants(self.scene.model,
                                                                      spec).items()}
