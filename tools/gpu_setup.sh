@@ -1,7 +1,9 @@
 #!/bin/bash
 # Install the carried packages on the lent GPU machine, one call each, back to back (the
 # machine is given back after 30 s without a call, and everything installed goes with it).
-# The tree that travels is ~44 MB and a call may carry 64 MiB in all, so ~22 MB per call:
+# The tree that travels is ~40 MB (counted on disk) and a call may carry 64 MiB in all, so
+# ~24 MB per call: a call the device refuses as too large leaves that part uninstalled,
+# and a run's auto route then falls back to OpenGL:
 #   carry .gl .whl  bash tools/gpu_setup.sh base   both of these in one call (22.6 MB: fits
 #                                                  while tree + both stay under 64 MiB as
 #                                                  counted on disk, `du -c`; on 2026-11-26
