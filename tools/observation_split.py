@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     spec = ObservationSpec(cameras=tuple(args.cameras.split(",")), height=args.size,
                            width=args.size, renderer="warp")
     t = time.perf_counter()
-    renderer = runner.observer.renderer(spec, "warp", b)
+    renderer = runner.observer.warp_renderer(spec, b)
     mark("renderer_build", t)
     t = time.perf_counter()
     runner.observe(env, spec)
