@@ -49,3 +49,25 @@ def test_with_warp_installed_stdout_is_left_alone() -> None:
                          timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.endswith("imported\n")
+
+
+def test_mesh_module_loads_when_mjx_jax_first_needs_it() -> None:
+    """MJX's mesh module (trimesh, scipy.spatial) is not executed by the import, which the
+    Warp route makes on its loading thread; MJX-jax's put_model of a scene with meshes
+    still gets their convex hulls."""
+    code = textwrap.dedent("""
+        import sys
+        import mujoco
+        from agnostos_mjx.physics.quiet_mjx import mjx
+        print("at import", "trimesh" in sys.modules, "scipy.spatial" in sys.modules)
+        model = mujoco.MjModel.from_xml_string('''<mujoco>
+          <asset><mesh name="t" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/></asset>
+          <worldbody><geom type="plane" size="1 1 .1"/>
+            <body><freejoint/><geom type="mesh" mesh="t"/></body></worldbody></mujoco>''')
+        hull = mjx.put_model(model, impl="jax")._impl.mesh_convex[0]
+        print("after put_model", "trimesh" in sys.modules, len(hull.vert))
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.splitlines()[-2:] == ["at import False False", "after put_model True 4"]
