@@ -36,7 +36,7 @@ from agnostos_mjx.physics.base import (
     keep_rows,
 )
 from agnostos_mjx.physics.capabilities import CAPABILITIES
-from agnostos_mjx.physics.quiet_mjx import mjx
+from agnostos_mjx.physics.quiet_mjx import load_mesh_module, mjx
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,8 @@ class MjxBackend:
             from mujoco.mjx.warp import types as warp_types
 
             options["graph_mode"] = getattr(warp_types.GraphMode, graph_mode)
+        else:
+            load_mesh_module()  # MJX-jax's put_model converts the scene's meshes
         self.mx = mjx.put_model(model, impl=impl, **options)
         self.contacts_per_world = contacts_per_world
         self.constraints_per_world = constraints_per_world

@@ -21,6 +21,7 @@ import importlib.machinery
 import importlib.util
 import io
 import sys
+import threading
 from typing import Any
 
 from agnostos_mjx.infra.gc_pause import gc_paused
@@ -43,6 +44,17 @@ class _LazyMeshFinder(importlib.abc.MetaPathFinder):
         if spec is not None and spec.loader is not None:
             spec.loader = importlib.util.LazyLoader(spec.loader)
         return spec
+
+
+_mesh_lock = threading.Lock()
+
+
+def load_mesh_module() -> None:
+    """Execute MJX's mesh module now, once: MJX-jax's put_model calls this first.  Python
+    3.11's LazyLoader is not safe when two threads use a module first at once (MJX-jax
+    backends built on tasks' threads), so the first use is made here, under a lock."""
+    with _mesh_lock:
+        getattr(sys.modules.get(MESH_MODULE), "__file__", None)
 
 
 def _import_quietly():
