@@ -1,5 +1,6 @@
 """The measuring tools the performance reports cite (tools/task_cost.py, thread_cpu.py,
-rollout_threads.py, sample_threads.py) give what their docstrings say."""
+rollout_threads.py, sample_threads.py, records_diff.py, observation_split.py) give what their
+docstrings say."""
 
 from __future__ import annotations
 
@@ -164,3 +165,58 @@ def test_sample_threads_summarises_py_spy_samples(tmp_path: Path) -> None:
                               "--py-spy", str(tmp_path / "none.txt")],
                              capture_output=True, text=True, timeout=60)
     assert missing.returncode == 2 and "no such file" in missing.stderr
+
+
+def _episode(task: str, episode: int, **fields) -> dict:
+    return {"task": task, "seed": 0, "episode": episode, "success": False, "wall_s": 1.0,
+            "llm": {"latency_ms": 3.0, "requests": 1}, **fields}
+
+
+def _write_run(folder: Path, records: list[dict], gz: bool = False) -> Path:
+    import gzip
+
+    folder.mkdir()
+    text = "".join(json.dumps(r) + "\n" for r in records)
+    if gz:
+        (folder / "episodes.jsonl.gz").write_bytes(gzip.compress(text.encode()))
+    else:
+        (folder / "episodes.jsonl").write_text(text)
+    return folder
+
+
+def test_records_diff_counts_identical_and_differing_episodes(tmp_path: Path, capsys) -> None:
+    """Timing (wall_s, *_s, latencies) never counts; a field only one side has is named, not
+    counted; any other difference is, with the fields named, and the exit is 1; a report's
+    gzipped records read the same."""
+    diff = _tool("records_diff")
+    a = _write_run(tmp_path / "a", [_episode("lamp_on", 0), _episode("lamp_on", 1)])
+    b = _write_run(tmp_path / "b", [_episode("lamp_on", 0, wall_s=9.0, new_field=1),
+                                    _episode("lamp_on", 1, llm={"latency_ms": 7.0,
+                                                                "requests": 1})], gz=True)
+    assert diff.main([str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert "2 episodes in both, 2 identical, 0 differ" in out
+    assert "fields on one side only: new_field" in out
+
+    c = _write_run(tmp_path / "c", [_episode("lamp_on", 0, success=True),
+                                    _episode("lamp_on", 2)])
+    assert diff.main([str(a), str(c)]) == 1
+    out = capsys.readouterr().out
+    assert "1 episodes in both, 0 identical, 1 differ, 1 only in A, 1 only in B" in out
+    assert "('lamp_on', 0, 0): ['success']" in out
+
+
+@pytest.mark.slow  # Warp's kernels build for its CPU backend (minutes on a fresh machine)
+def test_observation_split_times_every_call_on_warps_cpu_backend(tmp_path: Path) -> None:
+    """The GPU route's profile runs where warp-lang is installed (here on Warp's CPU
+    backend), so a renamed call in the route breaks this test, not a GPU session."""
+    pytest.importorskip("warp")
+    out = tmp_path / "split.json"
+    run = subprocess.run([sys.executable, str(TOOLS / "observation_split.py"), "--batch", "2",
+                          "--steps", "2", "--size", "16", "--cameras", "front", "--warp-cpu",
+                          "--json", str(out)], capture_output=True, text=True, timeout=1200)
+    assert run.returncode == 0, run.stderr[-2000:]
+    figures = json.loads(out.read_text())
+    for name in ("observation_numpy", "observation_device", "bare_renderer",
+                 "images_device_get", "images_pinned_host"):
+        assert figures[f"{name}_ms"] > 0, name

@@ -6,7 +6,8 @@ observation) and then, per call averaged over the states: the evaluator's observ
 numpy and as device arrays, the bare renderer from a state (pose, BVH refit, trace), the
 images unpacked, their copy to numpy (device_get against pinned host memory), and the
 host-side pieces (proprioception, state to the device).  Needs a
-CUDA GPU and warp-lang.  A profile, not a test.
+CUDA GPU and warp-lang (`--warp-cpu`: Warp's CPU backend, which checks the tool only).  A
+profile, not a test.
 
     python tools/observation_split.py --json split.json
     python tools/observation_split.py --task close_microwave --batch 1024
@@ -15,6 +16,7 @@ CUDA GPU and warp-lang.  A profile, not a test.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 import time
@@ -34,6 +36,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=30,
                    help="dense control steps whose states are observed (each timed once)")
     p.add_argument("--json", type=Path, help="also write the figures here")
+    p.add_argument("--warp-cpu", action="store_true",
+                   help="without a CUDA GPU, run on Warp's CPU backend (checks the tool, "
+                        "its figures say nothing of a GPU)")
     args = p.parse_args(argv)
     if min(args.batch, args.size, args.steps) < 1:
         p.error("--batch, --size and --steps must be at least 1")
@@ -62,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {out[f'{name}_s']} s", flush=True)
 
     mark("imports", t_start)
-    if not warp_available():
-        print("needs a CUDA GPU and warp-lang", file=sys.stderr)
+    if not (warp_available() or (args.warp_cpu and importlib.util.find_spec("warp"))):
+        print("needs a CUDA GPU and warp-lang (or --warp-cpu and warp-lang)", file=sys.stderr)
         return 2
     b = args.batch
     t = time.perf_counter()
