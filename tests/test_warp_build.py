@@ -93,12 +93,10 @@ def test_warmup_builds_the_tasks_kernels() -> None:
 def test_warmup_command_builds_kernels_in_processes(capsys) -> None:
     """The command's kernel step: --kernel-jobs processes, each its share, one result."""
     pytest.importorskip("warp")
-    import argparse
-
     from agnostos_mjx import warmup
 
-    args = argparse.Namespace(tasks="lamp_on", backend="warp", batch=2, planner="auto",
-                              kernel_jobs=2)
+    args = warmup.parse_args(["--tasks", "lamp_on", "--backend", "warp", "--batch", "2",
+                              "--kernel-jobs", "2"])  # the command's own flags, as it has them
     result = warmup.build_kernels_in_parallel(args)
     assert result.get("parts") == 2 and result["modules"] > 0, result
 
