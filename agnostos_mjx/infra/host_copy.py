@@ -29,8 +29,8 @@ def _has_pinned(device: Any) -> bool:
         return False
 
 
-def _pinned_here(x: Any) -> bool:
-    return (isinstance(x, jax.Array) and x.sharding.memory_kind != PINNED
+def _pinned_here(x: jax.Array) -> bool:
+    return (x.sharding.memory_kind != PINNED
             and all(d.platform == "gpu" and _has_pinned(d) for d in x.sharding.device_set))
 
 
